@@ -1,0 +1,258 @@
+"""Edge types: a vectorised error, optional analytic Jacobians, information and robust kernel.
+
+An edge *type* (a subclass of :class:`BaseEdge`) declares its error dimension, the types of its
+vertices and a batched :meth:`BaseEdge.error` over **all edges of a group at once** (arrays
+whose first axis runs over edges). Analytic Jacobians are optional: without them a vectorised
+central-difference Jacobian is used (:func:`graphopt.numeric.numeric_jacobians`).
+
+Instances are the per-object front of g2o's API; the optimizer copies them into arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from graphopt.vertex import BaseVertex
+
+if TYPE_CHECKING:
+    from graphopt.robust_kernel import RobustKernel
+
+
+@dataclass
+class EdgeContext:
+    """What a batched ``error``/``jacobians`` call sees besides estimates and measurements.
+
+    Args:
+        params: Shared parameters of the edge group (camera intrinsics, images, ...), as given to
+            ``add_edges(..., params=...)``; ``None`` by default.
+        data: Per-edge auxiliary arrays (first axis over the edges of the call), as given to
+            ``add_edges(..., data={...})``.
+        active: An edge may set this to a boolean mask ``(m,)`` of edges that are active in this
+            evaluation (e.g. a projection inside the image). Inactive edges must return zero
+            error and zero Jacobians; the optimizer counts them.
+    """
+
+    params: Any = None
+    data: dict[str, np.ndarray] = field(default_factory=dict)
+    active: np.ndarray | None = None
+
+    def subset(self, index: np.ndarray | slice) -> EdgeContext:
+        """A context restricted to some edges.
+
+        Args:
+            index: Edge indices or slice.
+        """
+        return EdgeContext(self.params, {k: v[index] for k, v in self.data.items()})
+
+
+class BaseEdge:
+    """Base class of all edge types.
+
+    Subclasses set ``dimension`` (error dimension), ``vertex_types`` (one vertex class per
+    position) and optionally ``measurement_shape`` (default ``(dimension,)``), and implement
+    :meth:`error`; optionally :meth:`jacobians` or :meth:`linearize` (analytic Jacobians).
+
+    Args:
+        vertices: The vertices (objects or ids), one per entry of ``vertex_types``.
+        measurement: The measurement, shape ``measurement_shape``.
+        information: ``(dimension, dimension)`` information matrix (identity by default).
+        robust_kernel: A :class:`~graphopt.robust_kernel.RobustKernel` or ``None``.
+        params: Shared parameters for the edge's group (see :class:`EdgeContext`).
+        data: Per-edge auxiliary values (scalars or arrays), see :class:`EdgeContext`.
+    """
+
+    dimension: ClassVar[int] = 0
+    vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = ()
+    measurement_shape: ClassVar[tuple[int, ...] | None] = None
+    #: Central-difference step for the numeric Jacobian.
+    numeric_step: ClassVar[float] = 1e-6
+
+    # --- the batched type interface --------------------------------------------------------
+
+    @classmethod
+    def error(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """Errors of many edges at once.
+
+        Args:
+            x: One array per vertex position: ``(m, *estimate_shape)`` estimates.
+            measurement: ``(m, *measurement_shape)`` measurements.
+            ctx: Parameters and per-edge data, see :class:`EdgeContext`.
+
+        Returns:
+            ``(m, dimension)`` errors.
+        """
+        raise NotImplementedError
+
+    @classmethod
+    def jacobians(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, ...]:
+        """Analytic Jacobians of the error w.r.t. each vertex's tangent increment.
+
+        Not implemented by default, which selects the numeric Jacobian.
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Returns:
+            One ``(m, dimension, vertex_type.dimension)`` array per vertex position.
+        """
+        raise NotImplementedError
+
+    @classmethod
+    def has_analytic_jacobians(cls) -> bool:
+        """True if the type overrides :meth:`jacobians` or :meth:`linearize`."""
+        return (
+            cls.jacobians.__func__ is not BaseEdge.jacobians.__func__  # type: ignore[attr-defined]
+            or cls.linearize.__func__ is not BaseEdge.linearize.__func__  # type: ignore[attr-defined]
+        )
+
+    @classmethod
+    def linearize(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """Error and Jacobians together (override to share intermediate results).
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Returns:
+            ``(error, jacobians)`` as returned by :meth:`error` and :meth:`jacobians`.
+        """
+        from graphopt.numeric import numeric_jacobians
+
+        e = cls.error(x, measurement, ctx)
+        active = ctx.active
+        try:
+            jac = cls.jacobians(x, measurement, ctx)
+        except NotImplementedError:
+            jac = numeric_jacobians(cls, x, measurement, ctx)
+        ctx.active = active
+        return e, jac
+
+    @classmethod
+    def get_measurement_shape(cls) -> tuple[int, ...]:
+        """The shape of one measurement."""
+        return cls.measurement_shape if cls.measurement_shape is not None else (cls.dimension,)
+
+    # --- per-object front ------------------------------------------------------------------
+
+    def __init__(
+        self,
+        vertices: Sequence[BaseVertex | int] | None = None,
+        measurement: Any = None,
+        information: Any = None,
+        robust_kernel: RobustKernel | None = None,
+        params: Any = None,
+        data: dict[str, Any] | None = None,
+    ) -> None:
+        self._vertices: list[BaseVertex | int | None] = [None] * len(self.vertex_types)
+        if vertices is not None:
+            if len(vertices) != len(self.vertex_types):
+                raise ValueError(
+                    f"{type(self).__name__} takes {len(self.vertex_types)} vertices, "
+                    f"got {len(vertices)}"
+                )
+            self._vertices = list(vertices)
+        self._measurement = None if measurement is None else np.asarray(measurement, float)
+        self._information = None if information is None else np.asarray(information, float)
+        self._robust_kernel = robust_kernel
+        self.params = params
+        self.data = dict(data or {})
+        self._optimizer: Any = None
+        self._group: Any = None
+        self._index = -1
+
+    def set_vertex(self, i: int, vertex: BaseVertex | int) -> None:
+        """Attach the vertex at position ``i``.
+
+        Args:
+            i: Position, ``0 <= i < len(vertex_types)``.
+            vertex: A vertex object or its id.
+        """
+        if not 0 <= i < len(self.vertex_types):
+            raise IndexError(f"{type(self).__name__} has no vertex position {i}")
+        self._vertices[i] = vertex
+
+    def vertex(self, i: int) -> BaseVertex | int | None:
+        """The vertex (or id) at position ``i``.
+
+        Args:
+            i: Position.
+        """
+        return self._vertices[i]
+
+    @property
+    def vertices(self) -> list[BaseVertex | int | None]:
+        """The vertices (or ids) by position."""
+        return list(self._vertices)
+
+    @property
+    def measurement(self) -> np.ndarray | None:
+        """The measurement."""
+        if self._group is not None:
+            return self._group.measurements[self._index].copy()
+        return self._measurement
+
+    def set_measurement(self, z: Any) -> None:
+        """Set the measurement (before the edge is added).
+
+        Args:
+            z: Array of shape ``measurement_shape``.
+        """
+        self._measurement = np.asarray(z, dtype=float)
+
+    @property
+    def information(self) -> np.ndarray:
+        """The information matrix."""
+        if self._group is not None:
+            return self._group.information_of(self._index)
+        if self._information is None:
+            return np.eye(self.dimension)
+        return self._information
+
+    def set_information(self, info: Any) -> None:
+        """Set the information matrix (before the edge is added).
+
+        Args:
+            info: ``(dimension, dimension)`` symmetric positive semi-definite matrix.
+        """
+        self._information = np.asarray(info, dtype=float)
+
+    @property
+    def robust_kernel(self) -> RobustKernel | None:
+        """The robust kernel or ``None``."""
+        if self._group is not None:
+            return self._group.kernel_of(self._index)
+        return self._robust_kernel
+
+    def set_robust_kernel(self, kernel: RobustKernel | None) -> None:
+        """Set the robust kernel.
+
+        Args:
+            kernel: A kernel, or ``None`` for plain least squares.
+        """
+        if self._group is not None:
+            self._group.set_kernel(self._index, kernel)
+        else:
+            self._robust_kernel = kernel
+
+    def chi2(self) -> float:
+        """``e' Ω e`` of this edge at the current estimates (after ``compute_active_errors``)."""
+        if self._group is None:
+            raise ValueError("the edge is not in an optimizer")
+        return float(self._group.last_chi2[self._index])
+
+    def __repr__(self) -> str:
+        ids = [v.id if isinstance(v, BaseVertex) else v for v in self._vertices]
+        return f"{type(self).__name__}(vertices={ids})"

@@ -1,0 +1,184 @@
+"""Vertex types: a manifold estimate with a vectorised ``oplus``.
+
+A vertex *type* (a subclass of :class:`BaseVertex`) declares the shape of one estimate, the
+dimension of its tangent space and ``oplus`` over **all vertices of the type at once**. Instances
+are a thin per-object front (g2o's API) over the optimizer's struct-of-arrays storage.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from graphopt.graph import VertexStore
+
+
+class BaseVertex:
+    """Base class of all vertex types.
+
+    Subclasses set ``dimension`` (tangent dimension) and ``estimate_shape`` (shape of one
+    estimate) and implement :meth:`oplus`. They may override :meth:`validate` to reject estimates
+    that are not on the manifold.
+
+    Args:
+        id: Unique integer id of the vertex within an optimizer.
+        estimate: Initial estimate, of shape ``estimate_shape``.
+        fixed: Whether the vertex is held constant.
+        marginalized: Whether the vertex is eliminated by the Schur complement.
+    """
+
+    dimension: ClassVar[int] = 0
+    estimate_shape: ClassVar[tuple[int, ...]] = ()
+
+    # --- the batched type interface --------------------------------------------------------
+
+    @staticmethod
+    def oplus(estimates: np.ndarray, deltas: np.ndarray) -> np.ndarray:
+        """Apply tangent-space increments to many estimates at once.
+
+        Args:
+            estimates: ``(n, *estimate_shape)`` current estimates.
+            deltas: ``(n, dimension)`` increments.
+
+        Returns:
+            ``(n, *estimate_shape)`` updated estimates (a new array).
+        """
+        raise NotImplementedError
+
+    @classmethod
+    def validate(cls, estimates: np.ndarray) -> np.ndarray:
+        """Return a boolean mask ``(n,)`` of estimates that are valid (finite by default).
+
+        Args:
+            estimates: ``(n, *estimate_shape)`` estimates to check.
+        """
+        flat = estimates.reshape(len(estimates), -1)
+        return np.isfinite(flat).all(axis=1)
+
+    # --- per-object front ------------------------------------------------------------------
+
+    def __init__(
+        self,
+        id: int | None = None,
+        estimate: Any = None,
+        fixed: bool = False,
+        marginalized: bool = False,
+    ) -> None:
+        self._id = None if id is None else int(id)
+        self._estimate = None if estimate is None else np.asarray(estimate, dtype=float)
+        self._fixed = bool(fixed)
+        self._marginalized = bool(marginalized)
+        self._store: VertexStore | None = None
+        self._slot = -1
+
+    @classmethod
+    def _bound(cls, store: VertexStore, slot: int, vid: int) -> BaseVertex:
+        v = cls.__new__(cls)
+        v._id, v._estimate, v._store, v._slot = vid, None, store, slot
+        v._fixed = v._marginalized = False
+        return v
+
+    @property
+    def id(self) -> int:
+        """The vertex id."""
+        if self._id is None:
+            raise ValueError(f"{type(self).__name__} has no id; call set_id() first")
+        return self._id
+
+    def set_id(self, id: int) -> None:
+        """Set the id (before the vertex is added).
+
+        Args:
+            id: Unique integer id.
+        """
+        if self._store is not None:
+            raise ValueError(f"vertex {self._id}: the id cannot change after add_vertex")
+        self._id = int(id)
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """The current estimate (a copy once the vertex lives in an optimizer)."""
+        if self._store is not None:
+            return self._store.estimates[self._slot].copy()
+        if self._estimate is None:
+            raise ValueError(f"vertex {self._id} ({type(self).__name__}) has no estimate")
+        return self._estimate
+
+    @estimate.setter
+    def estimate(self, value: Any) -> None:
+        self.set_estimate(value)
+
+    def set_estimate(self, value: Any) -> None:
+        """Set the estimate.
+
+        Args:
+            value: New estimate of shape ``estimate_shape``.
+        """
+        arr = np.asarray(value, dtype=float)
+        if self._store is not None:
+            self._store.set_estimate(self._slot, arr, self._id)
+        else:
+            self._estimate = arr
+
+    def fixed(self) -> bool:
+        """Whether the vertex is held constant."""
+        return bool(self._store.fixed[self._slot]) if self._store is not None else self._fixed
+
+    def set_fixed(self, fixed: bool = True) -> None:
+        """Hold the vertex constant (or release it).
+
+        Args:
+            fixed: True to fix.
+        """
+        if self._store is not None:
+            self._store.set_flag("fixed", self._slot, fixed)
+        else:
+            self._fixed = bool(fixed)
+
+    def marginalized(self) -> bool:
+        """Whether the vertex is eliminated by the Schur complement."""
+        if self._store is not None:
+            return bool(self._store.marginalized[self._slot])
+        return self._marginalized
+
+    def set_marginalized(self, marginalized: bool = True) -> None:
+        """Eliminate the vertex by the Schur complement (or not).
+
+        Args:
+            marginalized: True to marginalise.
+        """
+        if self._store is not None:
+            self._store.set_flag("marginalized", self._slot, marginalized)
+        else:
+            self._marginalized = bool(marginalized)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(id={self._id})"
+
+
+class VertexVector(BaseVertex):
+    """A Euclidean vertex: ``oplus`` is addition. Subclass and set ``dimension``.
+
+    Args:
+        id: Unique integer id.
+        estimate: Initial estimate, shape ``(dimension,)``.
+        fixed: Whether the vertex is held constant.
+        marginalized: Whether the vertex is eliminated by the Schur complement.
+    """
+
+    @staticmethod
+    def oplus(estimates: np.ndarray, deltas: np.ndarray) -> np.ndarray:
+        """Euclidean update ``x + δ``.
+
+        Args:
+            estimates: ``(n, d)`` estimates.
+            deltas: ``(n, d)`` increments.
+        """
+        return estimates + deltas
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "estimate_shape" not in cls.__dict__:
+            cls.estimate_shape = (cls.dimension,)

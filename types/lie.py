@@ -1,0 +1,187 @@
+"""Batched SO(3)/SE(3) maps used by the vertex and edge types.
+
+All functions take arrays whose leading axis runs over many elements: ``(n, 3)`` vectors,
+``(n, 3, 3)`` rotations, ``(n, 4, 4)`` homogeneous transforms. Small angles use Taylor
+expansions so that nothing divides by zero.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL = 1e-8
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices ``[w]×``.
+
+    Args:
+        w: ``(n, 3)`` vectors.
+
+    Returns:
+        ``(n, 3, 3)`` matrices with ``hat(w) @ v == cross(w, v)``.
+    """
+    n = len(w)
+    out = np.zeros((n, 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -w[:, 2], w[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = w[:, 2], -w[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -w[:, 1], w[:, 0]
+    return out
+
+
+def _coefficients(theta2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``a = sinθ/θ``, ``b = (1−cosθ)/θ²``, ``c = (θ−sinθ)/θ³`` with series for small θ."""
+    small = theta2 < _SMALL
+    t2 = np.where(small, 1.0, theta2)
+    theta = np.sqrt(t2)
+    s, c = np.sin(theta), np.cos(theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, s / theta)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - c) / t2)
+    cc = np.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - s) / (t2 * theta))
+    return a, b, cc
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula ``exp([w]×)``.
+
+    Args:
+        w: ``(n, 3)`` rotation vectors (angle-axis).
+
+    Returns:
+        ``(n, 3, 3)`` rotation matrices.
+    """
+    theta2 = np.einsum("ni,ni->n", w, w)
+    a, b, _ = _coefficients(theta2)
+    W = hat(w)
+    WW = W @ W
+    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * WW
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`so3_exp`, valid on the whole of SO(3) (including angles near π).
+
+    Args:
+        R: ``(n, 3, 3)`` rotation matrices.
+
+    Returns:
+        ``(n, 3)`` rotation vectors with angle in ``[0, π]``.
+    """
+    tr = np.einsum("nii->n", R)
+    cos = np.clip(0.5 * (tr - 1.0), -1.0, 1.0)
+    theta = np.arccos(cos)
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
+    sin = np.sin(theta)
+    small = theta < 1e-4
+    near_pi = theta > np.pi - 1e-3
+    scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
+    w = v * scale[:, None]
+    if np.any(near_pi):
+        # Near π, sinθ → 0: recover the axis from the symmetric part R + Rᵀ = 2cosθ I + 2(1−cosθ)aaᵀ.
+        idx = np.flatnonzero(near_pi)
+        Rs = R[idx]
+        B = (Rs + np.swapaxes(Rs, 1, 2)) * 0.5 - cos[idx, None, None] * np.eye(3)
+        col = np.argmax(np.einsum("nii->ni", B), axis=1)
+        axis = B[np.arange(len(idx)), :, col]
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        sign = np.sign(np.einsum("ni,ni->n", axis, v[idx]))
+        sign[sign == 0] = 1.0
+        w[idx] = axis * (sign * theta[idx])[:, None]
+    return w
+
+
+def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3), ``J_l(w) = I + b[w]× + c[w]×²``.
+
+    Args:
+        w: ``(n, 3)`` rotation vectors.
+
+    Returns:
+        ``(n, 3, 3)`` matrices.
+    """
+    theta2 = np.einsum("ni,ni->n", w, w)
+    _, b, c = _coefficients(theta2)
+    W = hat(w)
+    return np.eye(3) + b[:, None, None] * W + c[:, None, None] * (W @ W)
+
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """Exponential of ``se(3)`` in g2o's order ``xi = [ω, υ]``.
+
+    Args:
+        xi: ``(n, 6)`` twists, rotation part first.
+
+    Returns:
+        ``(n, 4, 4)`` homogeneous transforms ``[[exp(ω), J_l(ω) υ], [0, 1]]``.
+    """
+    w, u = xi[:, :3], xi[:, 3:]
+    theta2 = np.einsum("ni,ni->n", w, w)
+    a, b, c = _coefficients(theta2)
+    W = hat(w)
+    WW = W @ W
+    eye = np.eye(3)
+    T = np.zeros((len(xi), 4, 4))
+    T[:, :3, :3] = eye + a[:, None, None] * W + b[:, None, None] * WW
+    V = eye + b[:, None, None] * W + c[:, None, None] * WW
+    T[:, :3, 3] = np.einsum("nij,nj->ni", V, u)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices from Hamilton quaternions ``[qx, qy, qz, qw]`` (normalised first).
+
+    Args:
+        q: ``(n, 4)`` quaternions, scalar last.
+
+    Returns:
+        ``(n, 3, 3)`` rotation matrices.
+    """
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], 1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], 1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], 1),
+        ],
+        1,
+    )
+
+
+def rot_to_quat(R: np.ndarray) -> np.ndarray:
+    """Hamilton quaternions ``[qx, qy, qz, qw]`` with ``qw >= 0`` from rotation matrices.
+
+    Args:
+        R: ``(n, 3, 3)`` rotation matrices.
+
+    Returns:
+        ``(n, 4)`` unit quaternions, scalar last.
+    """
+    w = so3_log(R)
+    theta = np.linalg.norm(w, axis=1)
+    half = 0.5 * theta
+    s = np.where(theta < 1e-12, 0.5, np.sin(half) / np.where(theta < 1e-12, 1.0, theta))
+    return np.concatenate([w * s[:, None], np.cos(half)[:, None]], axis=1)
+
+
+def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Stack rotations and translations into ``(n, 4, 4)`` homogeneous transforms.
+
+    Args:
+        R: ``(n, 3, 3)`` rotations.
+        t: ``(n, 3)`` translations.
+    """
+    T = np.zeros((len(R), 4, 4))
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
+    return T
+
+
+def transform_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms.
+
+    Args:
+        T: ``(n, 4, 4)`` rigid transforms.
+    """
+    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
+    return make_transform(Rt, -np.einsum("nij,nj->ni", Rt, T[:, :3, 3]))

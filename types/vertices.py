@@ -1,0 +1,91 @@
+"""Vertex types for bundle adjustment: SE(3) poses and 3D points (Euclidean, inverse depth)."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from graphopt.types.lie import se3_exp
+from graphopt.vertex import BaseVertex, VertexVector
+
+
+class VertexSE3Expmap(BaseVertex):
+    """A rigid transform ``T`` (world to camera, ``T_cw``) as a ``(4, 4)`` homogeneous matrix.
+
+    Update (g2o's SE3Expmap): ``T ← exp(δ) · T`` with ``δ = [ω, υ]`` — rotation first, then
+    translation — and ``exp`` the SE(3) exponential (:func:`graphopt.types.lie.se3_exp`).
+
+    Args:
+        id: Vertex id.
+        estimate: ``(4, 4)`` rigid transform.
+        fixed: Hold constant.
+        marginalized: Eliminate by the Schur complement.
+    """
+
+    dimension: ClassVar[int] = 6
+    estimate_shape: ClassVar[tuple[int, ...]] = (4, 4)
+
+    @staticmethod
+    def oplus(estimates: np.ndarray, deltas: np.ndarray) -> np.ndarray:
+        """``exp(δ) · T`` for all poses.
+
+        Args:
+            estimates: ``(n, 4, 4)`` transforms.
+            deltas: ``(n, 6)`` twists ``[ω, υ]``.
+        """
+        return se3_exp(deltas) @ estimates
+
+    @classmethod
+    def validate(cls, estimates: np.ndarray) -> np.ndarray:
+        """Finite, bottom row ``[0, 0, 0, 1]`` and an orthonormal rotation block (1e-6).
+
+        Args:
+            estimates: ``(n, 4, 4)`` transforms.
+        """
+        ok = super().validate(estimates)
+        R = estimates[:, :3, :3]
+        with np.errstate(invalid="ignore"):
+            orth = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2)) < 1e-6
+            det = np.linalg.det(np.where(ok[:, None, None], R, np.eye(3))) > 0
+            bottom = np.abs(estimates[:, 3] - [0, 0, 0, 1]).max(axis=1) < 1e-12
+        return ok & orth & det & bottom
+
+
+class VertexPointXYZ(VertexVector):
+    """A 3D point ``[x, y, z]`` in the world frame; the update is addition.
+
+    Args:
+        id: Vertex id.
+        estimate: ``(3,)`` point.
+        fixed: Hold constant.
+        marginalized: Eliminate by the Schur complement.
+    """
+
+    dimension: ClassVar[int] = 3
+
+
+class VertexPointInverseDepth(VertexVector):
+    """A 3D point by inverse depth in an anchor camera: ``[a, b, ρ]``.
+
+    The point in the anchor camera's frame is ``[a, b, 1] / ρ`` (``a, b`` are normalised image
+    coordinates, ``ρ = 1/z``); in the world it is ``T_aw⁻¹ · [a, b, 1]/ρ``. The anchor pose is
+    the first vertex of the edges that observe the point. The update is addition.
+
+    Args:
+        id: Vertex id.
+        estimate: ``(3,)`` ``[a, b, ρ]``.
+        fixed: Hold constant.
+        marginalized: Eliminate by the Schur complement.
+    """
+
+    dimension: ClassVar[int] = 3
+
+    @classmethod
+    def validate(cls, estimates: np.ndarray) -> np.ndarray:
+        """Finite with ``ρ > 0``.
+
+        Args:
+            estimates: ``(n, 3)``.
+        """
+        return super().validate(estimates) & (estimates[:, 2] > 0)
