@@ -1,0 +1,359 @@
+"""Optimisation algorithms: Gauss–Newton, Levenberg–Marquardt (g2o's rules) and Powell's Dogleg.
+
+Each algorithm performs one iteration on a :class:`Problem` — the optimizer's numeric core —
+and reports what it did in an :class:`IterationInfo`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from graphopt.block_ops import NotPositiveDefiniteError
+from graphopt.linear_system import Assembly
+
+
+@dataclass(frozen=True)
+class GaussNewtonConfig:
+    """Gauss–Newton: solve ``H Δ = b`` and always accept.
+
+    Args:
+        name: Algorithm name used in messages.
+    """
+
+    name: str = "gn"
+
+
+@dataclass(frozen=True)
+class LevenbergConfig:
+    """Levenberg–Marquardt as in g2o's ``OptimizationAlgorithmLevenberg``.
+
+    Args:
+        tau: Initial ``λ = τ · max diag(H)`` (g2o: 1e-5).
+        initial_lambda: Use this λ instead of the τ rule when given.
+        max_trials: Damped solves per iteration before giving up (g2o: 10).
+        name: Algorithm name used in messages.
+    """
+
+    tau: float = 1e-5
+    initial_lambda: float | None = None
+    max_trials: int = 10
+    name: str = "lm"
+
+
+@dataclass(frozen=True)
+class DoglegConfig:
+    """Powell's Dogleg as in g2o's ``OptimizationAlgorithmDogleg``.
+
+    Args:
+        initial_radius: Initial trust-region radius (g2o: 1e4).
+        initial_lambda: Damping added to make ``H`` positive definite (g2o: 1e-7).
+        lambda_factor: Factor on λ after a failed factorisation (g2o: 10).
+        max_trials: Attempts per iteration (g2o: 100).
+        name: Algorithm name used in messages.
+    """
+
+    initial_radius: float = 1e4
+    initial_lambda: float = 1e-7
+    lambda_factor: float = 10.0
+    max_trials: int = 100
+    name: str = "dogleg"
+
+
+AlgorithmConfig = GaussNewtonConfig | LevenbergConfig | DoglegConfig
+
+
+@dataclass
+class IterationInfo:
+    """What one iteration did.
+
+    Args:
+        iteration: Index, from 0.
+        chi2: Robust chi2 after the iteration.
+        accepted: Whether the state changed.
+        lam: λ used for the accepted step (LM/Dogleg), 0 for GN.
+        trials: Damped solves tried (g2o's ``levenbergIter``).
+        radius: Trust-region radius (Dogleg), else 0.
+        not_pd: How many solves met a non-positive-definite system.
+        failed: True when no acceptable step was found (the optimisation stops).
+        linearize_seconds: Time for errors, Jacobians and assembly.
+        schur_seconds: Time for damping and the Schur complement.
+        solve_seconds: Time in the linear solver.
+    """
+
+    iteration: int
+    chi2: float
+    accepted: bool = True
+    lam: float = 0.0
+    trials: int = 1
+    radius: float = 0.0
+    not_pd: int = 0
+    failed: bool = False
+    linearize_seconds: float = 0.0
+    schur_seconds: float = 0.0
+    solve_seconds: float = 0.0
+
+
+class Problem(Protocol):
+    """The operations an algorithm needs from the optimizer."""
+
+    def linearize(self) -> tuple[Assembly, float]:
+        """Assemble at the current state; returns the assembly and the robust chi2."""
+        ...
+
+    def solve(self, asm: Assembly, lam: float) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Solve the damped system; raises NotPositiveDefiniteError."""
+        ...
+
+    def hessian_product(self, asm: Assembly, step: tuple[np.ndarray, list[np.ndarray]]
+                        ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Undamped ``H · step``."""
+        ...
+
+    def max_diagonal(self, asm: Assembly) -> float:
+        """Largest diagonal entry of ``H``."""
+        ...
+
+    def push(self) -> None:
+        """Save the state."""
+        ...
+
+    def pop(self) -> None:
+        """Restore the saved state."""
+        ...
+
+    def apply(self, step: tuple[np.ndarray, list[np.ndarray]]) -> None:
+        """``x ← x ⊞ step``."""
+        ...
+
+    def robust_chi2(self) -> float:
+        """Robust chi2 at the current state (inf if not finite)."""
+        ...
+
+
+Step = tuple[np.ndarray, list[np.ndarray]]
+
+
+def _dot(a: Step, b: Step) -> float:
+    return float(a[0] @ b[0] + sum(float(np.vdot(x, y)) for x, y in zip(a[1], b[1], strict=True)))
+
+
+def _axpy(alpha: float, a: Step, beta: float, b: Step) -> Step:
+    return alpha * a[0] + beta * b[0], [
+        alpha * x + beta * y for x, y in zip(a[1], b[1], strict=True)
+    ]
+
+
+class Algorithm:
+    """Base of the algorithms.
+
+    Args:
+        config: The algorithm's frozen configuration.
+    """
+
+    def __init__(self, config: AlgorithmConfig) -> None:
+        self.config = config
+        self.lam = 0.0
+
+    def reset(self) -> None:
+        """Forget state kept across iterations (λ, radius)."""
+
+    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+        """Perform one iteration.
+
+        Args:
+            p: The problem.
+            iteration: Iteration index.
+        """
+        raise NotImplementedError
+
+
+class GaussNewton(Algorithm):
+    """Gauss–Newton.
+
+    Args:
+        config: :class:`GaussNewtonConfig`.
+    """
+
+    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+        """See :meth:`Algorithm.iterate`.
+
+        Args:
+            p: The problem.
+            iteration: Iteration index.
+        """
+        asm, chi = p.linearize()
+        try:
+            step = p.solve(asm, 0.0)
+        except NotPositiveDefiniteError:
+            return IterationInfo(iteration, chi, accepted=False, not_pd=1, failed=True)
+        p.apply(step)
+        return IterationInfo(iteration, p.robust_chi2())
+
+
+class LevenbergMarquardt(Algorithm):
+    """Levenberg–Marquardt with g2o's λ rules.
+
+    Args:
+        config: :class:`LevenbergConfig`.
+    """
+
+    config: LevenbergConfig
+
+    def reset(self) -> None:
+        """Start again from the τ rule."""
+        self.lam = 0.0
+        self.nu = 2.0
+
+    def __init__(self, config: LevenbergConfig) -> None:
+        super().__init__(config)
+        self.reset()
+
+    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+        """See :meth:`Algorithm.iterate`.
+
+        Args:
+            p: The problem.
+            iteration: Iteration index.
+        """
+        asm, chi = p.linearize()
+        cfg = self.config
+        if self.lam <= 0.0:
+            if cfg.initial_lambda is not None:
+                self.lam = cfg.initial_lambda
+            else:
+                self.lam = cfg.tau * max(p.max_diagonal(asm), 1e-12)
+            self.nu = 2.0
+        b = (asm.bu, asm.bv)
+        not_pd = 0
+        for trial in range(1, cfg.max_trials + 1):
+            try:
+                step = p.solve(asm, self.lam)
+            except NotPositiveDefiniteError:
+                not_pd += 1
+                self.lam *= self.nu
+                self.nu *= 2.0
+                continue
+            p.push()
+            p.apply(step)
+            new_chi = p.robust_chi2()
+            # Predicted decrease of chi2 = Δ'(λΔ + b) (g2o adds 1e-3 against a zero divisor).
+            scale = _dot(step, _axpy(self.lam, step, 1.0, b)) + 1e-3
+            rho = (chi - new_chi) / scale
+            if rho > 0 and math.isfinite(new_chi):
+                lam_used = self.lam
+                alpha = min(1.0 - (2.0 * rho - 1.0) ** 3, 2.0 / 3.0)
+                self.lam *= max(1.0 / 3.0, alpha)
+                self.nu = 2.0
+                return IterationInfo(iteration, new_chi, lam=lam_used, trials=trial, not_pd=not_pd)
+            p.pop()
+            self.lam *= self.nu
+            self.nu *= 2.0
+        return IterationInfo(iteration, chi, accepted=False, lam=self.lam, trials=cfg.max_trials,
+                             not_pd=not_pd, failed=True)
+
+
+class Dogleg(Algorithm):
+    """Powell's Dogleg trust-region method.
+
+    Args:
+        config: :class:`DoglegConfig`.
+    """
+
+    config: DoglegConfig
+
+    def __init__(self, config: DoglegConfig) -> None:
+        super().__init__(config)
+        self.reset()
+
+    def reset(self) -> None:
+        """Start again from the initial radius and λ."""
+        self.radius = self.config.initial_radius
+        self.lam = self.config.initial_lambda
+
+    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+        """See :meth:`Algorithm.iterate`.
+
+        Args:
+            p: The problem.
+            iteration: Iteration index.
+        """
+        cfg = self.config
+        asm, chi = p.linearize()
+        b: Step = (asm.bu, asm.bv)
+        bb = _dot(b, b)
+        hb = p.hessian_product(asm, b)
+        bhb = _dot(b, hb)
+        alpha = bb / bhb if bhb > 0 else 0.0
+        sd = _axpy(alpha, b, 0.0, b)
+        sd_norm = math.sqrt(_dot(sd, sd))
+        gn: Step | None = None
+        not_pd = 0
+        for trial in range(1, cfg.max_trials + 1):
+            if gn is None:
+                try:
+                    gn = p.solve(asm, self.lam)
+                    self.lam = max(self.lam / cfg.lambda_factor, cfg.initial_lambda)
+                except NotPositiveDefiniteError:
+                    not_pd += 1
+                    self.lam *= cfg.lambda_factor
+                    continue
+            gn_norm = math.sqrt(_dot(gn, gn))
+            if gn_norm <= self.radius:
+                step = gn
+            elif sd_norm >= self.radius:
+                step = _axpy(self.radius / math.sqrt(bb), b, 0.0, b)
+            else:
+                # Point on the segment sd → gn at distance radius: ‖sd + β(gn − sd)‖ = radius.
+                d = _axpy(1.0, gn, -1.0, sd)
+                a2, a1 = _dot(d, d), 2.0 * _dot(sd, d)
+                a0 = sd_norm**2 - self.radius**2
+                beta = (-a1 + math.sqrt(max(a1 * a1 - 4 * a2 * a0, 0.0))) / (2 * a2)
+                step = _axpy(1.0, sd, beta, d)
+            hstep = p.hessian_product(asm, step)
+            linear_gain = 2.0 * _dot(b, step) - _dot(step, hstep)  # in chi2 units
+            p.push()
+            p.apply(step)
+            new_chi = p.robust_chi2()
+            rho = (chi - new_chi) / linear_gain if linear_gain > 0 else -1.0
+            step_norm = math.sqrt(_dot(step, step))
+            if rho > 0.75:
+                self.radius = max(self.radius, 3.0 * step_norm)
+            elif rho < 0.25:
+                self.radius *= 0.5
+            if rho > 0 and math.isfinite(new_chi):
+                return IterationInfo(iteration, new_chi, lam=self.lam, trials=trial,
+                                     radius=self.radius, not_pd=not_pd)
+            p.pop()
+            if self.radius < 1e-30:
+                break
+        return IterationInfo(iteration, chi, accepted=False, lam=self.lam, trials=cfg.max_trials,
+                             radius=self.radius, not_pd=not_pd, failed=True)
+
+
+def make_algorithm(spec: str | AlgorithmConfig) -> Algorithm:
+    """Create an algorithm from a name (``gn``, ``lm``, ``dogleg``) or a config.
+
+    Args:
+        spec: Name or configuration dataclass.
+    """
+    if isinstance(spec, str):
+        key = spec.lower()
+        table: dict[str, AlgorithmConfig] = {
+            "gn": GaussNewtonConfig(), "gauss-newton": GaussNewtonConfig(),
+            "lm": LevenbergConfig(), "levenberg": LevenbergConfig(),
+            "dogleg": DoglegConfig(), "dl": DoglegConfig(),
+        }
+        if key not in table:
+            raise ValueError(f"unknown algorithm {spec!r}; choose gn, lm or dogleg")
+        spec = table[key]
+    if isinstance(spec, GaussNewtonConfig):
+        return GaussNewton(spec)
+    if isinstance(spec, LevenbergConfig):
+        return LevenbergMarquardt(spec)
+    if isinstance(spec, DoglegConfig):
+        return Dogleg(spec)
+    raise TypeError(f"not an algorithm configuration: {spec!r}")

@@ -1,0 +1,375 @@
+"""Direct bundle adjustment data: the task's loader and a synthetic textured scene.
+
+Format of a data folder (the task's, see ``shared/data/directba/README.md``):
+
+* ``poses.txt``: one line per camera, ``time tx ty tz qx qy qz qw`` — ``T_cw`` (world to camera),
+  Hamilton quaternion with ``w`` last;
+* ``points.txt``: one line per point, ``x y z`` and the ``P²`` reference intensities (16 for the
+  task) in the order ``k = P (dx + P/2) + (dy + P/2)``;
+* ``0.png``, ``1.png``, …: one greyscale image per pose.
+
+:func:`load_directba` validates everything and raises :class:`DirectBAFormatError` naming the
+file and line. :func:`synthetic_scene` renders a textured scene from known poses, samples points
+with patches from the first frame and perturbs poses and points deterministically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from graphopt.types.lie import make_transform, quat_to_rot, se3_exp, transform_inverse
+
+#: The task's intrinsics (fx, fy, cx, cy).
+DEFAULT_INTRINSICS = (277.34, 291.402, 312.234, 239.777)
+
+
+class DirectBAFormatError(ValueError):
+    """A direct-BA data folder is missing something or malformed (message names file and line)."""
+
+
+@dataclass
+class DirectBAData:
+    """A direct BA problem.
+
+    Args:
+        poses: ``(n, 4, 4)`` camera poses ``T_cw``.
+        points: ``(N, 3)`` world points.
+        patches: ``(N, P²)`` reference intensities.
+        images: ``(n, H, W)`` float64 greyscale images.
+        intrinsics: ``(fx, fy, cx, cy)``.
+        timestamps: ``(n,)`` timestamps from poses.txt (meaningless in the task's data).
+        true_poses: Ground-truth poses (synthetic scene only).
+        true_points: Ground-truth points (synthetic scene only).
+        hosts: ``(N,)`` index of the image each patch was taken from, when known.
+        source: Where the problem came from (folder path or ``"synthetic"``).
+    """
+
+    poses: np.ndarray
+    points: np.ndarray
+    patches: np.ndarray
+    images: np.ndarray
+    intrinsics: tuple[float, float, float, float] = DEFAULT_INTRINSICS
+    timestamps: np.ndarray | None = None
+    true_poses: np.ndarray | None = None
+    true_points: np.ndarray | None = None
+    hosts: np.ndarray | None = None
+    source: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def patch(self) -> int:
+        """Patch side ``P``."""
+        return int(round(np.sqrt(self.patches.shape[1])))
+
+
+def _read_table(path: Path, columns: int, what: str) -> np.ndarray:
+    """Whitespace-separated numbers with exactly ``columns`` per non-empty line."""
+    if not path.is_file():
+        raise DirectBAFormatError(f"{path}: {what} file not found")
+    rows: list[list[float]] = []
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DirectBAFormatError(f"{path}: cannot read ({exc})") from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if len(fields) != columns:
+            raise DirectBAFormatError(
+                f"{path}:{lineno}: expected {columns} columns ({what}), got {len(fields)}"
+            )
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            raise DirectBAFormatError(f"{path}:{lineno}: not a number in {line.strip()!r}") from None
+        if not np.all(np.isfinite(values)):
+            raise DirectBAFormatError(f"{path}:{lineno}: non-finite value")
+        rows.append(values)
+    if not rows:
+        raise DirectBAFormatError(f"{path}: no {what} found")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Read an image as float64 greyscale (colour files are converted).
+
+    Args:
+        path: Image file.
+
+    Raises:
+        DirectBAFormatError: If the file is missing or not an image.
+    """
+    import cv2
+
+    if not path.is_file():
+        raise DirectBAFormatError(f"{path}: image not found")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise DirectBAFormatError(f"{path}: not a readable image")
+    return img.astype(np.float64)
+
+
+def poses_from_rows(rows: np.ndarray, path: Path | str = "poses") -> np.ndarray:
+    """``T_cw`` from rows ``time tx ty tz qx qy qz qw``.
+
+    Args:
+        rows: ``(n, 8)`` numbers.
+        path: File name for error messages.
+
+    Raises:
+        DirectBAFormatError: If a quaternion has zero or non-finite norm.
+    """
+    q = rows[:, 4:8]
+    norm = np.linalg.norm(q, axis=1)
+    bad = ~np.isfinite(norm) | (norm < 1e-12)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise DirectBAFormatError(f"{path}:{i + 1}: bad quaternion {q[i].tolist()} (norm {norm[i]:g})")
+    return make_transform(quat_to_rot(q / norm[:, None]), rows[:, 1:4])
+
+
+def load_directba(
+    folder: str | Path,
+    intrinsics: tuple[float, float, float, float] = DEFAULT_INTRINSICS,
+    patch: int = 4,
+) -> DirectBAData:
+    """Load the task's data folder.
+
+    Args:
+        folder: Folder with ``poses.txt``, ``points.txt`` and ``0.png``… .
+        intrinsics: ``(fx, fy, cx, cy)``; the task's values by default.
+        patch: Patch side ``P``; points.txt must then have ``3 + P²`` columns.
+
+    Returns:
+        The problem (images as float64 greyscale).
+
+    Raises:
+        DirectBAFormatError: Missing folder/file/image, wrong column count, bad number or
+            quaternion, images of different sizes.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise DirectBAFormatError(f"{root}: data folder not found")
+    pose_path = root / "poses.txt"
+    rows = _read_table(pose_path, 8, "time tx ty tz qx qy qz qw")
+    poses = poses_from_rows(rows, pose_path)
+    pts = _read_table(root / "points.txt", 3 + patch * patch, f"x y z and {patch * patch} intensities")
+    images = []
+    for i in range(len(poses)):
+        images.append(read_image(root / f"{i}.png"))
+        if images[-1].shape != images[0].shape:
+            raise DirectBAFormatError(
+                f"{root / f'{i}.png'}: size {images[-1].shape[::-1]} differs from 0.png's "
+                f"{images[0].shape[::-1]}"
+            )
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        raise DirectBAFormatError(f"bad intrinsics {intrinsics}")
+    return DirectBAData(
+        poses=poses,
+        points=pts[:, :3].copy(),
+        patches=pts[:, 3:].copy(),
+        images=np.stack(images),
+        intrinsics=(fx, fy, cx, cy),
+        timestamps=rows[:, 0].copy(),
+        source=str(root),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# synthetic scene
+
+
+def _texture(rng: np.random.Generator, size: int = 512, cells: int = 24) -> np.ndarray:
+    """A smooth random texture in [20, 235]: upsampled value noise plus a little detail."""
+    import cv2
+
+    coarse = rng.random((cells, cells)).astype(np.float32)
+    big = cv2.resize(coarse, (size, size), interpolation=cv2.INTER_CUBIC)
+    fine = cv2.resize(rng.random((cells * 3, cells * 3)).astype(np.float32), (size, size),
+                      interpolation=cv2.INTER_CUBIC)
+    tex = cv2.GaussianBlur(0.75 * big + 0.25 * fine, (0, 0), size / cells / 4)
+    tex = (tex - tex.min()) / max(float(np.ptp(tex)), 1e-9)
+    return 20.0 + 215.0 * tex.astype(np.float64)
+
+
+def _bilinear(tex: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Sample a texture at continuous (s, t) texel coordinates with wrap-around."""
+    h, w = tex.shape
+    s0 = np.floor(s)
+    t0 = np.floor(t)
+    a, b = s - s0, t - t0
+    i0 = s0.astype(np.int64) % w
+    j0 = t0.astype(np.int64) % h
+    i1, j1 = (i0 + 1) % w, (j0 + 1) % h
+    return ((1 - a) * (1 - b) * tex[j0, i0] + a * (1 - b) * tex[j0, i1]
+            + (1 - a) * b * tex[j1, i0] + a * b * tex[j1, i1])
+
+
+#: Scene planes ``n·X = d`` (world frame, y down, cameras looking along +z) with the in-plane axes
+#: used for texture coordinates.
+_PLANES = (
+    (np.array([0.0, 0.0, 1.0]), 6.0, 0, 1),  # back wall z = 6
+    (np.array([0.0, 1.0, 0.0]), 1.5, 0, 2),  # floor y = 1.5
+    (np.array([1.0, 0.0, 0.0]), -3.5, 2, 1),  # left wall x = -3.5
+    (np.array([1.0, 0.0, 0.0]), 3.5, 2, 1),  # right wall x = 3.5
+)
+
+
+def render(
+    pose: np.ndarray,
+    intrinsics: tuple[float, float, float, float],
+    size: tuple[int, int],
+    textures: list[np.ndarray],
+    texel: float = 0.01,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast the synthetic room from one pose.
+
+    Args:
+        pose: ``(4, 4)`` ``T_cw``.
+        intrinsics: ``(fx, fy, cx, cy)``.
+        size: ``(width, height)``.
+        textures: One texture per plane of the room.
+        texel: Metres per texel.
+
+    Returns:
+        ``(image, depth)``, both ``(H, W)`` float64 (depth = camera z of the hit).
+    """
+    fx, fy, cx, cy = intrinsics
+    w, h = size
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    rays_c = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
+    Twc = transform_inverse(pose[None])[0]
+    origin = Twc[:3, 3]
+    rays_w = rays_c @ Twc[:3, :3].T
+    best = np.full(len(rays_w), np.inf)
+    image = np.zeros(len(rays_w))
+    for (normal, d, ax_s, ax_t), tex in zip(_PLANES, textures, strict=True):
+        denom = rays_w @ normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = (d - origin @ normal) / denom
+        hit = (lam > 0) & (lam < best)
+        pts = origin + lam[hit, None] * rays_w[hit]
+        image[hit] = _bilinear(tex, pts[:, ax_s] / texel, pts[:, ax_t] / texel)
+        best[hit] = lam[hit]
+    # rays_c has z = 1, so the ray parameter is the camera depth.
+    return image.reshape(h, w), best.reshape(h, w)
+
+
+def synthetic_scene(
+    n_frames: int = 5,
+    n_points: int = 1500,
+    size: tuple[int, int] = (640, 480),
+    intrinsics: tuple[float, float, float, float] = DEFAULT_INTRINSICS,
+    patch: int = 4,
+    rot_noise_deg: float = 1.0,
+    trans_noise: float = 0.03,
+    point_noise: float = 0.02,
+    seed: int = 0,
+) -> DirectBAData:
+    """A textured room seen by a camera moving sideways, with perturbed initial values.
+
+    Points are sampled on high-gradient pixels of the first frame (integer pixel positions, a
+    minimum spacing), back-projected with the true depth; their patches are the first image's
+    intensities around the pixel. Initial poses (all but the first, which fixes the gauge) are
+    perturbed by a random rotation of ``rot_noise_deg`` degrees and a translation of
+    ``trans_noise`` metres (fixed magnitudes, random directions); points by isotropic Gaussian
+    noise of ``point_noise`` metres per axis.
+
+    Args:
+        n_frames: Number of cameras.
+        n_points: Maximum number of points.
+        size: Image ``(width, height)``.
+        intrinsics: ``(fx, fy, cx, cy)``.
+        patch: Patch side.
+        rot_noise_deg: Rotation perturbation per pose (degrees).
+        trans_noise: Translation perturbation per pose (metres).
+        point_noise: Standard deviation of the point perturbation per axis (metres).
+        seed: Seed of everything random (texture, sampling, perturbation).
+
+    Returns:
+        The problem, with ``true_poses``/``true_points`` and ``hosts`` (all 0).
+    """
+    rng = np.random.default_rng(seed)
+    textures = [_texture(rng) for _ in _PLANES]
+    # Camera centres on a gentle arc, looking roughly along +z, slightly yawing.
+    true = []
+    for i in range(n_frames):
+        s = i / max(n_frames - 1, 1) - 0.5
+        centre = np.array([1.2 * s, -0.05 * s, 0.4 * s * s])
+        yaw = np.deg2rad(-6.0 * s)
+        Rwc = se3_exp(np.array([[0.0, yaw, 0.0, 0, 0, 0]]))[0, :3, :3]
+        Twc = make_transform(Rwc[None], centre[None])
+        true.append(transform_inverse(Twc)[0])
+    true_poses = np.stack(true)
+    rendered = [render(T, intrinsics, size, textures) for T in true_poses]
+    images = np.stack([r[0] for r in rendered])
+    depth0 = rendered[0][1]
+
+    # Candidate pixels: strong central-difference gradient, away from the border, thinned by a
+    # grid so that patches do not all pile up on one edge.
+    gy, gx = np.gradient(images[0])
+    mag = np.hypot(gx, gy)
+    w, h = size
+    border = max(8, patch)
+    cell = 6
+    cand_u, cand_v = [], []
+    for v0 in range(border, h - border - cell, cell):
+        for u0 in range(border, w - border - cell, cell):
+            blk = mag[v0 : v0 + cell, u0 : u0 + cell]
+            j = int(np.argmax(blk))
+            if blk.flat[j] > 2.0:
+                cand_v.append(v0 + j // cell)
+                cand_u.append(u0 + j % cell)
+    cu, cv = np.array(cand_u), np.array(cand_v)
+    if len(cu) > n_points:
+        pick = np.sort(rng.choice(len(cu), n_points, replace=False))
+        cu, cv = cu[pick], cv[pick]
+    fx, fy, cx, cy = intrinsics
+    z = depth0[cv, cu]
+    pc = np.stack([(cu - cx) / fx * z, (cv - cy) / fy * z, z], axis=1)
+    Twc0 = transform_inverse(true_poses[:1])[0]
+    true_points = pc @ Twc0[:3, :3].T + Twc0[:3, 3]
+    half = patch // 2
+    d = np.arange(-half, half)
+    # k = P (dx + P/2) + (dy + P/2): dx (column) outer, dy (row) inner.
+    patches = images[0][cv[:, None, None] + d[None, None, :], cu[:, None, None] + d[None, :, None]]
+    patches = patches.reshape(len(cu), patch * patch)
+
+    # Deterministic perturbation: fixed magnitudes, random directions.
+    def unit(n: int) -> np.ndarray:
+        x = rng.normal(size=(n, 3))
+        return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+    xi = np.zeros((n_frames, 6))
+    xi[1:, :3] = unit(n_frames - 1) * np.deg2rad(rot_noise_deg)
+    xi[1:, 3:] = unit(n_frames - 1) * trans_noise
+    poses = se3_exp(xi) @ true_poses
+    points = true_points + rng.normal(scale=point_noise, size=true_points.shape)
+    return DirectBAData(
+        poses=poses,
+        points=points,
+        patches=patches,
+        images=images,
+        intrinsics=tuple(float(v) for v in intrinsics),  # type: ignore[arg-type]
+        true_poses=true_poses,
+        true_points=true_points,
+        hosts=np.zeros(len(points), dtype=np.int64),
+        source="synthetic",
+        extra={"seed": seed, "rot_noise_deg": rot_noise_deg, "trans_noise": trans_noise,
+               "point_noise": point_noise},
+    )
+
+
+def with_intrinsics(data: DirectBAData, intrinsics: tuple[float, float, float, float]) -> DirectBAData:
+    """A copy with other intrinsics.
+
+    Args:
+        data: The problem.
+        intrinsics: ``(fx, fy, cx, cy)``.
+    """
+    return replace(data, intrinsics=tuple(float(v) for v in intrinsics))  # type: ignore[arg-type]

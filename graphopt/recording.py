@@ -1,0 +1,225 @@
+"""Rerun recordings of an optimisation: point cloud, camera frusta, trajectory, cost.
+
+Everything is logged on a sequence timeline ``iteration`` so that the viewer's time slider replays
+the optimisation. The ``.rrd`` file is written to a temporary file beside the destination and
+renamed over it in :meth:`Recorder.close` (an existing file is only replaced by a complete one).
+
+Example::
+
+    rec = Recorder("run.rrd")
+    rec.set_iteration(0)
+    rec.log_points(X)
+    rec.log_cameras(T_cw, focal=f, resolution=(w, h))
+    rec.log_scalar("cost", cost)
+    ...
+    rec.close()
+
+Or as a context manager (``with Recorder(path) as rec: ...``), which closes on success and
+discards the temporary file on error.
+
+Entity layout: ``world/points``, ``world/cameras/{k}`` (Transform3D camera→world + Pinhole,
+optional ``.../image``), ``world/trajectory``, ``metrics/{name}``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from graphopt.io.atomic import _finish, _temp_path
+
+__all__ = ["Recorder", "TIMELINE"]
+
+#: Name of the sequence timeline everything is logged on.
+TIMELINE = "iteration"
+
+
+class Recorder:
+    """Write a rerun ``.rrd`` recording of an optimisation run.
+
+    Args:
+        path: Destination ``.rrd`` file (replaced atomically on :meth:`close`).
+        application_id: Rerun application id shown in the viewer.
+        camera_xyz: Camera axis convention for the frusta: ``"RDF"`` (OpenCV: x right, y down,
+            z forward, the default) or ``"RUB"`` (BAL/OpenGL: y up, looking down −z).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        application_id: str = "graphopt",
+        *,
+        camera_xyz: str = "RDF",
+    ) -> None:
+        import rerun as rr  # imported lazily: rerun is heavy and only needed for recordings
+
+        self._rr = rr
+        self.path = Path(path)
+        self._tmp = _temp_path(self.path)
+        self._camera_xyz = getattr(rr.ViewCoordinates, camera_xyz.upper())
+        self._rec = rr.RecordingStream(application_id, make_default=False)
+        self._rec.save(str(self._tmp))
+        self._closed = False
+        self._trajectory: list[np.ndarray] = []
+        self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    # --- timeline ---------------------------------------------------------------------------
+
+    def set_iteration(self, iteration: int) -> None:
+        """Set the ``iteration`` timeline for everything logged next.
+
+        Args:
+            iteration: Iteration number (0 = before optimisation).
+        """
+        self._rec.set_time(TIMELINE, sequence=int(iteration))
+
+    # --- logging ----------------------------------------------------------------------------
+
+    def log_points(
+        self,
+        points: Any,
+        colors: Any = None,
+        *,
+        entity: str = "world/points",
+        radius: float | None = None,
+    ) -> None:
+        """Log a point cloud.
+
+        Args:
+            points: ``(n, 3)`` points in the world frame; non-finite rows are dropped.
+            colors: ``(3,)`` or ``(n, 3)`` uint8 colours; white if None.
+            entity: Entity path.
+            radius: Point radius in scene units (viewer default if None).
+        """
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        ok = np.isfinite(pts).all(axis=1)
+        col = np.array([255, 255, 255], np.uint8) if colors is None else np.asarray(colors)
+        if col.ndim == 2:
+            col = col[ok]
+        self._rec.log(
+            entity,
+            self._rr.Points3D(pts[ok], colors=col, radii=None if radius is None else [radius]),
+        )
+
+    def log_cameras(
+        self,
+        T_cw: Any,
+        *,
+        focal: Any,
+        resolution: Any,
+        principal_point: Any = None,
+        images: Any = None,
+        entity: str = "world/cameras",
+        image_plane_distance: float | None = None,
+        trajectory: bool = True,
+    ) -> None:
+        """Log cameras as frusta (and optionally their images on the image plane).
+
+        Args:
+            T_cw: ``(c, 4, 4)`` world-to-camera transforms (or ``(c, 3, 4)``).
+            focal: Focal length in pixels: scalar, ``(c,)`` or ``(c, 2)`` (fx, fy).
+            resolution: ``(width, height)`` in pixels, or ``(c, 2)``.
+            principal_point: ``(cx, cy)`` or ``(c, 2)``; the image centre if None.
+            images: Optional sequence of ``c`` images (``(h, w)`` grey or ``(h, w, 3)`` RGB,
+                uint8 or float) shown inside the frusta; ``None`` entries are skipped. Images are
+                logged once per call; log them only at the first iteration if they never change.
+            entity: Parent entity; camera ``k`` is ``{entity}/{k}``.
+            image_plane_distance: Frustum depth in scene units (viewer default if None).
+            trajectory: Also log the camera centres as a line strip ``world/trajectory``.
+        """
+        rr = self._rr
+        T = np.asarray(T_cw, dtype=float)
+        c = len(T)
+        R_cw, t_cw = T[:, :3, :3], T[:, :3, 3]
+        R_wc = np.swapaxes(R_cw, 1, 2)
+        centers = -np.einsum("nij,nj->ni", R_wc, t_cw)
+        f = np.broadcast_to(np.asarray(focal, dtype=float).reshape(-1, 1) if np.ndim(focal) <= 1
+                            else np.asarray(focal, dtype=float), (c, 2))
+        res = np.broadcast_to(np.asarray(resolution, dtype=float), (c, 2))
+        pp = (res / 2.0 if principal_point is None
+              else np.broadcast_to(np.asarray(principal_point, dtype=float), (c, 2)))
+        for k in range(c):  # one entity per camera: rerun's Pinhole is per entity
+            path = f"{entity}/{k}"
+            self._rec.log(path, rr.Transform3D(translation=centers[k], mat3x3=R_wc[k]))
+            self._rec.log(
+                path,
+                rr.Pinhole(
+                    focal_length=[float(f[k, 0]), float(f[k, 1])],
+                    principal_point=[float(pp[k, 0]), float(pp[k, 1])],
+                    resolution=[float(res[k, 0]), float(res[k, 1])],
+                    camera_xyz=self._camera_xyz,
+                    image_plane_distance=image_plane_distance,
+                ),
+            )
+            if images is not None and images[k] is not None:
+                self._rec.log(f"{path}/image", rr.Image(np.asarray(images[k])))
+        if trajectory and c > 1:
+            self._rec.log("world/trajectory", rr.LineStrips3D([centers]))
+
+    def log_trajectory(self, centers: Any, *, entity: str = "world/trajectory") -> None:
+        """Log a trajectory (e.g. camera centres in order) as one line strip.
+
+        Args:
+            centers: ``(c, 3)`` positions.
+            entity: Entity path.
+        """
+        self._rec.log(entity, self._rr.LineStrips3D([np.asarray(centers, dtype=float)]))
+
+    def log_scalar(self, name: str, value: float) -> None:
+        """Log one value of a scalar time series (e.g. the cost) at the current iteration.
+
+        Args:
+            name: Series name; logged at ``metrics/{name}``.
+            value: The value (non-finite values are skipped).
+        """
+        if np.isfinite(value):
+            self._rec.log(f"metrics/{name}", self._rr.Scalars([float(value)]))
+
+    def log_text(self, text: str, *, entity: str = "log") -> None:
+        """Log a text line (e.g. a summary).
+
+        Args:
+            text: The text.
+            entity: Entity path.
+        """
+        self._rec.log(entity, self._rr.TextLog(text))
+
+    # --- lifetime ---------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Flush the recording and move it to :attr:`path`."""
+        if self._closed:
+            return
+        self._closed = True
+        self._rec.flush()
+        self._rec.disconnect()  # closes the file sink and writes the footer
+        _finish(self._tmp, self.path)
+
+    def abort(self) -> None:
+        """Discard the recording; the destination file is left untouched."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(Exception):
+            self._rec.disconnect()
+        with contextlib.suppress(OSError):
+            self._tmp.unlink()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
