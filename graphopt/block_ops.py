@@ -108,3 +108,135 @@ def batched_inverse_spd(A: np.ndarray) -> np.ndarray:
         raise NotPositiveDefiniteError(f"a {d}x{d} block is not positive definite") from exc
     Linv = np.linalg.inv(L)
     return np.swapaxes(Linv, 1, 2) @ Linv
+
+
+class BlockContraction:
+    """``out[t] = Σ_{q: target[q]=t} A[a_idx[q]]ᵀ · B[b_idx[q]]`` for fixed index arrays.
+
+    ``A`` holds blocks ``(nA, r, d1)`` and ``B`` blocks ``(nB, r, d2)``. The sum is one product of
+    a CSR matrix — rows ``(t, i)``, columns ``(b_idx, k)``, values gathered from ``A`` — with
+    ``B`` viewed as ``(nB·r, d2)``: the scatter-add happens inside SciPy's C loop, and ``B`` is
+    never gathered. The CSR layout and the gather index are computed once, here.
+
+    Args:
+        target: ``(q,)`` output block of every term.
+        a_idx: ``(q,)`` block of ``A`` of every term.
+        b_idx: ``(q,)`` block of ``B`` of every term.
+        n_targets: Number of output blocks.
+        r: Shared inner dimension.
+        d1: Columns of an ``A`` block (rows of an output block).
+        n_b: Number of ``B`` blocks.
+    """
+
+    def __init__(
+        self,
+        target: np.ndarray,
+        a_idx: np.ndarray,
+        b_idx: np.ndarray,
+        n_targets: int,
+        r: int,
+        d1: int,
+        n_b: int,
+    ) -> None:
+        target = np.asarray(target, dtype=np.int64)
+        order = np.lexsort((b_idx, target))
+        target, a_idx, b_idx = target[order], np.asarray(a_idx)[order], np.asarray(b_idx)[order]
+        q = len(target)
+        self.n_targets, self.r, self.d1, self.n_b = n_targets, r, d1, n_b
+        count = np.bincount(target, minlength=n_targets)  # terms per target
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])  # first term of each target
+        # Row (t, i) holds count[t]*r entries; rows are laid out t-major, then i.
+        row_len = np.repeat(count * r, d1)
+        indptr = np.concatenate([[0], np.cumsum(row_len)]).astype(np.int64)
+        i = np.arange(d1)[None, :, None]
+        k = np.arange(r)[None, None, :]
+        tq = target[:, None, None]
+        pos = indptr[tq * d1 + i] + (np.arange(q)[:, None, None] - start[tq]) * r + k
+        src = a_idx[:, None, None] * (r * d1) + k * d1 + i
+        cols = b_idx[:, None, None] * r + k
+        nnz = q * r * d1
+        self.src = np.empty(nnz, dtype=np.int64)
+        self.indices = np.empty(nnz, dtype=np.int32 if n_b * r < 2**31 else np.int64)
+        pos = pos.ravel()
+        self.src[pos] = np.broadcast_to(src, (q, d1, r)).ravel()
+        self.indices[pos] = np.broadcast_to(cols, (q, d1, r)).ravel()
+        self.indptr = indptr.astype(self.indices.dtype)
+        self.shape = (n_targets * d1, n_b * r)
+
+    def matrix(self, A: np.ndarray) -> sp.csr_matrix:
+        """The CSR operator filled with values from ``A`` (reusable for several ``B``).
+
+        Args:
+            A: ``(nA, r, d1)`` blocks (C-contiguous).
+        """
+        data = np.take(A.reshape(-1), self.src)
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
+
+    def apply(self, M: sp.csr_matrix, B: np.ndarray) -> np.ndarray:
+        """``M @ B`` reshaped to ``(n_targets, d1, d2)``.
+
+        Args:
+            M: From :meth:`matrix`.
+            B: ``(nB, r, d2)`` blocks.
+        """
+        d2 = B.shape[-1]
+        out = M @ B.reshape(self.n_b * self.r, d2)
+        return np.asarray(out).reshape(self.n_targets, self.d1, d2)
+
+    def __call__(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """``out[t] = Σ A[a]ᵀ B[b]`` as ``(n_targets, d1, d2)``.
+
+        Args:
+            A: ``(nA, r, d1)`` blocks.
+            B: ``(nB, r, d2)`` blocks.
+        """
+        return self.apply(self.matrix(A), B)
+
+
+class EdgeContraction:
+    """``out[t] = Σ_{e ∈ sel, target[e]=t} A[e]ᵀ · B[e]``: :class:`BlockContraction` for the case
+    where every term has its own ``A`` and ``B`` block (edge blocks).
+
+    Stored as CSC with columns ``(e, k)``, whose data order is exactly ``A``'s memory order, so
+    ``A`` is used as is — no gather — when every edge takes part.
+
+    Args:
+        sel: ``(q,)`` sorted edge indices that take part.
+        target: ``(q,)`` output block of every selected edge.
+        n_targets: Number of output blocks.
+        m: Number of edges (blocks of ``A`` and ``B``).
+        r: Shared inner dimension (the error dimension).
+        d1: Columns of an ``A`` block.
+    """
+
+    def __init__(self, sel: np.ndarray, target: np.ndarray, n_targets: int, m: int, r: int,
+                 d1: int) -> None:
+        sel = np.asarray(sel, dtype=np.int64)
+        self.all = len(sel) == m
+        self.sel = sel
+        self.n_targets, self.m, self.r, self.d1 = n_targets, m, r, d1
+        count = np.zeros(m * r, dtype=np.int64)
+        count.reshape(m, r)[sel] = d1
+        self.indptr = np.concatenate([[0], np.cumsum(count)]).astype(np.int32)
+        rows = np.asarray(target)[:, None, None] * d1 + np.arange(d1)[None, None, :]
+        self.indices = np.broadcast_to(rows, (len(sel), r, d1)).ravel().astype(np.int32)
+        self.shape = (n_targets * d1, m * r)
+
+    def matrix(self, A: np.ndarray) -> sp.csc_matrix:
+        """The CSC operator holding ``A``'s values.
+
+        Args:
+            A: ``(m, r, d1)`` blocks.
+        """
+        data = A.reshape(-1) if self.all else A[self.sel].reshape(-1)
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
+
+    def apply(self, M: sp.csc_matrix, B: np.ndarray) -> np.ndarray:
+        """``M @ B`` reshaped to ``(n_targets, d1, d2)``.
+
+        Args:
+            M: From :meth:`matrix`.
+            B: ``(m, r, d2)`` blocks.
+        """
+        d2 = B.shape[-1]
+        return np.asarray(M @ B.reshape(self.m * self.r, d2)).reshape(self.n_targets, self.d1, d2)

@@ -5,7 +5,11 @@ blocks (block-diagonal, eliminated by the Schur complement); *W* blocks couple t
 reduced system ``S = U − W V⁻¹ Wᵀ`` lives in one fixed CSC pattern (the U blocks plus the fill
 from every pair of U blocks that share a V block). Everything index-related — which edge block
 goes where, the pattern, the pairs for ``W V⁻¹ Wᵀ`` — is computed in :meth:`LinearSystem.__init__`;
-each iteration only computes numbers (see ``docs/architecture.md``).
+each iteration only computes numbers. Every scatter-add is a :class:`BlockContraction`: a
+constant-structure sparse product (see ``docs/architecture.md``).
+
+W blocks are stored transposed, ``Wᵀ`` of shape ``(dv, du)``, which is the layout every product
+below wants.
 """
 
 from __future__ import annotations
@@ -15,36 +19,44 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from graphopt.block_ops import SegmentSum, batched_inverse_spd
+from graphopt.block_ops import (
+    BlockContraction,
+    EdgeContraction,
+    SegmentSum,
+    batched_inverse_spd,
+)
 from graphopt.graph import EdgeGroup, GraphError, VertexStore
 
 
 @dataclass
 class _HTerm:
-    """One Hessian block term: positions ``(a, b)`` of an edge group, one destination kind."""
+    """Hessian blocks ``Lᵀ Ω R`` of positions (a, b) of one edge group into one destination.
 
-    a: int
-    b: int
+    ``left``/``right`` name the positions whose Jacobian (left) and weighted Jacobian (right)
+    form the block.
+    """
+
+    left: int
+    right: int
     kind: str  # "U", "V" or "W"
-    sel: np.ndarray | None  # edge subset, None for all edges
-    transpose: bool  # block value is J_bᵀ Ω J_a (for W terms with the V vertex at position a)
-    reduce: SegmentSum
-    dest: np.ndarray  # U: (t, da*db) data positions; V/W: (t,) block index
+    contraction: EdgeContraction
+    dest: np.ndarray  # U: (t, dl*dr) data positions; V/W: (t,) block index
     dest_t: np.ndarray | None = None  # U off-diagonal: positions of the transposed entries
     cls: int = -1  # V class or W class index
     mirror: bool = False  # V term with a != b on the same vertex: add the transpose too
+    identity: bool = False  # W term whose targets are all W blocks of its class, in order
 
 
 @dataclass
 class _GTerm:
-    """One gradient term: position ``a`` of an edge group into U or a V class."""
+    """Gradient ``−Jᵀ ρ'Ω e`` of position ``a`` of one edge group into U or a V class."""
 
     a: int
     kind: str
-    sel: np.ndarray | None
-    reduce: SegmentSum
+    contraction: EdgeContraction
     dest: np.ndarray  # U: (t, d) vector positions; V: (t,) block index
     cls: int = -1
+    shared: int = -1  # index of an H term with the same contraction
 
 
 @dataclass
@@ -73,22 +85,21 @@ class WClass:
     ublock: np.ndarray  # (n,) global U block
     vblock: np.ndarray  # (n,) block within the V class
     upos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
-    to_u: SegmentSum | None = None
     to_v: SegmentSum | None = None
+    rhs: BlockContraction | None = None  # Σ_w Yᵀ_w b_v into U blocks of this store
+    rhs_dest: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
 
 
 @dataclass
 class _PairTerm:
-    """Pairs of W blocks (same V block) whose products fill ``W V⁻¹ Wᵀ``."""
+    """Products ``Y_w1 W_w2ᵀ`` over pairs of W blocks sharing a V block: the fill of S."""
 
     k1: int
     k2: int
-    w1: np.ndarray
-    w2: np.ndarray
-    reduce: SegmentSum
+    contraction: BlockContraction
     dest: np.ndarray  # (t, d1*d2) positions in S data
-    dest_t: np.ndarray | None  # transposed positions for off-diagonal targets (None if none)
-    offdiag: np.ndarray | None  # (t,) bool, which targets are off-diagonal
+    dest_t: np.ndarray | None  # transposed positions of the off-diagonal targets
+    offdiag: np.ndarray | None  # (t,) bool
 
 
 @dataclass
@@ -100,14 +111,14 @@ class Assembly:
         bu: Right-hand side (``−Jᵀ ρ' Ω e``) of the U part.
         v: Per V class ``(n, d, d)`` blocks.
         bv: Per V class ``(n, d)``.
-        w: Per W class ``(n, du, dv)`` blocks.
+        wt: Per W class ``(n, dv, du)`` transposed W blocks.
     """
 
     h_data: np.ndarray
     bu: np.ndarray
     v: list[np.ndarray]
     bv: list[np.ndarray]
-    w: list[np.ndarray]
+    wt: list[np.ndarray]
 
 
 def _positions(keys_sorted: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
@@ -144,19 +155,19 @@ class LinearSystem:
         self.vblock: list[np.ndarray] = []
         self.vclass_of_store: list[int] = []
         self.vclasses: list[VClass] = []
-        ustart, udims, ustore_of = [], [], []
+        udims, ustore_of = [], []
         nu = 0
         for si, st in enumerate(self.stores):
             active = ~st.fixed
             umask = active & ~st.marginalized
             vmask = active & st.marginalized
+            nuh = int(umask.sum())
             ub = np.full(len(st), -1, dtype=np.int64)
-            ub[umask] = nu + np.arange(int(umask.sum()))
-            nu += int(umask.sum())
+            ub[umask] = nu + np.arange(nuh)
+            nu += nuh
             self.ublock.append(ub)
-            udims.append(np.full(int(umask.sum()), st.vtype.dimension))
-            ustore_of.append(np.full(int(umask.sum()), si))
-            ustart.append(np.flatnonzero(umask))
+            udims.append(np.full(nuh, st.vtype.dimension, dtype=np.int64))
+            ustore_of.append(np.full(nuh, si, dtype=np.int64))
             vb = np.full(len(st), -1, dtype=np.int64)
             if vmask.any():
                 vb[vmask] = np.arange(int(vmask.sum()))
@@ -168,19 +179,24 @@ class LinearSystem:
         self.n_ublocks = nu
         self.udims = np.concatenate(udims) if udims else np.zeros(0, dtype=np.int64)
         self.ustore = np.concatenate(ustore_of) if ustore_of else np.zeros(0, dtype=np.int64)
-        self.uslot = np.concatenate(ustart) if ustart else np.zeros(0, dtype=np.int64)
         self.uoffset = np.concatenate([[0], np.cumsum(self.udims)]).astype(np.int64)
         self.n = int(self.uoffset[-1])
         self.schur = bool(self.vclasses)
 
+    def _contraction(self, g: EdgeGroup, left: int, right: int, sel: np.ndarray,
+                     target: np.ndarray, n_t: int, d_out: int) -> EdgeContraction:
+        """Σ over edges ``sel`` of ``J_leftᵀ · (ρ'ΩJ)_right`` into ``n_t`` targets."""
+        return EdgeContraction(sel, target, n_t, g.size, g.dim, d_out)
+
     def _build_terms(self) -> None:
         self.wclasses: list[WClass] = []
         wkey: dict[tuple[int, int], int] = {}
-        w_pairs: list[list[np.ndarray]] = []  # per W class: list of (ublock, vblock) arrays
+        w_pairs: list[list[np.ndarray]] = []
         self.terms: list[_GroupTerms] = []
-        ublock_pairs: list[np.ndarray] = []  # (n, 2) U block pairs that need a pattern block
-        pending_w: list[tuple[_GroupTerms, int, int, int, np.ndarray | None, bool, np.ndarray,
+        ublock_pairs: list[np.ndarray] = []
+        pending_w: list[tuple[_GroupTerms, EdgeGroup, int, int, int, np.ndarray, np.ndarray,
                               np.ndarray]] = []
+        nb = max(self.n_ublocks, 1)
 
         for gi, g in enumerate(self.groups):
             gt = _GroupTerms()
@@ -189,93 +205,89 @@ class LinearSystem:
             vb = [self.vblock[s][slots] for s, slots in pos]
             isu = [u >= 0 for u in ub]
             isv = [v >= 0 for v in vb]
+            dims = [self.stores[s].vtype.dimension for s, _ in pos]
             for a in range(g.k):
                 for b in range(a, g.k):
-                    # U-U
                     mask = isu[a] & isu[b]
                     if mask.any():
-                        sel = None if mask.all() else np.flatnonzero(mask)
-                        pa, pb = ub[a][mask], ub[b][mask]
+                        sel = np.flatnonzero(mask)
+                        pa, pb = ub[a][sel], ub[b][sel]
                         ublock_pairs.append(np.stack([pa, pb], 1))
                         if a != b:
                             ublock_pairs.append(np.stack([pb, pa], 1))
-                        key = pa * self.n_ublocks + pb
-                        uniq, inv = np.unique(key, return_inverse=True)
-                        gt.hterms.append(
-                            _HTerm(a, b, "U", sel, False, SegmentSum(inv, len(uniq)),
-                                   np.stack([uniq // self.n_ublocks, uniq % self.n_ublocks], 1))
-                        )
-                    # V-V
+                        uniq, inv = np.unique(pa * nb + pb, return_inverse=True)
+                        gt.hterms.append(_HTerm(
+                            a, b, "U", self._contraction(g, a, b, sel, inv, len(uniq), dims[a]),
+                            np.stack([uniq // nb, uniq % nb], 1)))
                     mask = isv[a] & isv[b]
                     if mask.any():
-                        if a != b and np.any(vb[a][mask] != vb[b][mask]) or (
-                            a != b and pos[a][0] != pos[b][0]
-                        ):
+                        if a != b and (pos[a][0] != pos[b][0]
+                                       or np.any(vb[a][mask] != vb[b][mask])):
                             raise GraphError(
                                 f"{g.etype.__name__}: an edge connects two different "
                                 "marginalised vertices; the Schur complement needs marginalised "
-                                "vertices to be independent given the others"
+                                "vertices that are independent given the others"
                             )
-                        sel = None if mask.all() else np.flatnonzero(mask)
-                        tv = vb[a][mask]
-                        uniq, inv = np.unique(tv, return_inverse=True)
-                        gt.hterms.append(
-                            _HTerm(a, b, "V", sel, False, SegmentSum(inv, len(uniq)), uniq,
-                                   cls=self.vclass_of_store[pos[a][0]], mirror=a != b)
-                        )
-                    # U-V and V-U
-                    for ui, vi, tr in ((a, b, False), (b, a, True)):
-                        if a == b:
-                            continue
+                        sel = np.flatnonzero(mask)
+                        uniq, inv = np.unique(vb[a][sel], return_inverse=True)
+                        gt.hterms.append(_HTerm(
+                            a, b, "V", self._contraction(g, a, b, sel, inv, len(uniq), dims[a]),
+                            uniq, cls=self.vclass_of_store[pos[a][0]], mirror=a != b))
+                    if a == b:
+                        continue
+                    for ui, vi in ((a, b), (b, a)):
                         mask = isu[ui] & isv[vi]
                         if not mask.any():
                             continue
-                        sel = None if mask.all() else np.flatnonzero(mask)
+                        sel = np.flatnonzero(mask)
                         key = (pos[ui][0], self.vclass_of_store[pos[vi][0]])
                         if key not in wkey:
                             wkey[key] = len(self.wclasses)
-                            st_u = self.stores[key[0]]
-                            self.wclasses.append(
-                                WClass(key[0], key[1], st_u.vtype.dimension,
-                                       self.vclasses[key[1]].dim, np.zeros(0), np.zeros(0))
-                            )
+                            self.wclasses.append(WClass(
+                                key[0], key[1], self.stores[key[0]].vtype.dimension,
+                                self.vclasses[key[1]].dim, np.zeros(0), np.zeros(0)))
                             w_pairs.append([])
                         k = wkey[key]
-                        w_pairs[k].append(np.stack([ub[ui][mask], vb[vi][mask]], 1))
-                        pending_w.append((gt, a, b, k, sel, tr, ub[ui][mask], vb[vi][mask]))
+                        w_pairs[k].append(np.stack([ub[ui][sel], vb[vi][sel]], 1))
+                        pending_w.append((gt, g, vi, ui, k, sel, ub[ui][sel], vb[vi][sel]))
             for a in range(g.k):
-                if isu[a].any():
-                    sel = None if isu[a].all() else np.flatnonzero(isu[a])
-                    t = ub[a][isu[a]]
-                    uniq, inv = np.unique(t, return_inverse=True)
-                    gt.gterms.append(_GTerm(a, "U", sel, SegmentSum(inv, len(uniq)), uniq))
-                if isv[a].any():
-                    sel = None if isv[a].all() else np.flatnonzero(isv[a])
-                    t = vb[a][isv[a]]
-                    uniq, inv = np.unique(t, return_inverse=True)
-                    gt.gterms.append(_GTerm(a, "V", sel, SegmentSum(inv, len(uniq)), uniq,
-                                            cls=self.vclass_of_store[pos[a][0]]))
+                for kind, isx, xb in (("U", isu[a], ub[a]), ("V", isv[a], vb[a])):
+                    if not isx.any():
+                        continue
+                    sel = np.flatnonzero(isx)
+                    uniq, inv = np.unique(xb[sel], return_inverse=True)
+                    cls = self.vclass_of_store[pos[a][0]] if kind == "V" else -1
+                    shared = next((i for i, t in enumerate(gt.hterms)
+                                   if t.left == a and t.right == a and t.kind == kind), -1)
+                    con = (gt.hterms[shared].contraction if shared >= 0 else
+                           self._contraction(g, a, a, sel, inv, len(uniq), dims[a]))
+                    gt.gterms.append(_GTerm(a, kind, con, uniq, cls, shared))
             self.terms.append(gt)
 
-        # Unique W blocks per class, then map each W term's edges onto them.
+        # Unique W blocks per class, ordered by V block, then each W term's edges onto them.
         for k, wc in enumerate(self.wclasses):
             allp = np.concatenate(w_pairs[k])
-            nvb = len(self.vclasses[wc.vclass].slots)
-            # Order W blocks by V block so that a point's blocks are contiguous.
-            keys = np.unique(allp[:, 1] * self.n_ublocks + allp[:, 0])
-            wc.vblock, wc.ublock = keys // self.n_ublocks, keys % self.n_ublocks
-            wc.to_v = SegmentSum(wc.vblock, nvb)
-            wc.to_u = SegmentSum(wc.ublock, self.n_ublocks)
+            keys = np.unique(allp[:, 1] * nb + allp[:, 0])
+            wc.vblock, wc.ublock = keys // nb, keys % nb
+            wc.to_v = SegmentSum(wc.vblock, len(self.vclasses[wc.vclass].slots))
             wc.upos = (self.uoffset[wc.ublock][:, None] + np.arange(wc.du)).astype(np.int64)
+            # rhs: Σ_w (Yᵀ_w)ᵀ b_v[v_w] per U block, with Yᵀ = V⁻¹Wᵀ of shape (dv, du).
+            uu, inv = np.unique(wc.ublock, return_inverse=True)
+            wc.rhs = BlockContraction(inv, np.arange(len(keys)), wc.vblock, len(uu), wc.dv,
+                                      wc.du, len(self.vclasses[wc.vclass].slots))
+            wc.rhs_dest = self.uoffset[uu][:, None] + np.arange(wc.du)
             wc._keys = keys  # type: ignore[attr-defined]
-        for gt, a, b, k, sel, tr, ubs, vbs in pending_w:
+        for gt, g, vi, ui, k, sel, ubs, vbs in pending_w:
             keys = self.wclasses[k]._keys  # type: ignore[attr-defined]
-            widx = np.searchsorted(keys, vbs * self.n_ublocks + ubs)
+            widx = np.searchsorted(keys, vbs * nb + ubs)
             uniq, inv = np.unique(widx, return_inverse=True)
-            gt.hterms.append(_HTerm(a, b, "W", sel, tr, SegmentSum(inv, len(uniq)), uniq, cls=k))
+            # Wᵀ block = J_vᵀ Ω J_u: the V position's Jacobian on the left.
+            con = self._contraction(g, vi, ui, sel, inv, len(uniq), self.wclasses[k].dv)
+            ident = len(uniq) == len(keys) and len(inv) == len(uniq)
+            gt.hterms.append(_HTerm(vi, ui, "W", con, uniq, cls=k, identity=ident))
 
         # Pairs of W blocks sharing a V block: the fill of the reduced system.
-        self.pairs: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+        self._pairs: list[tuple[int, int, np.ndarray, np.ndarray]] = []
         for k1, c1 in enumerate(self.wclasses):
             for k2 in range(k1, len(self.wclasses)):
                 c2 = self.wclasses[k2]
@@ -286,14 +298,14 @@ class LinearSystem:
                     keep = c1.ublock[w1] <= c2.ublock[w2]
                     w1, w2 = w1[keep], w2[keep]
                 if len(w1):
-                    self.pairs.append((k1, k2, w1, w2))
+                    self._pairs.append((k1, k2, w1, w2))
                     u1, u2 = c1.ublock[w1], c2.ublock[w2]
                     ublock_pairs.append(np.stack([u1, u2], 1))
                     ublock_pairs.append(np.stack([u2, u1], 1))
         diag = np.arange(self.n_ublocks)
         ublock_pairs.append(np.stack([diag, diag], 1))
-        bp = np.concatenate(ublock_pairs) if ublock_pairs else np.zeros((0, 2), dtype=np.int64)
-        self._block_pairs = np.unique(bp[:, 1] * max(self.n_ublocks, 1) + bp[:, 0])
+        bp = np.concatenate(ublock_pairs)
+        self._block_pairs = np.unique(bp[:, 1] * nb + bp[:, 0])
 
     @staticmethod
     def _pairs_sharing_v(v1: np.ndarray, v2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -304,30 +316,34 @@ class LinearSystem:
         s1 = np.concatenate([[0], np.cumsum(c1)[:-1]])
         s2 = np.concatenate([[0], np.cumsum(c2)[:-1]])
         per = c1 * c2
-        total = int(per.sum())
         vv = np.repeat(np.arange(nv), per)
-        k = np.arange(total) - np.repeat(np.cumsum(per) - per, per)
-        i = k // np.maximum(c2[vv], 1)
-        j = k % np.maximum(c2[vv], 1)
-        return s1[vv] + i, s2[vv] + j
+        k = np.arange(int(per.sum())) - np.repeat(np.cumsum(per) - per, per)
+        c2v = np.maximum(c2[vv], 1)
+        return s1[vv] + k // c2v, s2[vv] + k % c2v
 
     def _block_entries(self, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Scalar (row, col) of every entry of blocks (r, c), row-major within a block."""
-        dr, dc = self.udims[r], self.udims[c]
         if len(r) == 0:
             return np.zeros((0, 0), np.int64), np.zeros((0, 0), np.int64)
-        d1, d2 = int(dr[0]), int(dc[0])
-        assert np.all(dr == d1) and np.all(dc == d2)
+        d1, d2 = int(self.udims[r[0]]), int(self.udims[c[0]])
         rows = self.uoffset[r][:, None, None] + np.arange(d1)[None, :, None]
         cols = self.uoffset[c][:, None, None] + np.arange(d2)[None, None, :]
         rows, cols = np.broadcast_arrays(rows, cols)
         return rows.reshape(len(r), -1), cols.reshape(len(r), -1)
 
+    def _dest(self, br: np.ndarray, bc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Data positions of blocks (br, bc) and of their transposes, entry-aligned."""
+        n = self.n
+        r, c = self._block_entries(br, bc)
+        d1, d2 = int(self.udims[br[0]]), int(self.udims[bc[0]])
+        pos = _positions(self._keys, r, c, n)
+        post = _positions(self._keys, c.reshape(-1, d1, d2), r.reshape(-1, d1, d2), n)
+        return pos, post.reshape(len(br), -1)
+
     def _build_pattern(self) -> None:
         n, nb = self.n, max(self.n_ublocks, 1)
         bc, br = self._block_pairs // nb, self._block_pairs % nb
         rows_l, cols_l = [], []
-        # Blocks of different sizes are expanded per size class.
         for d1 in np.unique(self.udims):
             for d2 in np.unique(self.udims):
                 sel = (self.udims[br] == d1) & (self.udims[bc] == d2)
@@ -340,8 +356,7 @@ class LinearSystem:
         keys = np.unique(cols.astype(np.int64) * n + rows)
         self._keys = keys
         indices = (keys % max(n, 1)).astype(np.int32)
-        colidx = keys // max(n, 1)
-        indptr = np.searchsorted(colidx, np.arange(n + 1)).astype(np.int32)
+        indptr = np.searchsorted(keys // max(n, 1), np.arange(n + 1)).astype(np.int32)
         self.pattern = sp.csc_matrix((np.zeros(len(keys)), indices, indptr), shape=(n, n))
         self.nnz = len(keys)
         diag = np.arange(n)
@@ -349,49 +364,25 @@ class LinearSystem:
 
         for gt in self.terms:
             for t in gt.hterms:
-                if t.kind != "U":
-                    continue
-                pa, pb = t.dest[:, 0], t.dest[:, 1]
-                r, c = self._block_entries(pa, pb)
-                pos = _positions(keys, r, c, n)
-                if t.a != t.b:
-                    # Entry (i, j) of block (pa, pb) sits at (col pb+j, row pa+i) transposed.
-                    d1, d2 = int(self.udims[pa[0]]), int(self.udims[pb[0]])
-                    rt = c.reshape(-1, d1, d2)
-                    ct = r.reshape(-1, d1, d2)
-                    t.dest_t = _positions(keys, rt, ct, n).reshape(len(pa), -1)
-                t.dest = pos
-            for g in gt.gterms:
-                if g.kind == "U":
-                    d = int(self.udims[g.dest[0]])
-                    g.dest = self.uoffset[g.dest][:, None] + np.arange(d)
+                if t.kind == "U":
+                    pos, post = self._dest(t.dest[:, 0], t.dest[:, 1])
+                    t.dest, t.dest_t = pos, (post if t.left != t.right else None)
+            for gterm in gt.gterms:
+                if gterm.kind == "U":
+                    d = int(self.udims[gterm.dest[0]])
+                    gterm.dest = self.uoffset[gterm.dest][:, None] + np.arange(d)
         self.pair_terms: list[_PairTerm] = []
-        for k1, k2, w1, w2 in self.pairs:
+        for k1, k2, w1, w2 in self._pairs:
             c1, c2 = self.wclasses[k1], self.wclasses[k2]
-            u1, u2 = c1.ublock[w1], c2.ublock[w2]
-            key = u1 * self.n_ublocks + u2
-            order = np.argsort(key, kind="stable")
-            w1, w2, key = w1[order], w2[order], key[order]
-            uniq, inv = np.unique(key, return_inverse=True)
-            tu1, tu2 = uniq // self.n_ublocks, uniq % self.n_ublocks
-            r, c = self._block_entries(tu1, tu2)
-            dest = _positions(keys, r, c, n)
+            uniq, inv = np.unique(c1.ublock[w1] * nb + c2.ublock[w2], return_inverse=True)
+            tu1, tu2 = uniq // nb, uniq % nb
+            # S_t −= Σ Y_w1 W_w2ᵀ = Σ (Yᵀ_w1)ᵀ Wᵀ_w2: A = Yᵀ (dv, du1), B = Wᵀ (dv, du2).
+            con = BlockContraction(inv, w1, w2, len(uniq), c1.dv, c1.du, len(c2.ublock))
+            pos, post = self._dest(tu1, tu2)
             off = tu1 != tu2
-            dest_t = None
-            if off.any():
-                rt = c.reshape(-1, c1.du, c2.du)
-                ct = r.reshape(-1, c1.du, c2.du)
-                dest_t = _positions(keys, rt, ct, n).reshape(len(tu1), -1)[off]
-            self.pair_terms.append(
-                _PairTerm(k1, k2, w1, w2, SegmentSum(inv, len(uniq)), dest, dest_t,
-                          off if off.any() else None)
-            )
-        # Diagonal blocks, for block-Jacobi preconditioning and the marginals.
-        self.diag_blocks: list[tuple[int, np.ndarray, np.ndarray]] = []
-        for d in np.unique(self.udims):
-            blocks = np.flatnonzero(self.udims == d)
-            r, c = self._block_entries(blocks, blocks)
-            self.diag_blocks.append((int(d), blocks, _positions(keys, r, c, n)))
+            self.pair_terms.append(_PairTerm(k1, k2, con, pos, post[off] if off.any() else None,
+                                             off if off.any() else None))
+        del self._pairs
 
     # --- numbers -----------------------------------------------------------------------------
 
@@ -404,21 +395,22 @@ class LinearSystem:
         """Accumulate ``JᵀΩJ`` and ``−JᵀΩe`` of every edge group into the fixed structure.
 
         Args:
-            jacobians: Per group, per position ``(m, e, d)``.
-            weighted: Per group, per position ``ρ' Ω J`` ``(m, e, d)``.
+            jacobians: Per group, per position ``(m, e, d)`` (C-contiguous).
+            weighted: Per group, per position ``ρ' Ω J`` ``(m, e, d)`` (C-contiguous).
             weighted_errors: Per group ``ρ' Ω e`` ``(m, e)``.
         """
         h = np.zeros(self.nnz)
         bu = np.zeros(self.n)
         v = [np.zeros((len(c.slots), c.dim, c.dim)) for c in self.vclasses]
         bv = [np.zeros((len(c.slots), c.dim)) for c in self.vclasses]
-        w = [np.zeros((len(c.ublock), c.du, c.dv)) for c in self.wclasses]
+        wt = [np.zeros((len(c.ublock), c.dv, c.du)) for c in self.wclasses]
+        w_written = [False] * len(wt)
         for gt, J, WJ, we in zip(self.terms, jacobians, weighted, weighted_errors, strict=True):
+            mats = []
             for t in gt.hterms:
-                ja, wjb = (J[t.b], WJ[t.a]) if t.transpose else (J[t.a], WJ[t.b])
-                if t.sel is not None:
-                    ja, wjb = ja[t.sel], wjb[t.sel]
-                blk = t.reduce(np.matmul(np.swapaxes(ja, 1, 2), wjb))
+                M = t.contraction.matrix(np.ascontiguousarray(J[t.left]))
+                mats.append(M)
+                blk = t.contraction.apply(M, WJ[t.right])
                 if t.kind == "U":
                     flat = blk.reshape(len(blk), -1)
                     h[t.dest] += flat
@@ -428,17 +420,22 @@ class LinearSystem:
                     v[t.cls][t.dest] += blk
                     if t.mirror:
                         v[t.cls][t.dest] += np.swapaxes(blk, 1, 2)
+                elif t.identity and not w_written[t.cls]:
+                    wt[t.cls] = blk  # one-to-one and first: no scatter needed
                 else:
-                    w[t.cls][t.dest] += blk
+                    wt[t.cls][t.dest] += blk
+                if t.kind == "W":
+                    w_written[t.cls] = True
+            we3 = we[:, :, None]
             for g in gt.gterms:
-                ja = J[g.a] if g.sel is None else J[g.a][g.sel]
-                e = we if g.sel is None else we[g.sel]
-                gb = g.reduce(-np.einsum("mei,me->mi", ja, e))
+                M = mats[g.shared] if g.shared >= 0 else g.contraction.matrix(
+                    np.ascontiguousarray(J[g.a]))
+                gb = -g.contraction.apply(M, we3)[:, :, 0]
                 if g.kind == "U":
                     bu[g.dest] += gb
                 else:
                     bv[g.cls][g.dest] += gb
-        return Assembly(h, bu, v, bv, w)
+        return Assembly(h, bu, v, bv, wt)
 
     def reduce(
         self, asm: Assembly, lam: float
@@ -450,8 +447,8 @@ class LinearSystem:
             lam: Levenberg damping added to every diagonal entry (0 for none).
 
         Returns:
-            ``(s_data, rhs, vinv, y)``: the reduced matrix's data, its right-hand side, the
-            inverted (damped) V blocks per class, and ``Y = W V⁻¹`` per W class.
+            ``(s_data, rhs, vinv, yt)``: the reduced matrix's data, its right-hand side, the
+            inverted (damped) V blocks per class, and ``Yᵀ = V⁻¹ Wᵀ`` per W class.
 
         Raises:
             NotPositiveDefiniteError: if a V block is not positive definite.
@@ -464,32 +461,18 @@ class LinearSystem:
             vd = vb + lam * np.eye(vb.shape[1]) if lam else vb
             vinv.append(batched_inverse_spd(vd))
         rhs = asm.bu.copy()
-        y = []
+        yt = []
         for k, wc in enumerate(self.wclasses):
-            yk = np.matmul(asm.w[k], vinv[wc.vclass][wc.vblock])
-            y.append(yk)
-            assert wc.to_u is not None
-            contrib = np.einsum("nij,nj->ni", yk, asm.bv[wc.vclass][wc.vblock])
-            rhs -= self._scatter_u(wc, contrib)
+            yk = np.matmul(vinv[wc.vclass][wc.vblock], asm.wt[k])
+            yt.append(yk)
+            assert wc.rhs is not None
+            rhs[wc.rhs_dest] -= wc.rhs(yk, asm.bv[wc.vclass][:, :, None])[:, :, 0]
         for pt in self.pair_terms:
-            prod = np.matmul(y[pt.k1][pt.w1], np.swapaxes(asm.w[pt.k2][pt.w2], 1, 2))
-            red = pt.reduce(prod).reshape(pt.reduce.n_targets, -1)
+            red = pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(len(pt.dest), -1)
             s[pt.dest] -= red
             if pt.dest_t is not None:
                 s[pt.dest_t] -= red[pt.offdiag]
-        return s, rhs, vinv, y
-
-    def _scatter_u(self, wc: WClass, contrib: np.ndarray) -> np.ndarray:
-        """Sum per-W-block vectors ``(n, du)`` into a full U-sized vector."""
-        assert wc.to_u is not None
-        out = np.zeros(self.n)
-        summed = wc.to_u(contrib)  # (n_ublocks, du); rows of other stores stay zero
-        blocks = np.flatnonzero(self.ustore == wc.ustore)
-        if len(blocks):
-            out[(self.uoffset[blocks][:, None] + np.arange(wc.du)).ravel()] = summed[
-                blocks
-            ].ravel()
-        return out
+        return s, rhs, vinv, yt
 
     def back_substitute(
         self, asm: Assembly, du: np.ndarray, vinv: list[np.ndarray]
@@ -504,9 +487,8 @@ class LinearSystem:
         r = [b.copy() for b in asm.bv]
         for k, wc in enumerate(self.wclasses):
             assert wc.to_v is not None
-            wt = np.einsum("nij,ni->nj", asm.w[k], du[wc.upos])
-            r[wc.vclass] -= wc.to_v(wt)
-        return [np.einsum("nij,nj->ni", vi, ri) for vi, ri in zip(vinv, r, strict=True)]
+            r[wc.vclass] -= wc.to_v(np.matmul(asm.wt[k], du[wc.upos][:, :, None])[:, :, 0])
+        return [np.matmul(vi, ri[:, :, None])[:, :, 0] for vi, ri in zip(vinv, r, strict=True)]
 
     def hessian_product(self, asm: Assembly, xu: np.ndarray, xv: list[np.ndarray]
                         ) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -518,11 +500,12 @@ class LinearSystem:
             xv: V parts per class.
         """
         hu = self.csc(asm.h_data) @ xu
-        hv = [np.einsum("nij,nj->ni", vb, x) for vb, x in zip(asm.v, xv, strict=True)]
+        hv = [np.matmul(vb, x[:, :, None])[:, :, 0] for vb, x in zip(asm.v, xv, strict=True)]
         for k, wc in enumerate(self.wclasses):
             assert wc.to_v is not None
-            hu += self._scatter_u(wc, np.einsum("nij,nj->ni", asm.w[k], xv[wc.vclass][wc.vblock]))
-            hv[wc.vclass] += wc.to_v(np.einsum("nij,ni->nj", asm.w[k], xu[wc.upos]))
+            assert wc.rhs is not None
+            hu[wc.rhs_dest] += wc.rhs(asm.wt[k], xv[wc.vclass][:, :, None])[:, :, 0]
+            hv[wc.vclass] += wc.to_v(np.matmul(asm.wt[k], xu[wc.upos][:, :, None])[:, :, 0])
         return hu, hv
 
     def csc(self, data: np.ndarray) -> sp.csc_matrix:

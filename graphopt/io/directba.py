@@ -65,11 +65,17 @@ class DirectBAData:
         return int(round(np.sqrt(self.patches.shape[1])))
 
 
-def _read_table(path: Path, columns: int, what: str) -> np.ndarray:
-    """Whitespace-separated numbers with exactly ``columns`` per non-empty line."""
+def _read_table(
+    path: Path, columns: int, what: str, check_finite: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Whitespace-separated numbers with exactly ``columns`` per non-empty line.
+
+    Returns the ``(n, columns)`` values and the 1-based line number of every row.
+    """
     if not path.is_file():
         raise DirectBAFormatError(f"{path}: {what} file not found")
     rows: list[list[float]] = []
+    linenos: list[int] = []
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
@@ -85,13 +91,16 @@ def _read_table(path: Path, columns: int, what: str) -> np.ndarray:
         try:
             values = [float(f) for f in fields]
         except ValueError:
-            raise DirectBAFormatError(f"{path}:{lineno}: not a number in {line.strip()!r}") from None
-        if not np.all(np.isfinite(values)):
+            raise DirectBAFormatError(
+                f"{path}:{lineno}: not a number in {line.strip()!r}"
+            ) from None
+        if check_finite and not np.all(np.isfinite(values)):
             raise DirectBAFormatError(f"{path}:{lineno}: non-finite value")
         rows.append(values)
+        linenos.append(lineno)
     if not rows:
         raise DirectBAFormatError(f"{path}: no {what} found")
-    return np.asarray(rows, dtype=np.float64)
+    return np.asarray(rows, dtype=np.float64), np.asarray(linenos)
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -113,12 +122,15 @@ def read_image(path: Path) -> np.ndarray:
     return img.astype(np.float64)
 
 
-def poses_from_rows(rows: np.ndarray, path: Path | str = "poses") -> np.ndarray:
+def poses_from_rows(
+    rows: np.ndarray, path: Path | str = "poses", linenos: np.ndarray | None = None
+) -> np.ndarray:
     """``T_cw`` from rows ``time tx ty tz qx qy qz qw``.
 
     Args:
         rows: ``(n, 8)`` numbers.
         path: File name for error messages.
+        linenos: Line number of every row (``1..n`` by default).
 
     Raises:
         DirectBAFormatError: If a quaternion has zero or non-finite norm.
@@ -128,7 +140,10 @@ def poses_from_rows(rows: np.ndarray, path: Path | str = "poses") -> np.ndarray:
     bad = ~np.isfinite(norm) | (norm < 1e-12)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise DirectBAFormatError(f"{path}:{i + 1}: bad quaternion {q[i].tolist()} (norm {norm[i]:g})")
+        line = i + 1 if linenos is None else int(linenos[i])
+        raise DirectBAFormatError(
+            f"{path}:{line}: bad quaternion {q[i].tolist()} (norm {norm[i]:g})"
+        )
     return make_transform(quat_to_rot(q / norm[:, None]), rows[:, 1:4])
 
 
@@ -155,9 +170,15 @@ def load_directba(
     if not root.is_dir():
         raise DirectBAFormatError(f"{root}: data folder not found")
     pose_path = root / "poses.txt"
-    rows = _read_table(pose_path, 8, "time tx ty tz qx qy qz qw")
-    poses = poses_from_rows(rows, pose_path)
-    pts = _read_table(root / "points.txt", 3 + patch * patch, f"x y z and {patch * patch} intensities")
+    # Quaternions are checked first so that a NaN there is reported as a bad quaternion.
+    rows, lines = _read_table(pose_path, 8, "time tx ty tz qx qy qz qw", check_finite=False)
+    poses = poses_from_rows(rows, pose_path, lines)
+    bad = ~np.isfinite(rows[:, 1:4]).all(axis=1)
+    if bad.any():
+        raise DirectBAFormatError(f"{pose_path}:{lines[np.flatnonzero(bad)[0]]}: non-finite value")
+    pts, _ = _read_table(
+        root / "points.txt", 3 + patch * patch, f"x y z and {patch * patch} intensities"
+    )
     images = []
     for i in range(len(poses)):
         images.append(read_image(root / f"{i}.png"))
@@ -184,7 +205,7 @@ def load_directba(
 # synthetic scene
 
 
-def _texture(rng: np.random.Generator, size: int = 512, cells: int = 24) -> np.ndarray:
+def _texture(rng: np.random.Generator, size: int = 800, cells: int = 36) -> np.ndarray:
     """A smooth random texture in [20, 235]: upsampled value noise plus a little detail."""
     import cv2
 
@@ -198,14 +219,16 @@ def _texture(rng: np.random.Generator, size: int = 512, cells: int = 24) -> np.n
 
 
 def _bilinear(tex: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Sample a texture at continuous (s, t) texel coordinates with wrap-around."""
+    """Sample a texture at continuous (s, t) texel coordinates (clamped at the border)."""
     h, w = tex.shape
-    s0 = np.floor(s)
-    t0 = np.floor(t)
+    s = np.clip(s, 0.0, w - 1.0)
+    t = np.clip(t, 0.0, h - 1.0)
+    s0 = np.minimum(np.floor(s), w - 2)
+    t0 = np.minimum(np.floor(t), h - 2)
     a, b = s - s0, t - t0
-    i0 = s0.astype(np.int64) % w
-    j0 = t0.astype(np.int64) % h
-    i1, j1 = (i0 + 1) % w, (j0 + 1) % h
+    i0 = s0.astype(np.int64)
+    j0 = t0.astype(np.int64)
+    i1, j1 = i0 + 1, j0 + 1
     return ((1 - a) * (1 - b) * tex[j0, i0] + a * (1 - b) * tex[j0, i1]
             + (1 - a) * b * tex[j1, i0] + a * b * tex[j1, i1])
 
@@ -220,12 +243,16 @@ _PLANES = (
 )
 
 
+#: Texture coordinates are centred here so that one texture spans a whole wall.
+_ROOM_CENTRE = np.array([0.0, 0.0, 3.0])
+
+
 def render(
     pose: np.ndarray,
     intrinsics: tuple[float, float, float, float],
     size: tuple[int, int],
     textures: list[np.ndarray],
-    texel: float = 0.01,
+    texel: float = 0.015,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ray-cast the synthetic room from one pose.
 
@@ -234,7 +261,7 @@ def render(
         intrinsics: ``(fx, fy, cx, cy)``.
         size: ``(width, height)``.
         textures: One texture per plane of the room.
-        texel: Metres per texel.
+        texel: Metres per texel; a texture covers the room without repeating (no seams).
 
     Returns:
         ``(image, depth)``, both ``(H, W)`` float64 (depth = camera z of the hit).
@@ -254,7 +281,8 @@ def render(
             lam = (d - origin @ normal) / denom
         hit = (lam > 0) & (lam < best)
         pts = origin + lam[hit, None] * rays_w[hit]
-        image[hit] = _bilinear(tex, pts[:, ax_s] / texel, pts[:, ax_t] / texel)
+        st = (pts - _ROOM_CENTRE) / texel + 0.5 * (len(tex) - 1)  # textures are square
+        image[hit] = _bilinear(tex, st[:, ax_s], st[:, ax_t])
         best[hit] = lam[hit]
     # rays_c has z = 1, so the ray parameter is the camera depth.
     return image.reshape(h, w), best.reshape(h, w)
@@ -365,7 +393,9 @@ def synthetic_scene(
     )
 
 
-def with_intrinsics(data: DirectBAData, intrinsics: tuple[float, float, float, float]) -> DirectBAData:
+def with_intrinsics(
+    data: DirectBAData, intrinsics: tuple[float, float, float, float]
+) -> DirectBAData:
     """A copy with other intrinsics.
 
     Args:

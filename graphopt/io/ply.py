@@ -18,7 +18,13 @@ import numpy as np
 
 from graphopt.io.atomic import atomic_write
 
-__all__ = ["CAMERA_COLOR", "POINT_COLOR", "camera_centers_from_poses", "write_ply", "write_scene_ply"]
+__all__ = [
+    "CAMERA_COLOR",
+    "POINT_COLOR",
+    "camera_centers_from_poses",
+    "write_ply",
+    "write_scene_ply",
+]
 
 #: Default colour of camera centres (green, as Ceres' bundle_adjuster writes them).
 CAMERA_COLOR: tuple[int, int, int] = (0, 255, 0)
@@ -116,7 +122,9 @@ def write_scene_ply(
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
     cams = np.asarray(camera_centers, dtype=float).reshape(-1, 3)
-    colors = np.concatenate([_as_colors(camera_color, len(cams)), _as_colors(point_color, len(pts))])
+    colors = np.concatenate(
+        [_as_colors(camera_color, len(cams)), _as_colors(point_color, len(pts))]
+    )
     write_ply(
         path,
         np.concatenate([cams, pts]),
