@@ -1,7 +1,8 @@
 """Marginal covariances: blocks of ``H⁻¹`` through the Schur complement.
 
 For a non-marginalised vertex ``u`` the block is ``(S⁻¹)_uu``. For a marginalised vertex ``p``
-with W blocks ``W_up`` it is ``V_p⁻¹ + Σ_{u,u'} Y_upᵀ (S⁻¹)_uu' Y_u'p`` with ``Y = W V⁻¹``.
+with W blocks ``W_up`` it is ``V_p⁻¹ + Σ_{u,u'} Y_upᵀ (S⁻¹)_uu' Y_u'p`` with ``Y = W V⁻¹``
+(the reduction hands over ``Yᵀ = V⁻¹Wᵀ``).
 Only the columns of ``S⁻¹`` that these formulas touch are solved for.
 """
 
@@ -30,7 +31,7 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
     sysm, solver = opt._system, opt.solver
     assert sysm is not None and solver is not None
     asm, _ = opt.linearize()
-    s, _, vinv, y = sysm.reduce(asm, 0.0)
+    s, _, vinv, yt = sysm.reduce(asm, 0.0)
     store_index = {id(st): i for i, st in enumerate(opt._store_list)}
     wanted: list[tuple[int, str, int, int, np.ndarray]] = []
     cols: list[np.ndarray] = []
@@ -68,14 +69,14 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
             out[vid] = X[np.ix_(idx, [col_of[int(c)] for c in idx])].copy()
             continue
         cov = vinv[a][b].copy()
-        parts = []  # (Y block (du, dv), scalar rows of u)
+        parts = []  # (Yᵀ block (dv, du), scalar rows of u)
         for k, wc in enumerate(sysm.wclasses):
             if wc.vclass == a:
                 for w in np.flatnonzero(wc.vblock == b):
-                    parts.append((y[k][w], wc.upos[w]))
+                    parts.append((yt[k][w], wc.upos[w]))
         for y1, r1 in parts:
             for y2, r2 in parts:
                 block = X[np.ix_(r1, [col_of[int(c)] for c in r2])]
-                cov += y1.T @ block @ y2
+                cov += y1 @ block @ y2.T
         out[vid] = cov
     return out

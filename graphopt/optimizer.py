@@ -438,6 +438,10 @@ class SparseOptimizer:
             raise GraphError(f"{et.__name__}: non-finite information matrix")
         if not np.allclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12):
             raise GraphError(f"{et.__name__}: information matrix is not symmetric")
+        uniq_info = infos if len(infos) <= 1 else np.unique(infos, axis=0)
+        low = np.linalg.eigvalsh(uniq_info)
+        if np.any(low[:, 0] < -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)):
+            raise GraphError(f"{et.__name__}: information matrix is not positive semi-definite")
         for pos, vt in enumerate(et.vertex_types):
             col = vids[:, pos]
             for i, vid in enumerate(col.tolist()) if m < 64 else ():
@@ -617,9 +621,10 @@ class SparseOptimizer:
             oe, s = self._sq(g, e)
             rho, w = self._robustify(g, s)
             if not (np.all(np.isfinite(e)) and all(np.all(np.isfinite(j)) for j in J)):
-                bad = np.flatnonzero(~np.isfinite(e).all(axis=1))
-                which = int(bad[0]) if len(bad) else -1
-                ids = g.vertex_ids[which].tolist() if which >= 0 else "?"
+                ok = np.isfinite(e).all(axis=1)
+                for j in J:
+                    ok &= np.isfinite(j.reshape(len(j), -1)).all(axis=1)
+                ids = g.vertex_ids[int(np.flatnonzero(~ok)[0])].tolist()
                 raise FloatingPointError(
                     f"{g.etype.__name__} on vertices {ids}: non-finite error or Jacobian at "
                     "linearisation"

@@ -90,7 +90,8 @@ class RobustKernelPseudoHuber(RobustKernel):
         d2 = self.delta**2
         aux = s / d2 + 1.0
         sq = np.sqrt(aux)
-        return 2.0 * d2 * (sq - 1.0), 1.0 / sq, -0.5 / (d2 * aux * sq)
+        # 2δ²(√aux − 1) written without cancellation for small s.
+        return 2.0 * s / (sq + 1.0), 1.0 / sq, -0.5 / (d2 * aux * sq)
 
 
 class RobustKernelCauchy(RobustKernel):
@@ -152,7 +153,7 @@ class RobustKernelWelsch(RobustKernel):
         """
         d2 = self.delta**2
         ex = np.exp(-s / d2)
-        return d2 * (1.0 - ex), ex, -ex / d2
+        return -d2 * np.expm1(-s / d2), ex, -ex / d2
 
 
 class RobustKernelFair(RobustKernel):
@@ -196,8 +197,10 @@ class RobustKernelTukey(RobustKernel):
         """
         d2 = self.delta**2
         inside = s <= d2
-        one_m = np.where(inside, 1.0 - s / d2, 0.0)
-        rho0 = np.where(inside, d2 * (1.0 - one_m**3) / 3.0, d2 / 3.0)
+        u = np.where(inside, s / d2, 1.0)
+        one_m = 1.0 - u
+        # 1 − (1 − u)³ = u (3 − 3u + u²), free of cancellation for small u.
+        rho0 = np.where(inside, d2 * u * (3.0 - 3.0 * u + u * u) / 3.0, d2 / 3.0)
         return rho0, one_m**2, np.where(inside, -2.0 * one_m / d2, 0.0)
 
 

@@ -298,6 +298,8 @@ def synthetic_scene(
     trans_noise: float = 0.03,
     point_noise: float = 0.02,
     seed: int = 0,
+    image_noise: float = 0.0,
+    outlier_fraction: float = 0.0,
 ) -> DirectBAData:
     """A textured room seen by a camera moving sideways, with perturbed initial values.
 
@@ -318,6 +320,10 @@ def synthetic_scene(
         trans_noise: Translation perturbation per pose (metres).
         point_noise: Standard deviation of the point perturbation per axis (metres).
         seed: Seed of everything random (texture, sampling, perturbation).
+        image_noise: Standard deviation of Gaussian noise added to every rendered image
+            (intensity units), after the reference patches are taken from the clean first image.
+        outlier_fraction: Fraction of points whose reference patch is replaced by the patch of
+            another, random point (gross photometric outliers).
 
     Returns:
         The problem, with ``true_poses``/``true_points`` and ``hosts`` (all 0).
@@ -367,6 +373,15 @@ def synthetic_scene(
     # k = P (dx + P/2) + (dy + P/2): dx (column) outer, dy (row) inner.
     patches = images[0][cv[:, None, None] + d[None, None, :], cu[:, None, None] + d[None, :, None]]
     patches = patches.reshape(len(cu), patch * patch)
+    # A separate stream, so that noise and outliers leave the perturbation of a seed unchanged.
+    rng_noise = np.random.default_rng([seed, 1])
+    n_out = int(round(outlier_fraction * len(cu)))
+    outliers = (np.sort(rng_noise.choice(len(cu), n_out, replace=False)) if n_out
+                else np.zeros(0, dtype=np.int64))
+    if n_out:
+        patches[outliers] = patches[rng_noise.integers(0, len(cu), n_out)]
+    if image_noise > 0:
+        images = images + rng_noise.normal(scale=image_noise, size=images.shape)
 
     # Deterministic perturbation: fixed magnitudes, random directions.
     def unit(n: int) -> np.ndarray:
@@ -389,7 +404,7 @@ def synthetic_scene(
         hosts=np.zeros(len(points), dtype=np.int64),
         source="synthetic",
         extra={"seed": seed, "rot_noise_deg": rot_noise_deg, "trans_noise": trans_noise,
-               "point_noise": point_noise},
+               "point_noise": point_noise, "image_noise": image_noise, "outliers": outliers},
     )
 
 

@@ -1,0 +1,157 @@
+"""Schur complement against the full system, and marginal covariances against H⁻¹."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from custom_types import EdgeSE2, VertexSE2, pose_graph
+
+from graphopt import BaseEdge, GraphError, SparseOptimizer, VertexVector
+from graphopt.solvers import CHOLMOD_AVAILABLE
+
+
+class VertexCam(VertexVector):
+    dimension = 4
+
+
+class VertexLandmark(VertexVector):
+    dimension = 3
+
+
+class EdgeObs(BaseEdge):
+    """A smooth nonlinear 'projection' coupling a camera and a landmark (numeric Jacobians)."""
+
+    dimension = 2
+    vertex_types = (VertexCam, VertexLandmark)
+
+    @classmethod
+    def error(cls, x, z, ctx):
+        c, p = x
+        q = p[:, :2] * c[:, :2] + np.sin(p[:, 2:3] * c[:, 2:4]) + c[:, :2] * c[:, 2:4]
+        return q - z
+
+
+def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1):
+    rng = np.random.default_rng(seed)
+    nc, npt = 6, 40
+    obs = np.array([(i, j) for j in range(npt) for i in rng.choice(nc, 3, replace=False)])
+    C = rng.normal(size=(nc, 4))
+    P = rng.normal(size=(npt, 3))
+    Z = EdgeObs.error((C[obs[:, 0]], P[obs[:, 1]]), np.zeros((len(obs), 2)), None)
+    Z += rng.normal(0, 0.01, Z.shape)
+    info = np.array([[2.0, 0.3], [0.3, 1.0]])
+    opt = SparseOptimizer("lm", solver)
+    opt.add_vertices(VertexCam, np.arange(nc), C + 0.05, fixed=np.arange(nc) == 0)
+    opt.add_vertices(VertexLandmark, 100 + np.arange(npt), P + 0.05, marginalized=marginalize)
+    opt.add_edges(EdgeObs, np.stack([obs[:, 0], 100 + obs[:, 1]], 1), Z, information=info)
+    return opt
+
+
+SOLVERS = ["dense", "pcg", "scipy"] + (["cholmod"] if CHOLMOD_AVAILABLE else [])
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_schur_step_equals_full_step(solver: str) -> None:
+    full = ba_toy(False, "dense")
+    full.initialize_optimization()
+    asm, _ = full.linearize()
+    ref = full.solve(asm, 1e-3)[0]
+    schur = ba_toy(True, solver)
+    schur.initialize_optimization()
+    assert schur._system.schur and not full._system.schur
+    asm, _ = schur.linearize()
+    du, dv = schur.solve(asm, 1e-3)
+    np.testing.assert_allclose(np.concatenate([du, dv[0].ravel()]), ref, rtol=1e-7, atol=1e-10)
+
+
+def test_schur_and_full_converge_to_the_same_optimum() -> None:
+    a, b = ba_toy(False), ba_toy(True)
+    ra, rb = a.optimize(30), b.optimize(30)
+    assert rb.final_chi2 == pytest.approx(ra.final_chi2, rel=1e-9)
+    np.testing.assert_allclose(a.estimates_of(VertexLandmark), b.estimates_of(VertexLandmark),
+                               atol=1e-8)
+
+
+def numeric_hessian(opt: SparseOptimizer, vtypes, free_masks, h=1e-6):
+    """H = Jᵀ Ω J from central differences of the public error over every free tangent dim."""
+    groups = opt.edge_groups()
+
+    def residuals():
+        out = []
+        for g in groups:
+            x = tuple(opt.estimates_of(vt)[np.searchsorted(opt.ids_of(vt), g.vertex_ids[:, k])]
+                      for k, vt in enumerate(g.etype.vertex_types))
+            e = g.etype.error(x, g.measurements, g.context())
+            L = np.linalg.cholesky(g.information)  # Ω = L Lᵀ → whitened r = Lᵀ e
+            out.append((e @ L).ravel())
+        return np.concatenate(out)
+
+    cols = []
+    for vt, mask in zip(vtypes, free_masks, strict=True):
+        base = opt.estimates_of(vt)
+        for slot in np.flatnonzero(mask):
+            for d in range(vt.dimension):
+                delta = np.zeros((1, vt.dimension))
+                delta[0, d] = h
+                plus, minus = base.copy(), base.copy()
+                plus[slot] = vt.oplus(base[slot:slot + 1], delta)[0]
+                minus[slot] = vt.oplus(base[slot:slot + 1], -delta)[0]
+                opt.set_estimates_of(vt, plus)
+                rp = residuals()
+                opt.set_estimates_of(vt, minus)
+                rm = residuals()
+                opt.set_estimates_of(vt, base)
+                cols.append((rp - rm) / (2 * h))
+    J = np.stack(cols, 1)
+    return J.T @ J
+
+
+def test_marginals_equal_inverse_hessian_blocks_pose_graph() -> None:
+    truth, init, edges, meas = pose_graph(15)
+    info = np.diag([4.0, 4.0, 9.0])
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(VertexSE2, np.arange(15), init, fixed=np.arange(15) == 0)
+    opt.add_edges(EdgeSE2, edges, meas, information=info)
+    opt.optimize(10)
+    H = numeric_hessian(opt, [VertexSE2], [np.arange(15) > 0])
+    cov = np.linalg.inv(H)
+    marg = opt.compute_marginals([1, 7, opt.vertex(14)])
+    for vid in (1, 7, 14):
+        k = (vid - 1) * 3
+        np.testing.assert_allclose(marg[vid], cov[k:k + 3, k:k + 3], rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("solver", ["dense", "pcg"] + (["cholmod"] if CHOLMOD_AVAILABLE else []))
+def test_marginals_with_schur_equal_inverse_hessian_blocks(solver: str) -> None:
+    opt = ba_toy(True, solver)
+    opt.optimize(20)
+    H = numeric_hessian(opt, [VertexCam, VertexLandmark], [np.arange(6) > 0, np.ones(40, bool)])
+    cov = np.linalg.inv(H)
+    marg = opt.compute_marginals([2, 100, 117])
+    np.testing.assert_allclose(marg[2], cov[4:8, 4:8], rtol=1e-4, atol=1e-9)
+    for vid in (100, 117):
+        k = 20 + (vid - 100) * 3
+        np.testing.assert_allclose(marg[vid], cov[k:k + 3, k:k + 3], rtol=1e-4, atol=1e-9)
+
+
+def test_marginals_reject_fixed_and_unknown() -> None:
+    opt = ba_toy(True)
+    with pytest.raises(GraphError, match="vertex 0 is fixed"):
+        opt.compute_marginals([0])
+    with pytest.raises(GraphError, match="vertex 999 does not exist"):
+        opt.compute_marginals([999])
+
+
+def test_edge_between_two_marginalised_vertices_is_rejected() -> None:
+    class EdgeLL(BaseEdge):
+        dimension = 3
+        vertex_types = (VertexLandmark, VertexLandmark)
+
+        @classmethod
+        def error(cls, x, z, ctx):
+            return x[1] - x[0] - z
+
+    opt = ba_toy(True)
+    opt.add_edges(EdgeLL, np.array([[100, 101]]), np.zeros((1, 3)))
+    with pytest.raises(GraphError, match="two different marginalised vertices"):
+        opt.initialize_optimization()
