@@ -547,7 +547,8 @@ class SparseOptimizer:
             vparts = []
             vc = sysm.vclass_of_store[si]
             if vc >= 0:
-                vparts.append((vc, sysm.vclasses[vc].slots, np.arange(len(sysm.vclasses[vc].slots))))
+                vslots = sysm.vclasses[vc].slots
+                vparts.append((vc, vslots, np.arange(len(vslots))))
             self._update.append((uslots, upos, vparts))
 
     def _ensure_initialized(self) -> None:

@@ -33,7 +33,9 @@ class RobustKernel:
         """
         delta = float(delta)
         if not np.isfinite(delta) or delta <= 0:
-            raise ValueError(f"{type(self).__name__}: delta must be positive and finite, got {delta}")
+            raise ValueError(
+                f"{type(self).__name__}: delta must be positive and finite, got {delta}"
+            )
         self.delta = delta
 
     def robustify(self, s: np.ndarray) -> Rho:
@@ -230,7 +232,7 @@ class RobustKernelDCS(RobustKernel):
 
     g2o returns ``ρ' = k²`` and ``ρ'' = 0`` (the DCS weight). The exact derivatives of the same ρ
     are returned here: ``ρ' = 4δ²(δ − s)/(δ + s)³`` beyond ``s = δ``; it turns negative for
-    ``s > δ``, so the weight used by the optimizer is clipped at zero (see ``weight``).
+    ``s > δ``, and the optimizer clips the weight ρ' at zero (as it does for every kernel).
 
     Args:
         delta: Φ of DCS (on the squared error, as in g2o).
