@@ -32,15 +32,19 @@ class LevenbergConfig:
     """Levenberg–Marquardt as in g2o's ``OptimizationAlgorithmLevenberg``.
 
     Args:
-        tau: Initial ``λ = τ · max diag(H)`` (g2o: 1e-5).
-        initial_lambda: Use this λ instead of the τ rule when given.
+        tau: Initial ``λ = τ · max diag(H)`` (g2o: 1e-5), for identity damping.
+        initial_lambda: Use this λ instead of the τ rule when given (with diagonal damping the
+            default is 1e-4, Ceres' initial trust-region radius of 1e4).
         max_trials: Damped solves per iteration before giving up (g2o: 10).
+        diagonal_damping: Damp with ``λ·diag(H)`` (Marquardt, Ceres) instead of g2o's ``λ I``;
+            invariant to the scaling of the parameters (focal lengths next to distortions).
         name: Algorithm name used in messages.
     """
 
     tau: float = 1e-5
     initial_lambda: float | None = None
     max_trials: int = 10
+    diagonal_damping: bool = False
     name: str = "lm"
 
 
@@ -104,8 +108,13 @@ class Problem(Protocol):
         """Assemble at the current state; returns the assembly and the robust chi2."""
         ...
 
-    def solve(self, asm: Assembly, lam: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    def solve(self, asm: Assembly, lam: float, diagonal: bool = False
+              ) -> tuple[np.ndarray, list[np.ndarray]]:
         """Solve the damped system; raises NotPositiveDefiniteError."""
+        ...
+
+    def damping(self, asm: Assembly, diagonal: bool) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The damping diagonal."""
         ...
 
     def hessian_product(self, asm: Assembly, step: tuple[np.ndarray, list[np.ndarray]]
@@ -224,14 +233,17 @@ class LevenbergMarquardt(Algorithm):
         if self.lam <= 0.0:
             if cfg.initial_lambda is not None:
                 self.lam = cfg.initial_lambda
+            elif cfg.diagonal_damping:
+                self.lam = 1e-4
             else:
                 self.lam = cfg.tau * max(p.max_diagonal(asm), 1e-12)
             self.nu = 2.0
         b = (asm.bu, asm.bv)
+        damp = p.damping(asm, cfg.diagonal_damping)
         not_pd = 0
         for trial in range(1, cfg.max_trials + 1):
             try:
-                step = p.solve(asm, self.lam)
+                step = p.solve(asm, self.lam, cfg.diagonal_damping)
             except NotPositiveDefiniteError:
                 not_pd += 1
                 self.lam *= self.nu
@@ -240,8 +252,9 @@ class LevenbergMarquardt(Algorithm):
             p.push()
             p.apply(step)
             new_chi = p.robust_chi2()
-            # Predicted decrease of chi2 = Δ'(λΔ + b) (g2o adds 1e-3 against a zero divisor).
-            scale = _dot(step, _axpy(self.lam, step, 1.0, b)) + 1e-3
+            # Predicted decrease of chi2 = Δ'(λDΔ + b) (g2o adds 1e-3 against a zero divisor).
+            dstep = (damp[0] * step[0], [d * x for d, x in zip(damp[1], step[1], strict=True)])
+            scale = _dot(step, _axpy(self.lam, dstep, 1.0, b)) + 1e-3
             rho = (chi - new_chi) / scale
             if rho > 0 and math.isfinite(new_chi):
                 lam_used = self.lam

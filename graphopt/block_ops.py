@@ -240,3 +240,12 @@ class EdgeContraction:
         """
         d2 = B.shape[-1]
         return np.asarray(M @ B.reshape(self.m * self.r, d2)).reshape(self.n_targets, self.d1, d2)
+
+    def __call__(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """``out[t] = Σ A[e]ᵀ B[e]`` as ``(n_targets, d1, d2)``.
+
+        Args:
+            A: ``(m, r, d1)`` blocks.
+            B: ``(m, r, d2)`` blocks.
+        """
+        return self.apply(self.matrix(A), B)

@@ -96,7 +96,7 @@ class _PairTerm:
 
     k1: int
     k2: int
-    contraction: BlockContraction
+    contraction: BlockContraction | EdgeContraction
     dest: np.ndarray  # (t, d1*d2) positions in S data
     dest_t: np.ndarray | None  # transposed positions of the off-diagonal targets
     offdiag: np.ndarray | None  # (t,) bool
@@ -287,7 +287,7 @@ class LinearSystem:
             gt.hterms.append(_HTerm(vi, ui, "W", con, uniq, cls=k, identity=ident))
 
         # Pairs of W blocks sharing a V block: the fill of the reduced system.
-        self._pairs: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+        self._pairs: list[tuple[int, int, np.ndarray, np.ndarray | None]] = []
         for k1, c1 in enumerate(self.wclasses):
             for k2 in range(k1, len(self.wclasses)):
                 c2 = self.wclasses[k2]
@@ -295,8 +295,11 @@ class LinearSystem:
                     continue
                 w1, w2 = self._pairs_sharing_v(c1.vblock, c2.vblock)
                 if k1 == k2:
-                    keep = c1.ublock[w1] <= c2.ublock[w2]
+                    # Each block with itself (w, w) is summed without a gather (EdgeContraction);
+                    # the cross pairs keep u1 < u2 (S is symmetric).
+                    keep = c1.ublock[w1] < c2.ublock[w2]
                     w1, w2 = w1[keep], w2[keep]
+                    self._pairs.append((k1, k1, np.arange(len(c1.ublock)), None))
                 if len(w1):
                     self._pairs.append((k1, k2, w1, w2))
                     u1, u2 = c1.ublock[w1], c2.ublock[w2]
@@ -374,10 +377,16 @@ class LinearSystem:
         self.pair_terms: list[_PairTerm] = []
         for k1, k2, w1, w2 in self._pairs:
             c1, c2 = self.wclasses[k1], self.wclasses[k2]
-            uniq, inv = np.unique(c1.ublock[w1] * nb + c2.ublock[w2], return_inverse=True)
-            tu1, tu2 = uniq // nb, uniq % nb
-            # S_t −= Σ Y_w1 W_w2ᵀ = Σ (Yᵀ_w1)ᵀ Wᵀ_w2: A = Yᵀ (dv, du1), B = Wᵀ (dv, du2).
-            con = BlockContraction(inv, w1, w2, len(uniq), c1.dv, c1.du, len(c2.ublock))
+            if w2 is None:  # self pairs (w, w): diagonal blocks
+                uniq, inv = np.unique(c1.ublock, return_inverse=True)
+                con: BlockContraction | EdgeContraction = EdgeContraction(
+                    w1, inv, len(uniq), len(w1), c1.dv, c1.du)
+                tu1 = tu2 = uniq
+            else:
+                uniq, inv = np.unique(c1.ublock[w1] * nb + c2.ublock[w2], return_inverse=True)
+                tu1, tu2 = uniq // nb, uniq % nb
+                # S_t −= Σ Y_w1 W_w2ᵀ = Σ (Yᵀ_w1)ᵀ Wᵀ_w2: A = Yᵀ (dv, du1), B = Wᵀ (dv, du2).
+                con = BlockContraction(inv, w1, w2, len(uniq), c1.dv, c1.du, len(c2.ublock))
             pos, post = self._dest(tu1, tu2)
             off = tu1 != tu2
             self.pair_terms.append(_PairTerm(k1, k2, con, pos, post[off] if off.any() else None,
@@ -437,14 +446,28 @@ class LinearSystem:
                     bv[g.cls][g.dest] += gb
         return Assembly(h, bu, v, bv, wt)
 
-    def reduce(
-        self, asm: Assembly, lam: float
-    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
-        """Damp by ``λ`` and eliminate the V blocks.
+    def damping(self, asm: Assembly, diagonal: bool) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The damping matrix ``D`` (a diagonal) as ``(u part, [v parts])``.
 
         Args:
             asm: The assembled system.
-            lam: Levenberg damping added to every diagonal entry (0 for none).
+            diagonal: ``False``: the identity (g2o's LM). ``True``: ``diag(H)`` clipped to
+                ``[1e-6, 1e32]`` (Marquardt's scaling, as Ceres does).
+        """
+        if not diagonal:
+            return np.ones(self.n), [np.ones(b.shape) for b in asm.bv]
+        du = np.clip(asm.h_data[self.diag_pos], 1e-6, 1e32)
+        return du, [np.clip(np.einsum("nii->ni", v), 1e-6, 1e32) for v in asm.v]
+
+    def reduce(
+        self, asm: Assembly, lam: float, diagonal: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+        """Damp by ``λ D`` and eliminate the V blocks.
+
+        Args:
+            asm: The assembled system.
+            lam: Levenberg damping (0 for none).
+            diagonal: Damp with ``λ·diag(H)`` (see :meth:`damping`) instead of ``λ I``.
 
         Returns:
             ``(s_data, rhs, vinv, yt)``: the reduced matrix's data, its right-hand side, the
@@ -454,12 +477,17 @@ class LinearSystem:
             NotPositiveDefiniteError: if a V block is not positive definite.
         """
         s = asm.h_data.copy()
+        vdamp: list[np.ndarray | None] = [None] * len(asm.v)
         if lam:
-            s[self.diag_pos] += lam
+            du, dv = self.damping(asm, diagonal)
+            s[self.diag_pos] += lam * du
+            vdamp = [lam * d for d in dv]
         vinv = []
-        for vb in asm.v:
-            vd = vb + lam * np.eye(vb.shape[1]) if lam else vb
-            vinv.append(batched_inverse_spd(vd))
+        for vb, d in zip(asm.v, vdamp, strict=True):
+            if d is not None:
+                vb = vb.copy()
+                vb[:, np.arange(vb.shape[1]), np.arange(vb.shape[1])] += d
+            vinv.append(batched_inverse_spd(vb))
         rhs = asm.bu.copy()
         yt = []
         for k, wc in enumerate(self.wclasses):

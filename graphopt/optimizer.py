@@ -648,12 +648,14 @@ class SparseOptimizer:
         self._timing["linearize"] = time.perf_counter() - t0
         return asm, rchi2
 
-    def solve(self, asm: Assembly, lam: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    def solve(self, asm: Assembly, lam: float, diagonal: bool = False
+              ) -> tuple[np.ndarray, list[np.ndarray]]:
         """Solve the damped normal equations through the Schur complement.
 
         Args:
             asm: The assembly.
-            lam: Damping added to every diagonal entry.
+            lam: Damping λ.
+            diagonal: Damp with ``λ·diag(H)`` instead of ``λ I``.
 
         Raises:
             NotPositiveDefiniteError: if the system is not positive definite.
@@ -661,7 +663,7 @@ class SparseOptimizer:
         assert self._system is not None and self.solver is not None
         t0 = time.perf_counter()
         try:
-            s, rhs, vinv, _ = self._system.reduce(asm, lam)
+            s, rhs, vinv, _ = self._system.reduce(asm, lam, diagonal)
         finally:
             t1 = time.perf_counter()
             self._timing["schur"] += t1 - t0
@@ -686,6 +688,16 @@ class SparseOptimizer:
         """
         assert self._system is not None
         return self._system.hessian_product(asm, step[0], step[1])
+
+    def damping(self, asm: Assembly, diagonal: bool) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The damping diagonal ``D`` (identity or clipped ``diag(H)``).
+
+        Args:
+            asm: The assembly.
+            diagonal: Marquardt scaling.
+        """
+        assert self._system is not None
+        return self._system.damping(asm, diagonal)
 
     def max_diagonal(self, asm: Assembly) -> float:
         """Largest diagonal entry of the undamped Hessian.
