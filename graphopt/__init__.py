@@ -24,7 +24,14 @@ from graphopt.robust_kernel import (
     RobustKernelWelsch,
     make_kernel,
 )
-from graphopt.solvers import PCGConfig
+from graphopt.solvers import (
+    LinearSolver,
+    LinearSolverCholmod,
+    LinearSolverDense,
+    LinearSolverPCG,
+    LinearSolverScipy,
+    PCGConfig,
+)
 from graphopt.vertex import BaseVertex, VertexVector
 
 __version__ = "0.1.0"
@@ -38,6 +45,11 @@ __all__ = [
     "GraphError",
     "IterationInfo",
     "LevenbergConfig",
+    "LinearSolver",
+    "LinearSolverCholmod",
+    "LinearSolverDense",
+    "LinearSolverPCG",
+    "LinearSolverScipy",
     "NotPositiveDefiniteError",
     "OptimizationResult",
     "PCGConfig",

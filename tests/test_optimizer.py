@@ -328,3 +328,65 @@ def test_algorithm_configs() -> None:
         SparseOptimizer("newton")
     with pytest.raises(ValueError, match="unknown linear solver"):
         SparseOptimizer("lm", "qr").optimize(1)
+
+
+def test_cholmod_fallback_warns_once(monkeypatch) -> None:
+    import graphopt.solvers as solvers
+
+    monkeypatch.setattr(solvers, "CHOLMOD_AVAILABLE", False)
+    monkeypatch.setattr(solvers, "_warned", False)
+    with pytest.warns(RuntimeWarning, match="CHOLMOD .* not available.*'scipy'"):
+        first = solvers.make_solver("cholmod")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        second = solvers.make_solver("cholmod")  # no second warning
+    assert first.name == second.name == "scipy"
+    opt, _, _ = build_pose_graph("lm", "cholmod")
+    assert opt.optimize(10).final_chi2 < 120
+
+
+def test_pcg_tolerance_and_iteration_cap() -> None:
+    from graphopt import LinearSolverPCG, PCGConfig
+
+    opt, _, _ = build_pose_graph("lm", "dense")
+    opt.initialize_optimization()
+    asm, _ = opt.linearize()
+    ref = opt.solve(asm, 1e-2)[0]
+    s, rhs, _, _ = opt._system.reduce(asm, 1e-2)
+    for cfg, close in ((PCGConfig(tolerance=1e-12), True), (PCGConfig(max_iterations=2), False)):
+        pcg = LinearSolverPCG(cfg)
+        pcg.analyze(opt._system.pattern, opt._system.udims)
+        x = pcg.solve(s, rhs)
+        assert np.allclose(x, ref, rtol=1e-7, atol=1e-9) == close
+        if not close:
+            assert pcg.last_iterations == 2
+
+
+def test_per_edge_kernels_mix_in_one_group() -> None:
+    meas = curve_data(n=20, outliers=0.2, seed=5)
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(VertexCurve, [0], [[1.0, 2.0, 1.0]])
+    huber = RobustKernelHuber(0.3)
+    for i, z in enumerate(meas):
+        opt.add_edge(EdgeCurve([0], z, robust_kernel=huber if i % 2 else None))
+    opt.compute_active_errors()
+    e = EdgeCurve.error((np.tile([1.0, 2.0, 1.0], (20, 1)),), meas, EdgeContext())[:, 0]
+    s = e**2
+    rho = np.where(np.arange(20) % 2 == 1, huber.robustify(s)[0], s)
+    assert opt.chi2() == pytest.approx(s.sum())
+    assert opt.active_robust_chi2() == pytest.approx(rho.sum())
+    assert opt.edges()[1].robust_kernel is huber and opt.edges()[0].robust_kernel is None
+    opt.edges()[0].set_robust_kernel(huber)  # changing a kernel after adding
+    opt.compute_active_errors()
+    assert opt.active_robust_chi2() == pytest.approx(
+        rho.sum() - s[0] + huber.robustify(s[:1])[0][0])
+
+
+def test_lm_diagonal_damping_converges_to_the_same_optimum() -> None:
+    a, _, _ = build_pose_graph(LevenbergConfig(diagonal_damping=True))
+    b, _, _ = build_pose_graph("lm")
+    ra, rb = a.optimize(40), b.optimize(40)
+    assert ra.final_chi2 == pytest.approx(rb.final_chi2, rel=1e-6)
+    assert ra.lambda_history[0] == pytest.approx(1e-4)
