@@ -621,7 +621,8 @@ class SparseOptimizer:
             e, J = g.etype.linearize(self._gather(gi), g.measurements, ctx)
             oe, s = self._sq(g, e)
             rho, w = self._robustify(g, s)
-            if not (np.all(np.isfinite(e)) and all(np.all(np.isfinite(j)) for j in J)):
+            # One sum per array is cheaper than isfinite().all(); NaN/inf survive the sum.
+            if not (np.isfinite(s.sum()) and all(np.isfinite(j.sum()) for j in J)):
                 ok = np.isfinite(e).all(axis=1)
                 for j in J:
                     ok &= np.isfinite(j.reshape(len(j), -1)).all(axis=1)
@@ -635,14 +636,18 @@ class SparseOptimizer:
             active += g.active_count
             chi2 += float(s.sum())
             rchi2 += float(rho.sum())
+            J = tuple(np.ascontiguousarray(j) for j in J)
+            weighted = bool(g.kernels)
             if g.info_is_identity:
-                wj = tuple(j * w[:, None, None] for j in J)
+                wj = tuple(j * w[:, None, None] for j in J) if weighted else J
             else:
                 assert g.information is not None
-                wj = tuple(np.matmul(g.information, j) * w[:, None, None] for j in J)
+                wj = tuple(np.matmul(g.information, j) for j in J)
+                if weighted:
+                    wj = tuple(j * w[:, None, None] for j in wj)
             jac.append(J)
             wjac.append(wj)
-            wes.append(oe * w[:, None])
+            wes.append(oe * w[:, None] if weighted else oe)
         asm = self._system.assemble(jac, wjac, wes)
         self._last_eval = _Evaluation(chi2, rchi2, active)
         self._timing["linearize"] = time.perf_counter() - t0
