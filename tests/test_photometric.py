@@ -1,0 +1,211 @@
+"""Photometric patch edges: analytic vs numeric Jacobians, sampling order, inactive edges."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from graphopt.types.lie import se3_exp
+from graphopt.types.photometric import (
+    EdgePhotometricPatch,
+    EdgePhotometricPatchInverseDepth,
+    EdgePhotometricPatchInverseDepthHost,
+    PhotometricParams,
+    central_gradients,
+    numeric_variant,
+    photometric_edge_types,
+)
+
+from graphopt.edge import EdgeContext
+from graphopt.numeric import numeric_jacobians
+
+H, W = 120, 160
+CAM = (100.0, 110.0, 80.0, 60.0)
+
+
+def smooth_images(n: int = 3) -> np.ndarray:
+    yy, xx = np.mgrid[0:H, 0:W].astype(float)
+    return np.stack(
+        [100 + 50 * np.sin(xx / 7 + k) * np.cos(yy / 9 - k) + 0.02 * xx * yy for k in range(n)]
+    )
+
+
+def bilinear_images(n: int = 3) -> np.ndarray:
+    """``a x + b y + c xy``: bilinear interpolation and central differences are both exact."""
+    yy, xx = np.mgrid[0:H, 0:W].astype(float)
+    return np.stack([20 + (1.5 + k) * xx + (0.7 - 0.2 * k) * yy + 0.01 * xx * yy for k in range(n)])
+
+
+def problem(patch: int, m: int = 60, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    Tj = se3_exp(rng.normal(size=(m, 6)) * 0.05)
+    Ta = se3_exp(rng.normal(size=(m, 6)) * 0.05)
+    p = np.c_[rng.normal(size=(m, 2)) * 0.5, 3 + rng.random(m)]
+    q = np.c_[rng.normal(size=(m, 2)) * 0.3, 1 / (3 + rng.random(m))]
+    img = rng.integers(0, 3, m)
+    meas = rng.random((m, patch * patch)) * 200
+    return Tj, Ta, p, q, img, meas
+
+
+def rel_err(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-12))
+
+
+def check_all(prm: PhotometricParams, tol: float, seed: int = 0) -> None:
+    E, EI, EH = photometric_edge_types(prm.patch)
+    Tj, Ta, p, q, img, meas = problem(prm.patch, seed=seed)
+    for cls, x in ((E, (Tj, p)), (EI, (Ta, Tj, q)), (EH, (Ta, q))):
+        ctx = EdgeContext(prm, {"image": img})
+        e, jac = cls.linearize(x, meas, ctx)
+        active = ctx.active
+        assert active is not None and active.sum() > 0.6 * len(img)
+        assert e.shape == (len(img), prm.patch**2)
+        np.testing.assert_array_equal(e, cls.error(x, meas, ctx))
+        num = numeric_jacobians(cls, x, meas, ctx)
+        for a, b in zip(jac, num, strict=True):
+            assert a.shape == b.shape
+            assert rel_err(a, b) < tol, (cls.__name__, rel_err(a, b))
+
+
+@pytest.mark.parametrize("patch", [2, 4, 6, 8])
+def test_jacobians_exact_interpolant(patch: int) -> None:
+    """With the interpolant's own gradient the analytic Jacobians match to rounding."""
+    prm = PhotometricParams(smooth_images(), *CAM, patch=patch, gradient="interpolated",
+                            dtype="float64")
+    check_all(prm, 1e-6)
+
+
+@pytest.mark.parametrize("patch", [2, 4, 8])
+def test_jacobians_central_on_bilinear_scene(patch: int) -> None:
+    """Central-difference gradients are exact on an ``a x + b y + c xy`` image."""
+    prm = PhotometricParams(bilinear_images(), *CAM, patch=patch, dtype="float64")
+    check_all(prm, 1e-6, seed=1)
+
+
+def test_jacobians_central_smooth_image_close() -> None:
+    """On a smooth image central differences approximate the true gradient to a few percent."""
+    prm = PhotometricParams(smooth_images(), *CAM, patch=4, dtype="float64")
+    check_all(prm, 0.08, seed=2)
+
+
+def test_float32_images_match_float64() -> None:
+    Tj, _, p, _, img, meas = problem(4)
+    out = []
+    for dt in ("float32", "float64"):
+        prm = PhotometricParams(smooth_images(), *CAM, dtype=dt)
+        ctx = EdgeContext(prm, {"image": img})
+        out.append(EdgePhotometricPatch.linearize((Tj, p), meas, ctx))
+    assert rel_err(out[0][0], out[1][0]) < 1e-5
+    for a, b in zip(out[0][1], out[1][1], strict=True):
+        assert a.dtype == np.float64
+        assert rel_err(a, b) < 1e-4
+
+
+def test_sampling_order_and_central_gradient_images() -> None:
+    """Patch order k = P(dx+P/2) + (dy+P/2); gradients equal interpolated np.gradient images."""
+    imgs = smooth_images(1)
+    prm = PhotometricParams(imgs, *CAM, patch=4, dtype="float64")
+    # A camera-frame point that projects to (u, v) = (50.25, 40.5).
+    u, v = 50.25, 40.5
+    z = 2.0
+    pt = np.array([[(u - CAM[2]) / CAM[0] * z, (v - CAM[3]) / CAM[1] * z, z]])
+    T = np.eye(4)[None]
+    ctx = EdgeContext(prm, {"image": np.array([0])})
+    e, (jp, _) = EdgePhotometricPatch.linearize((T, pt), np.zeros((1, 16)), ctx)
+
+    def bil(img: np.ndarray, x: float, y: float) -> float:
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        a, b = x - x0, y - y0
+        return ((1 - a) * (1 - b) * img[y0, x0] + a * (1 - b) * img[y0, x0 + 1]
+                + (1 - a) * b * img[y0 + 1, x0] + a * b * img[y0 + 1, x0 + 1])
+
+    gx, gy = central_gradients(imgs[0])
+    for dx in range(-2, 2):
+        for dy in range(-2, 2):
+            k = 4 * (dx + 2) + (dy + 2)
+            assert -e[0, k] == pytest.approx(bil(imgs[0], u + dx, v + dy), rel=1e-12)
+    # The translation-x column of the pose Jacobian is −g_u fx/z.
+    expect = np.array([-bil(gx, u + dx, v + dy) * CAM[0] / z
+                       for dx in range(-2, 2) for dy in range(-2, 2)])
+    np.testing.assert_allclose(jp[0, :, 3], expect, rtol=1e-10)
+    expect_v = np.array([-bil(gy, u + dx, v + dy) * CAM[1] / z
+                         for dx in range(-2, 2) for dy in range(-2, 2)])
+    np.testing.assert_allclose(jp[0, :, 4], expect_v, rtol=1e-10)
+
+
+def test_inactive_edges_zero_and_finite() -> None:
+    """Outside the margin, behind the camera, at the camera centre or ρ ≤ 0: zero, no NaN."""
+    prm = PhotometricParams(smooth_images(1), *CAM)
+    fx, fy, cx, cy = CAM
+    z = 2.0
+
+    def at(u: float, v: float, depth: float = z) -> list[float]:
+        return [(u - cx) / fx * depth, (v - cy) / fy * depth, depth]
+
+    pts = np.array([
+        at(4.0, 4.0),            # exactly on the margin: active
+        at(W - 4.0, H - 4.0),    # the other corner of the margin: active
+        at(3.99, 50.0),          # just outside (left)
+        at(50.0, H - 3.99),      # just outside (bottom)
+        [0.1, 0.1, -2.0],        # behind the camera
+        [0.0, 0.0, 0.0],         # at the centre
+        at(1e9, 50.0),           # far outside
+        [1e300, 1e300, 1e-300],  # overflowing projection
+        [np.nan, 0.0, 2.0],      # non-finite estimate
+    ])
+    m = len(pts)
+    T = np.repeat(np.eye(4)[None], m, axis=0)
+    ctx = EdgeContext(prm, {"image": np.zeros(m, dtype=int)})
+    with np.errstate(divide="raise", over="raise", invalid="raise"):
+        e, (jp, jx) = EdgePhotometricPatch.linearize((T, pts), np.full((m, 16), 7.0), ctx)
+    np.testing.assert_array_equal(ctx.active, [True, True] + [False] * (m - 2))
+    for arr in (e, jp, jx):
+        assert np.isfinite(arr).all()
+        assert not arr[2:].any()
+    assert np.abs(jp[:2]).sum() > 0
+
+    # Inverse depth: ρ ≤ 0 is inactive; the host edge too.
+    q = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, -0.5], [0.0, 0.0, 0.0], [10.0, 0.0, 0.5]])
+    Ts = np.repeat(np.eye(4)[None], 4, axis=0)
+    img = np.zeros(4, dtype=int)
+    for cls, x in ((EdgePhotometricPatchInverseDepth, (Ts, Ts, q)),
+                   (EdgePhotometricPatchInverseDepthHost, (Ts, q))):
+        ctx = EdgeContext(prm, {"image": img})
+        with np.errstate(all="raise"):
+            e, jac = cls.linearize(x, np.zeros((4, 16)), ctx)
+        np.testing.assert_array_equal(ctx.active, [True, False, False, False])
+        for arr in (e, *jac):
+            assert np.isfinite(arr).all() and not arr[1:].any()
+
+
+def test_inverse_depth_matches_xyz() -> None:
+    """The same geometry in both parametrisations gives the same errors."""
+    prm = PhotometricParams(smooth_images(), *CAM, dtype="float64")
+    Tj, Ta, _, q, img, meas = problem(4)
+    pa = np.c_[q[:, :2], np.ones(len(q))] / q[:, 2:3]
+    Twa = np.linalg.inv(Ta)
+    pw = np.einsum("mij,mj->mi", Twa[:, :3, :3], pa) + Twa[:, :3, 3]
+    c1, c2 = EdgeContext(prm, {"image": img}), EdgeContext(prm, {"image": img})
+    e1 = EdgePhotometricPatch.error((Tj, pw), meas, c1)
+    e2 = EdgePhotometricPatchInverseDepth.error((Ta, Tj, q), meas, c2)
+    np.testing.assert_array_equal(c1.active, c2.active)
+    np.testing.assert_allclose(e1, e2, atol=1e-8)
+
+
+def test_types_and_params_validation() -> None:
+    E6 = photometric_edge_types(6)[0]
+    assert E6.dimension == 36 and E6.patch == 6 and photometric_edge_types(6)[0] is E6
+    assert photometric_edge_types(4)[0] is EdgePhotometricPatch
+    with pytest.raises(ValueError):
+        photometric_edge_types(3)
+    with pytest.raises(ValueError):
+        PhotometricParams(smooth_images(1), *CAM, patch=5)
+    with pytest.raises(ValueError):
+        PhotometricParams(smooth_images(1), *CAM, patch=8, margin=4)
+    assert PhotometricParams(smooth_images(1), *CAM, patch=8).margin == 6
+    assert PhotometricParams(smooth_images(1), *CAM).margin == 4
+    prm = PhotometricParams(smooth_images(1), *CAM, patch=6)
+    with pytest.raises(ValueError, match="4x4"):
+        EdgePhotometricPatch.error((np.eye(4)[None], np.ones((1, 3))), np.zeros((1, 16)),
+                                   EdgeContext(prm, {"image": np.zeros(1, int)}))
+    num = numeric_variant(EdgePhotometricPatch)
+    assert not num.has_analytic_jacobians() and EdgePhotometricPatch.has_analytic_jacobians()
