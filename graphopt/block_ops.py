@@ -110,6 +110,49 @@ def batched_inverse_spd(A: np.ndarray) -> np.ndarray:
     return np.swapaxes(Linv, 1, 2) @ Linv
 
 
+def batched_cholesky_inverse(A: np.ndarray) -> np.ndarray:
+    """``L⁻¹`` for many SPD matrices ``A = L Lᵀ`` (``L`` lower triangular).
+
+    Closed forms for sizes 1–3, batched LAPACK otherwise.
+
+    Args:
+        A: ``(n, d, d)`` symmetric positive definite matrices.
+
+    Returns:
+        ``(n, d, d)`` lower-triangular inverses of the Cholesky factors.
+
+    Raises:
+        NotPositiveDefiniteError: if any block is not positive definite.
+    """
+    n, d, _ = A.shape
+    out = np.zeros_like(A)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if d == 1:
+            out[:, 0, 0] = 1.0 / np.sqrt(A[:, 0, 0])
+        elif d in (2, 3):
+            l00 = np.sqrt(A[:, 0, 0])
+            l10 = A[:, 1, 0] / l00
+            l11 = np.sqrt(A[:, 1, 1] - l10 * l10)
+            m00, m11 = 1.0 / l00, 1.0 / l11
+            out[:, 0, 0], out[:, 1, 1] = m00, m11
+            out[:, 1, 0] = -l10 * m00 * m11
+            if d == 3:
+                l20 = A[:, 2, 0] / l00
+                l21 = (A[:, 2, 1] - l20 * l10) / l11
+                m22 = 1.0 / np.sqrt(A[:, 2, 2] - l20 * l20 - l21 * l21)
+                out[:, 2, 2] = m22
+                out[:, 2, 1] = -l21 * m11 * m22
+                out[:, 2, 0] = -(l20 * m00 + l21 * out[:, 1, 0]) * m22
+        else:
+            try:
+                return np.linalg.inv(np.linalg.cholesky(A))
+            except np.linalg.LinAlgError as exc:
+                raise NotPositiveDefiniteError(f"a {d}x{d} block is not positive definite") from exc
+    if not np.isfinite(out.sum()):
+        raise NotPositiveDefiniteError(f"a {d}x{d} block is not positive definite")
+    return out
+
+
 class BlockContraction:
     """``out[t] = Σ_{q: target[q]=t} A[a_idx[q]]ᵀ · B[b_idx[q]]`` for fixed index arrays.
 

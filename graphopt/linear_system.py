@@ -17,12 +17,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg.blas as blas
 import scipy.sparse as sp
 
 from graphopt.block_ops import (
     BlockContraction,
     EdgeContraction,
     SegmentSum,
+    batched_cholesky_inverse,
     batched_inverse_spd,
 )
 from graphopt.graph import EdgeGroup, GraphError, VertexStore
@@ -86,7 +88,7 @@ class WClass:
     vblock: np.ndarray  # (n,) block within the V class
     upos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
     to_v: SegmentSum | None = None
-    rhs: BlockContraction | None = None  # Σ_w Yᵀ_w b_v into U blocks of this store
+    rhs: EdgeContraction | None = None  # Σ_w W_w x_v[v_w] into U blocks of this store
     rhs_dest: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
 
 
@@ -100,6 +102,23 @@ class _PairTerm:
     dest: np.ndarray  # (t, d1*d2) positions in S data
     dest_t: np.ndarray | None  # transposed positions of the off-diagonal targets
     offdiag: np.ndarray | None  # (t,) bool
+
+
+@dataclass
+class _DenseSchurTerm:
+    """``W V⁻¹ Wᵀ`` of one W class as one BLAS ``syrk``: chosen where W is dense enough.
+
+    ``Z = L⁻¹Wᵀ`` (``V = LLᵀ``) is placed in a dense ``(nV·dv, nU·du)`` matrix ``M``; then
+    ``W V⁻¹ Wᵀ = MᵀM``, and the entries of S's pattern are read from it.
+    """
+
+    k: int
+    n_v: int
+    n_u: int
+    scatter: np.ndarray  # flat index into M of every entry of Z = L⁻¹Wᵀ, (nW·dv·du,)
+    dest: np.ndarray  # positions in S data of every pattern entry of this class
+    src: np.ndarray  # flat index into MᵀM of the same entries
+    buffer: np.ndarray  # M, flat, allocated once
 
 
 @dataclass
@@ -271,10 +290,9 @@ class LinearSystem:
             wc.vblock, wc.ublock = keys // nb, keys % nb
             wc.to_v = SegmentSum(wc.vblock, len(self.vclasses[wc.vclass].slots))
             wc.upos = (self.uoffset[wc.ublock][:, None] + np.arange(wc.du)).astype(np.int64)
-            # rhs: Σ_w (Yᵀ_w)ᵀ b_v[v_w] per U block, with Yᵀ = V⁻¹Wᵀ of shape (dv, du).
+            # rhs: Σ_w Y_w b_v = Σ_w (Wᵀ_w)ᵀ (V⁻¹ b_v)[v_w] per U block: Wᵀ used in place.
             uu, inv = np.unique(wc.ublock, return_inverse=True)
-            wc.rhs = BlockContraction(inv, np.arange(len(keys)), wc.vblock, len(uu), wc.dv,
-                                      wc.du, len(self.vclasses[wc.vclass].slots))
+            wc.rhs = EdgeContraction(np.arange(len(keys)), inv, len(uu), len(keys), wc.dv, wc.du)
             wc.rhs_dest = self.uoffset[uu][:, None] + np.arange(wc.du)
             wc._keys = keys  # type: ignore[attr-defined]
         for gt, g, vi, ui, k, sel, ubs, vbs in pending_w:
@@ -288,6 +306,7 @@ class LinearSystem:
 
         # Pairs of W blocks sharing a V block: the fill of the reduced system.
         self._pairs: list[tuple[int, int, np.ndarray, np.ndarray | None]] = []
+        self._dense_pairs: list[tuple[int, np.ndarray]] = []
         for k1, c1 in enumerate(self.wclasses):
             for k2 in range(k1, len(self.wclasses)):
                 c2 = self.wclasses[k2]
@@ -295,20 +314,45 @@ class LinearSystem:
                     continue
                 w1, w2 = self._pairs_sharing_v(c1.vblock, c2.vblock)
                 if k1 == k2:
-                    # Each block with itself (w, w) is summed without a gather (EdgeContraction);
-                    # the cross pairs keep u1 < u2 (S is symmetric).
+                    # The cross pairs keep u1 < u2 (S is symmetric); each block with itself,
+                    # (w, w), is summed without a gather (EdgeContraction).
                     keep = c1.ublock[w1] < c2.ublock[w2]
                     w1, w2 = w1[keep], w2[keep]
+                u1, u2 = c1.ublock[w1], c2.ublock[w2]
+                ublock_pairs.append(np.stack([u1, u2], 1))
+                ublock_pairs.append(np.stack([u2, u1], 1))
+                if k1 == k2 and self._dense_is_cheaper(c1, len(w1)):
+                    self._dense_pairs.append((k1, np.stack([u1, u2], 1)))
+                    continue
+                if k1 == k2:
                     self._pairs.append((k1, k1, np.arange(len(c1.ublock)), None))
                 if len(w1):
                     self._pairs.append((k1, k2, w1, w2))
-                    u1, u2 = c1.ublock[w1], c2.ublock[w2]
-                    ublock_pairs.append(np.stack([u1, u2], 1))
-                    ublock_pairs.append(np.stack([u2, u1], 1))
         diag = np.arange(self.n_ublocks)
         ublock_pairs.append(np.stack([diag, diag], 1))
         bp = np.concatenate(ublock_pairs)
         self._block_pairs = np.unique(bp[:, 1] * nb + bp[:, 0])
+
+    #: Rough costs (seconds per unit) behind the sparse/dense choice for ``W V⁻¹ Wᵀ``:
+    #: a gathered value, a multiply-add in SciPy's sparse product, a multiply-add in BLAS, a
+    #: touched element of the dense matrix.
+    COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC, COST_DENSE_ELEMENT = 3e-9, 0.7e-9, 4e-11, 1e-9
+    #: Largest dense matrix (elements) the dense path may allocate.
+    DENSE_LIMIT = 64_000_000
+
+    def _dense_is_cheaper(self, c: WClass, n_cross: int) -> bool:
+        """Whether one ``syrk`` beats the sparse pair contractions for this W class."""
+        n_v = len(self.vclasses[c.vclass].slots)
+        n_u = len(np.unique(c.ublock))
+        rows, cols = n_v * c.dv, n_u * c.du
+        if rows * cols > self.DENSE_LIMIT:
+            return False
+        nw = len(c.ublock)
+        sparse = (self.COST_GATHER * n_cross * c.dv * c.du
+                  + self.COST_SPARSE_MAC * (n_cross + nw) * c.dv * c.du * c.du)
+        dense = (self.COST_BLAS_MAC * rows * cols * cols / 2
+                 + self.COST_DENSE_ELEMENT * rows * cols + self.COST_GATHER * nw * c.dv * c.du)
+        return dense < sparse
 
     @staticmethod
     def _pairs_sharing_v(v1: np.ndarray, v2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -392,6 +436,30 @@ class LinearSystem:
             self.pair_terms.append(_PairTerm(k1, k2, con, pos, post[off] if off.any() else None,
                                              off if off.any() else None))
         del self._pairs
+        self.dense_terms: list[_DenseSchurTerm] = []
+        for k, pairs in self._dense_pairs:
+            c = self.wclasses[k]
+            uu = np.unique(c.ublock)
+            diag = np.stack([uu, uu], 1)
+            blocks = np.unique(np.concatenate([pairs, pairs[:, ::-1], diag]), axis=0)
+            dest, _ = self._dest(blocks[:, 0], blocks[:, 1])
+            l1 = np.searchsorted(uu, blocks[:, 0])
+            l2 = np.searchsorted(uu, blocks[:, 1])
+            i = np.arange(c.du)
+            rows = (l1[:, None, None] * c.du + i[None, :, None])
+            cols = (l2[:, None, None] * c.du + i[None, None, :])
+            src = (rows * (len(uu) * c.du) + cols).reshape(len(blocks), -1)
+            n_v = len(self.vclasses[c.vclass].slots)
+            lu = np.searchsorted(uu, c.ublock)
+            rows = c.vblock[:, None, None] * c.dv + np.arange(c.dv)[None, :, None]
+            cols = lu[:, None, None] * c.du + np.arange(c.du)[None, None, :]
+            scatter = (rows * (len(uu) * c.du) + cols).reshape(-1)
+            # M is allocated (and its pages touched) here, not in the first iteration.
+            buffer = np.zeros(n_v * c.dv * len(uu) * c.du)
+            buffer.fill(0.0)
+            self.dense_terms.append(_DenseSchurTerm(k, n_v, len(uu), scatter, dest.ravel(),
+                                                    src.ravel(), buffer))
+        del self._dense_pairs
 
     # --- numbers -----------------------------------------------------------------------------
 
@@ -471,7 +539,8 @@ class LinearSystem:
 
         Returns:
             ``(s_data, rhs, vinv, yt)``: the reduced matrix's data, its right-hand side, the
-            inverted (damped) V blocks per class, and ``Yᵀ = V⁻¹ Wᵀ`` per W class.
+            inverted (damped) V blocks per class, and ``Yᵀ = V⁻¹ Wᵀ`` for the W classes whose
+            sparse pair products needed it (``None`` for the others).
 
         Raises:
             NotPositiveDefiniteError: if a V block is not positive definite.
@@ -489,18 +558,43 @@ class LinearSystem:
                 vb[:, np.arange(vb.shape[1]), np.arange(vb.shape[1])] += d
             vinv.append(batched_inverse_spd(vb))
         rhs = asm.bu.copy()
-        yt = []
+        vb_rhs = [np.matmul(vi, b[:, :, None]) for vi, b in zip(vinv, asm.bv, strict=True)]
         for k, wc in enumerate(self.wclasses):
-            yk = np.matmul(vinv[wc.vclass][wc.vblock], asm.wt[k])
-            yt.append(yk)
             assert wc.rhs is not None
-            rhs[wc.rhs_dest] -= wc.rhs(yk, asm.bv[wc.vclass][:, :, None])[:, :, 0]
+            rhs[wc.rhs_dest] -= wc.rhs(asm.wt[k], vb_rhs[wc.vclass][wc.vblock])[:, :, 0]
+        yt = self.y_transposed(asm, vinv, only={pt.k1 for pt in self.pair_terms})
+        for dt in self.dense_terms:
+            wc = self.wclasses[dt.k]
+            vd = asm.v[wc.vclass]
+            if vdamp[wc.vclass] is not None:
+                vd = vd.copy()
+                vd[:, np.arange(vd.shape[1]), np.arange(vd.shape[1])] += vdamp[wc.vclass]
+            z = np.matmul(batched_cholesky_inverse(vd)[wc.vblock], asm.wt[dt.k])
+            # The same entries are overwritten every time; the rest of M stays zero.
+            np.put(dt.buffer, dt.scatter, z.reshape(-1))
+            m2 = dt.buffer.reshape(dt.n_v * wc.dv, dt.n_u * wc.du)
+            c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle (m2.T is F-ordered)
+            c = np.triu(c) + np.triu(c, 1).T
+            s[dt.dest] -= c.ravel()[dt.src]
         for pt in self.pair_terms:
             red = pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(len(pt.dest), -1)
             s[pt.dest] -= red
             if pt.dest_t is not None:
                 s[pt.dest_t] -= red[pt.offdiag]
         return s, rhs, vinv, yt
+
+    def y_transposed(self, asm: Assembly, vinv: list[np.ndarray],
+                     only: set[int] | None = None) -> list[np.ndarray | None]:
+        """``Yᵀ = V⁻¹ Wᵀ`` per W class (``None`` for classes not in ``only``).
+
+        Args:
+            asm: The assembled system.
+            vinv: Inverted V blocks per class.
+            only: Classes to compute; all when ``None``.
+        """
+        return [np.matmul(vinv[wc.vclass][wc.vblock], asm.wt[k])
+                if only is None or k in only else None
+                for k, wc in enumerate(self.wclasses)]
 
     def back_substitute(
         self, asm: Assembly, du: np.ndarray, vinv: list[np.ndarray]

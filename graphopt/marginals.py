@@ -31,7 +31,8 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
     sysm, solver = opt._system, opt.solver
     assert sysm is not None and solver is not None
     asm, _ = opt.linearize()
-    s, _, vinv, yt = sysm.reduce(asm, 0.0)
+    s, _, vinv, _ = sysm.reduce(asm, 0.0)
+    yt = sysm.y_transposed(asm, vinv)
     store_index = {id(st): i for i, st in enumerate(opt._store_list)}
     wanted: list[tuple[int, str, int, int, np.ndarray]] = []
     cols: list[np.ndarray] = []

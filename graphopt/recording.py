@@ -47,6 +47,9 @@ class Recorder:
         application_id: Rerun application id shown in the viewer.
         camera_xyz: Camera axis convention for the frusta: ``"RDF"`` (OpenCV: x right, y down,
             z forward, the default) or ``"RUB"`` (BAL/OpenGL: y up, looking down −z).
+        world_xyz: Axis convention of the world frame for the viewer: ``"RIGHT_HAND_Z_UP"``
+            (default) or any ``rerun.ViewCoordinates`` name, e.g. ``"RDF"`` when the world is a
+            camera-like frame (x right, y down, z forward).
     """
 
     def __init__(
@@ -55,6 +58,7 @@ class Recorder:
         application_id: str = "graphopt",
         *,
         camera_xyz: str = "RDF",
+        world_xyz: str = "RIGHT_HAND_Z_UP",
     ) -> None:
         import rerun as rr  # imported lazily: rerun is heavy and only needed for recordings
 
@@ -66,7 +70,7 @@ class Recorder:
         self._rec.save(str(self._tmp))
         self._closed = False
         self._trajectory: list[np.ndarray] = []
-        self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._rec.log("world", getattr(rr.ViewCoordinates, world_xyz.upper()), static=True)
 
     # --- timeline ---------------------------------------------------------------------------
 

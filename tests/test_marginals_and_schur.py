@@ -50,8 +50,22 @@ def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1):
 SOLVERS = ["dense", "pcg", "scipy"] + (["cholmod"] if CHOLMOD_AVAILABLE else [])
 
 
+@pytest.fixture(params=["sparse", "dense"])
+def schur_path(request, monkeypatch):
+    """Run a test with W V⁻¹ Wᵀ formed by the sparse contractions or by the dense syrk."""
+    from graphopt.linear_system import LinearSystem
+
+    if request.param == "sparse":
+        monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
+    else:
+        monkeypatch.setattr(LinearSystem, "COST_BLAS_MAC", 0.0)
+        monkeypatch.setattr(LinearSystem, "COST_DENSE_ELEMENT", 0.0)
+        monkeypatch.setattr(LinearSystem, "COST_GATHER", 0.0)
+    return request.param
+
+
 @pytest.mark.parametrize("solver", SOLVERS)
-def test_schur_step_equals_full_step(solver: str) -> None:
+def test_schur_step_equals_full_step(solver: str, schur_path: str) -> None:
     full = ba_toy(False, "dense")
     full.initialize_optimization()
     asm, _ = full.linearize()
@@ -59,12 +73,13 @@ def test_schur_step_equals_full_step(solver: str) -> None:
     schur = ba_toy(True, solver)
     schur.initialize_optimization()
     assert schur._system.schur and not full._system.schur
+    assert bool(schur._system.dense_terms) == (schur_path == "dense")
     asm, _ = schur.linearize()
     du, dv = schur.solve(asm, 1e-3)
     np.testing.assert_allclose(np.concatenate([du, dv[0].ravel()]), ref, rtol=1e-7, atol=1e-10)
 
 
-def test_schur_and_full_converge_to_the_same_optimum() -> None:
+def test_schur_and_full_converge_to_the_same_optimum(schur_path: str) -> None:
     a, b = ba_toy(False), ba_toy(True)
     ra, rb = a.optimize(30), b.optimize(30)
     assert rb.final_chi2 == pytest.approx(ra.final_chi2, rel=1e-9)
@@ -122,7 +137,7 @@ def test_marginals_equal_inverse_hessian_blocks_pose_graph() -> None:
 
 
 @pytest.mark.parametrize("solver", ["dense", "pcg"] + (["cholmod"] if CHOLMOD_AVAILABLE else []))
-def test_marginals_with_schur_equal_inverse_hessian_blocks(solver: str) -> None:
+def test_marginals_with_schur_equal_inverse_hessian_blocks(solver: str, schur_path: str) -> None:
     opt = ba_toy(True, solver)
     opt.optimize(20)
     H = numeric_hessian(opt, [VertexCam, VertexLandmark], [np.arange(6) > 0, np.ones(40, bool)])

@@ -53,7 +53,7 @@ def fit_curve(meas, algorithm="lm", kernel=None, solver="dense", edge=EdgeCurve,
 
 
 ALGOS = ["gn", "lm", "dogleg"]
-SOLVERS = ["dense", "pcg", "scipy"] + (["cholmod"] if CHOLMOD_AVAILABLE else [])
+SOLVERS = ["dense", "pcg", "scipy", "auto"] + (["cholmod"] if CHOLMOD_AVAILABLE else [])
 
 
 @pytest.mark.parametrize("algorithm", ["lm", "dogleg"])
@@ -390,3 +390,15 @@ def test_lm_diagonal_damping_converges_to_the_same_optimum() -> None:
     ra, rb = a.optimize(40), b.optimize(40)
     assert ra.final_chi2 == pytest.approx(rb.final_chi2, rel=1e-6)
     assert ra.lambda_history[0] == pytest.approx(1e-4)
+
+
+def test_auto_solver_chooses_by_size_and_fill() -> None:
+    from graphopt.solvers import LinearSolverAuto
+
+    opt, _, _ = build_pose_graph("lm", LinearSolverAuto())
+    opt.initialize_optimization()
+    assert opt.solver.chosen.name == "dense"  # 117 unknowns
+    opt2, _, _ = build_pose_graph("lm", LinearSolverAuto(dense_max_size=50))
+    opt2.initialize_optimization()
+    assert opt2.solver.chosen.name in ("cholmod", "scipy")
+    assert opt.optimize(20).final_chi2 == pytest.approx(opt2.optimize(20).final_chi2, rel=1e-9)
