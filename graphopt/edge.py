@@ -70,6 +70,8 @@ class BaseEdge:
     measurement_shape: ClassVar[tuple[int, ...] | None] = None
     #: Central-difference step for the numeric Jacobian.
     numeric_step: ClassVar[float] = 1e-6
+    #: Rows of a *reduced linearisation* (see :meth:`linearize`), or ``None``.
+    linearization_rows: ClassVar[int | None] = None
 
     # --- the batched type interface --------------------------------------------------------
 
@@ -128,6 +130,13 @@ class BaseEdge:
 
         Returns:
             ``(error, jacobians)`` as returned by :meth:`error` and :meth:`jacobians`.
+
+            A type that sets ``linearization_rows = r`` returns ``(error, jacobians, e_lin)``
+            instead: a *reduced linearisation* with ``r``-row Jacobians ``J̃`` and ``e_lin``
+            ``(m, r)`` such that ``J̃ᵀJ̃ = JᵀJ`` and ``J̃ᵀe_lin = Jᵀe`` for the full ``J`` and
+            ``e``. The normal equations are the same, built from fewer rows (a 16-pixel patch
+            whose Jacobian factors through a 2-D image gradient needs 2). ``error`` still gives
+            the chi2; the information matrix must be the identity.
         """
         from graphopt.numeric import numeric_jacobians
 
@@ -139,6 +148,11 @@ class BaseEdge:
             jac = numeric_jacobians(cls, x, measurement, ctx)
         ctx.active = active
         return e, jac
+
+    @classmethod
+    def jacobian_rows(cls) -> int:
+        """Rows of the Jacobians :meth:`linearize` returns."""
+        return cls.linearization_rows or cls.dimension
 
     @classmethod
     def get_measurement_shape(cls) -> tuple[int, ...]:

@@ -205,7 +205,7 @@ class LinearSystem:
     def _contraction(self, g: EdgeGroup, left: int, right: int, sel: np.ndarray,
                      target: np.ndarray, n_t: int, d_out: int) -> EdgeContraction:
         """Σ over edges ``sel`` of ``J_leftᵀ · (ρ'ΩJ)_right`` into ``n_t`` targets."""
-        return EdgeContraction(sel, target, n_t, g.size, g.dim, d_out)
+        return EdgeContraction(sel, target, n_t, g.size, g.etype.jacobian_rows(), d_out)
 
     def _build_terms(self) -> None:
         self.wclasses: list[WClass] = []

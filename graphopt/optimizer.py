@@ -585,6 +585,25 @@ class SparseOptimizer:
                                                                           g.information, e)
         return oe, np.einsum("me,me->m", e, oe)
 
+    @staticmethod
+    def _reduced(g: EdgeGroup, out: tuple[Any, ...], J: tuple[np.ndarray, ...]) -> np.ndarray:
+        """Check and return ``e_lin`` of a reduced linearisation."""
+        r = g.etype.linearization_rows
+        name = g.etype.__name__
+        if len(out) != 3:
+            raise GraphError(f"{name}: linearization_rows is set, so linearize must return "
+                             "(error, jacobians, e_lin)")
+        e_lin = out[2]
+        if e_lin.shape != (g.size, r) or any(j.shape[:2] != (g.size, r) for j in J):
+            raise GraphError(f"{name}: a reduced linearisation needs e_lin ({g.size}, {r}) and "
+                             f"Jacobians ({g.size}, {r}, d)")
+        if not g.info_is_identity:
+            raise GraphError(f"{name}: a reduced linearisation needs an identity information "
+                             "matrix")
+        if not np.isfinite(e_lin.sum()):
+            raise FloatingPointError(f"{name}: non-finite reduced error at linearisation")
+        return e_lin
+
     def _evaluate(self) -> _Evaluation:
         chi2 = rchi2 = 0.0
         active = 0
@@ -618,8 +637,11 @@ class SparseOptimizer:
         active = 0
         for gi, g in enumerate(self._group_list):
             ctx = g.context()
-            e, J = g.etype.linearize(self._gather(gi), g.measurements, ctx)
+            out = g.etype.linearize(self._gather(gi), g.measurements, ctx)
+            e, J = out[0], out[1]
             oe, s = self._sq(g, e)
+            if g.etype.linearization_rows is not None:
+                oe = self._reduced(g, out, J)
             rho, w = self._robustify(g, s)
             # One sum per array is cheaper than isfinite().all(); NaN/inf survive the sum.
             if not (np.isfinite(s.sum()) and all(np.isfinite(j.sum()) for j in J)):

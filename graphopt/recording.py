@@ -39,6 +39,15 @@ __all__ = ["Recorder", "TIMELINE"]
 TIMELINE = "iteration"
 
 
+def _view_coordinates(rr: Any, name: str) -> Any:
+    """``rr.ViewCoordinates.<NAME>``, with a clear error for an unknown name."""
+    value = getattr(rr.ViewCoordinates, name.upper(), None)
+    if value is None or not name.replace("_", "").isalpha():
+        raise ValueError(f"unknown rerun view coordinates {name!r} (e.g. 'RDF', 'RUB', "
+                         "'RIGHT_HAND_Z_UP')")
+    return value
+
+
 class Recorder:
     """Write a rerun ``.rrd`` recording of an optimisation run.
 
@@ -64,13 +73,17 @@ class Recorder:
 
         self._rr = rr
         self.path = Path(path)
-        self._tmp = _temp_path(self.path)
-        self._camera_xyz = getattr(rr.ViewCoordinates, camera_xyz.upper())
-        self._rec = rr.RecordingStream(application_id, make_default=False)
-        self._rec.save(str(self._tmp))
+        self._camera_xyz = _view_coordinates(rr, camera_xyz)
+        world = _view_coordinates(rr, world_xyz)
         self._closed = False
-        self._trajectory: list[np.ndarray] = []
-        self._rec.log("world", getattr(rr.ViewCoordinates, world_xyz.upper()), static=True)
+        self._tmp = _temp_path(self.path)
+        try:
+            self._rec = rr.RecordingStream(application_id, make_default=False)
+            self._rec.save(str(self._tmp))
+            self._rec.log("world", world, static=True)
+        except BaseException:
+            self._tmp.unlink(missing_ok=True)
+            raise
 
     # --- timeline ---------------------------------------------------------------------------
 

@@ -277,13 +277,14 @@ def test_bal_problem_is_dataclass() -> None:
 
 
 def test_recorder_writes_and_aborts(tmp_path: Path) -> None:
-    from graphopt.recording import Recorder
     from graphopt.types.lie import make_transform, so3_exp
+
+    from graphopt.recording import Recorder
 
     T = make_transform(so3_exp(np.array([[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]])),
                        np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
     path = tmp_path / "r.rrd"
-    with Recorder(path, camera_xyz="RUB") as rec:
+    with Recorder(path, camera_xyz="RUB", world_xyz="rdf") as rec:
         for it in range(2):
             rec.set_iteration(it)
             rec.log_points(np.random.default_rng(it).normal(size=(50, 3)))
@@ -299,4 +300,7 @@ def test_recorder_writes_and_aborts(tmp_path: Path) -> None:
         rec.log_points(np.zeros((3, 3)))
         raise RuntimeError("boom")
     assert path.stat().st_size > 1000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.rrd"]
+    with pytest.raises(ValueError, match="view coordinates"):
+        Recorder(tmp_path / "x.rrd", camera_xyz="sideways")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.rrd"]

@@ -18,14 +18,17 @@ from custom_types import (
 )
 
 from graphopt import (
+    BaseEdge,
     DoglegConfig,
     EdgeContext,
     GaussNewtonConfig,
+    GraphError,
     LevenbergConfig,
     NotPositiveDefiniteError,
     RobustKernelCauchy,
     RobustKernelHuber,
     SparseOptimizer,
+    VertexVector,
     numeric_jacobians,
 )
 from graphopt.solvers import CHOLMOD_AVAILABLE, LinearSolverDense
@@ -402,3 +405,82 @@ def test_auto_solver_chooses_by_size_and_fill() -> None:
     opt2.initialize_optimization()
     assert opt2.solver.chosen.name in ("cholmod", "scipy")
     assert opt.optimize(20).final_chi2 == pytest.approx(opt2.optimize(20).final_chi2, rel=1e-9)
+
+
+class VertexP3(VertexVector):
+    dimension = 3
+
+
+class EdgeFactored(BaseEdge):
+    """A 4-row error whose Jacobian factors as −G·P with a 2-row P (like a patch whose rows share
+    one projection): e = z − G·tanh(P x), G = data["g"] (4x2)."""
+
+    dimension = 4
+    vertex_types = (VertexP3,)
+    P = np.array([[1.0, 0.5, -0.3], [0.2, -1.0, 0.7]])
+
+    @classmethod
+    def error(cls, x, z, ctx):
+        return z - np.einsum("mkj,mj->mk", ctx.data["g"], np.tanh(x[0] @ cls.P.T))
+
+    @classmethod
+    def jacobians(cls, x, z, ctx):
+        d = 1.0 - np.tanh(x[0] @ cls.P.T) ** 2  # (m, 2)
+        return (-np.einsum("mkj,mj,ji->mki", ctx.data["g"], d, cls.P),)
+
+
+class EdgeFactoredReduced(EdgeFactored):
+    linearization_rows = 2
+
+    @classmethod
+    def linearize(cls, x, z, ctx):
+        e = cls.error(x, z, ctx)
+        g = ctx.data["g"]
+        d = 1.0 - np.tanh(x[0] @ cls.P.T) ** 2
+        gtg = np.einsum("mki,mkj->mij", g, g)
+        R = np.swapaxes(np.linalg.cholesky(gtg), 1, 2)  # upper, RᵀR = GᵀG
+        j_red = -R @ (d[:, :, None] * cls.P)
+        e_lin = np.linalg.solve(np.swapaxes(R, 1, 2), np.einsum("mki,mk->mi", g, e)[:, :, None])
+        return e, (j_red,), e_lin[:, :, 0]
+
+
+@pytest.mark.parametrize("kernel", [None, RobustKernelHuber(0.5)])
+def test_reduced_linearisation_gives_the_same_steps(kernel) -> None:
+    rng = np.random.default_rng(3)
+    m = 60
+    g = rng.normal(size=(m, 4, 2))
+    ids = rng.integers(0, 5, size=(m, 1))
+    truth = rng.normal(size=(5, 3)) * 0.5
+    z = EdgeFactored.error((truth[ids[:, 0]],), np.zeros((m, 4)), EdgeContext(data={"g": g}))
+    z = -z + rng.normal(0, 0.05, z.shape)
+    results = []
+    for et in (EdgeFactored, EdgeFactoredReduced):
+        opt = SparseOptimizer("lm", "dense")
+        opt.add_vertices(VertexP3, np.arange(5), np.zeros((5, 3)))
+        opt.add_edges(et, ids, z, robust_kernel=kernel, data={"g": g})
+        opt.initialize_optimization()
+        asm, chi = opt.linearize()
+        step = opt.solve(asm, 1e-3)[0]
+        res = opt.optimize(15)
+        results.append((chi, step, res.chi2_history))
+    (c1, s1, h1), (c2, s2, h2) = results
+    assert c1 == pytest.approx(c2, rel=1e-12)
+    np.testing.assert_allclose(s2, s1, rtol=1e-9, atol=1e-12)
+    n = min(len(h1), len(h2))  # the last, converged iterations may differ by rounding only
+    np.testing.assert_allclose(h2[:n], h1[:n], rtol=1e-9)
+    assert n >= 4
+
+
+def test_reduced_linearisation_checks_its_output() -> None:
+    class Broken(EdgeFactoredReduced):
+        @classmethod
+        def linearize(cls, x, z, ctx):
+            e, j, _ = EdgeFactoredReduced.linearize(x, z, ctx)
+            return e, j
+
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(VertexP3, [0], np.zeros((1, 3)))
+    opt.add_edges(Broken, np.zeros((3, 1), int), np.ones((3, 4)),
+                  data={"g": np.ones((3, 4, 2)) + np.eye(4, 2)})
+    with pytest.raises(GraphError, match="must return \\(error, jacobians, e_lin\\)"):
+        opt.optimize(1)
