@@ -118,7 +118,8 @@ class _DenseSchurTerm:
     scatter: np.ndarray  # flat index into M of every entry of Z = L⁻¹Wᵀ, (nW·dv·du,)
     dest: np.ndarray  # positions in S data of every pattern entry of this class
     src: np.ndarray  # flat index into MᵀM of the same entries
-    buffer: np.ndarray  # M, flat, allocated once
+    buffer: np.ndarray  # M, flat, allocated once (empty when ``full``)
+    full: bool = False  # every V block meets every U block of the class
 
 
 @dataclass
@@ -454,11 +455,12 @@ class LinearSystem:
             rows = c.vblock[:, None, None] * c.dv + np.arange(c.dv)[None, :, None]
             cols = lu[:, None, None] * c.du + np.arange(c.du)[None, None, :]
             scatter = (rows * (len(uu) * c.du) + cols).reshape(-1)
+            full = len(c.ublock) == n_v * len(uu)  # W blocks are unique, sorted by (v, u)
             # M is allocated (and its pages touched) here, not in the first iteration.
-            buffer = np.zeros(n_v * c.dv * len(uu) * c.du)
+            buffer = np.zeros(0 if full else n_v * c.dv * len(uu) * c.du)
             buffer.fill(0.0)
             self.dense_terms.append(_DenseSchurTerm(k, n_v, len(uu), scatter, dest.ravel(),
-                                                    src.ravel(), buffer))
+                                                    src.ravel(), buffer, full))
         del self._dense_pairs
 
     # --- numbers -----------------------------------------------------------------------------
@@ -570,9 +572,15 @@ class LinearSystem:
                 vd = vd.copy()
                 vd[:, np.arange(vd.shape[1]), np.arange(vd.shape[1])] += vdamp[wc.vclass]
             z = np.matmul(batched_cholesky_inverse(vd)[wc.vblock], asm.wt[dt.k])
-            # The same entries are overwritten every time; the rest of M stays zero.
-            np.put(dt.buffer, dt.scatter, z.reshape(-1))
-            m2 = dt.buffer.reshape(dt.n_v * wc.dv, dt.n_u * wc.du)
+            if dt.full:
+                # Every V block meets every U block and W is sorted (v, u): M is a transpose.
+                m2 = np.ascontiguousarray(
+                    z.reshape(dt.n_v, dt.n_u, wc.dv, wc.du).transpose(0, 2, 1, 3)
+                ).reshape(dt.n_v * wc.dv, dt.n_u * wc.du)
+            else:
+                # The same entries are overwritten every time; the rest of M stays zero.
+                np.put(dt.buffer, dt.scatter, z.reshape(-1))
+                m2 = dt.buffer.reshape(dt.n_v * wc.dv, dt.n_u * wc.du)
             c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle (m2.T is F-ordered)
             c = np.triu(c) + np.triu(c, 1).T
             s[dt.dest] -= c.ravel()[dt.src]

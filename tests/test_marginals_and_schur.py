@@ -31,10 +31,11 @@ class EdgeObs(BaseEdge):
         return q - z
 
 
-def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1):
+def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1, per_point: int = 3):
     rng = np.random.default_rng(seed)
     nc, npt = 6, 40
-    obs = np.array([(i, j) for j in range(npt) for i in rng.choice(nc, 3, replace=False)])
+    obs = np.array([(i, j) for j in range(npt)
+                    for i in rng.choice(nc, per_point, replace=False)])
     C = rng.normal(size=(nc, 4))
     P = rng.normal(size=(npt, 3))
     Z = EdgeObs.error((C[obs[:, 0]], P[obs[:, 1]]), np.zeros((len(obs), 2)), None)
@@ -64,14 +65,17 @@ def schur_path(request, monkeypatch):
     return request.param
 
 
+@pytest.mark.parametrize("per_point", [3, 6])  # 6: every point in every camera (dense W)
 @pytest.mark.parametrize("solver", SOLVERS)
-def test_schur_step_equals_full_step(solver: str, schur_path: str) -> None:
-    full = ba_toy(False, "dense")
+def test_schur_step_equals_full_step(solver: str, schur_path: str, per_point: int) -> None:
+    full = ba_toy(False, "dense", per_point=per_point)
     full.initialize_optimization()
     asm, _ = full.linearize()
     ref = full.solve(asm, 1e-3)[0]
-    schur = ba_toy(True, solver)
+    schur = ba_toy(True, solver, per_point=per_point)
     schur.initialize_optimization()
+    if schur_path == "dense":
+        assert schur._system.dense_terms[0].full == (per_point == 6)
     assert schur._system.schur and not full._system.schur
     assert bool(schur._system.dense_terms) == (schur_path == "dense")
     asm, _ = schur.linearize()

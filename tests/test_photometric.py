@@ -46,6 +46,12 @@ def problem(patch: int, m: int = 60, seed: int = 0):
     return Tj, Ta, p, q, img, meas
 
 
+def full(cls, x, meas, ctx):
+    """Error and the full ``(m, P², d)`` Jacobians (``linearize`` hands over the reduced ones)."""
+    e, g, factors = cls.linearize_factored(x, meas, ctx)
+    return e, tuple(np.matmul(g, f) for f in factors)
+
+
 def rel_err(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-12))
 
@@ -55,7 +61,7 @@ def check_all(prm: PhotometricParams, tol: float, seed: int = 0) -> None:
     Tj, Ta, p, q, img, meas = problem(prm.patch, seed=seed)
     for cls, x in ((E, (Tj, p)), (EI, (Ta, Tj, q)), (EH, (Ta, q))):
         ctx = EdgeContext(prm, {"image": img})
-        e, jac = cls.linearize(x, meas, ctx)
+        e, jac = full(cls, x, meas, ctx)
         active = ctx.active
         assert active is not None and active.sum() > 0.6 * len(img)
         assert e.shape == (len(img), prm.patch**2)
@@ -93,7 +99,7 @@ def test_float32_images_match_float64() -> None:
     for dt in ("float32", "float64"):
         prm = PhotometricParams(smooth_images(), *CAM, dtype=dt)
         ctx = EdgeContext(prm, {"image": img})
-        out.append(EdgePhotometricPatch.linearize((Tj, p), meas, ctx))
+        out.append(full(EdgePhotometricPatch, (Tj, p), meas, ctx))
     assert rel_err(out[0][0], out[1][0]) < 1e-5
     for a, b in zip(out[0][1], out[1][1], strict=True):
         assert a.dtype == np.float64
@@ -110,7 +116,7 @@ def test_sampling_order_and_central_gradient_images() -> None:
     pt = np.array([[(u - CAM[2]) / CAM[0] * z, (v - CAM[3]) / CAM[1] * z, z]])
     T = np.eye(4)[None]
     ctx = EdgeContext(prm, {"image": np.array([0])})
-    e, (jp, _) = EdgePhotometricPatch.linearize((T, pt), np.zeros((1, 16)), ctx)
+    e, (jp, _) = full(EdgePhotometricPatch, (T, pt), np.zeros((1, 16)), ctx)
 
     def bil(img: np.ndarray, x: float, y: float) -> float:
         x0, y0 = int(np.floor(x)), int(np.floor(y))
@@ -156,7 +162,7 @@ def test_inactive_edges_zero_and_finite() -> None:
     T = np.repeat(np.eye(4)[None], m, axis=0)
     ctx = EdgeContext(prm, {"image": np.zeros(m, dtype=int)})
     with np.errstate(divide="raise", over="raise", invalid="raise"):
-        e, (jp, jx) = EdgePhotometricPatch.linearize((T, pts), np.full((m, 16), 7.0), ctx)
+        e, (jp, jx) = full(EdgePhotometricPatch, (T, pts), np.full((m, 16), 7.0), ctx)
     np.testing.assert_array_equal(ctx.active, [True, True] + [False] * (m - 2))
     for arr in (e, jp, jx):
         assert np.isfinite(arr).all()
@@ -171,7 +177,7 @@ def test_inactive_edges_zero_and_finite() -> None:
                    (EdgePhotometricPatchInverseDepthHost, (Ts, q))):
         ctx = EdgeContext(prm, {"image": img})
         with np.errstate(all="raise"):
-            e, jac = cls.linearize(x, np.zeros((4, 16)), ctx)
+            e, jac = full(cls, x, np.zeros((4, 16)), ctx)
         np.testing.assert_array_equal(ctx.active, [True, False, False, False])
         for arr in (e, *jac):
             assert np.isfinite(arr).all() and not arr[1:].any()
@@ -209,3 +215,45 @@ def test_types_and_params_validation() -> None:
                                    EdgeContext(prm, {"image": np.zeros(1, int)}))
     num = numeric_variant(EdgePhotometricPatch)
     assert not num.has_analytic_jacobians() and EdgePhotometricPatch.has_analytic_jacobians()
+
+
+def test_factored_jacobians() -> None:
+    """``J_i = G @ F_i`` and ``J_iᵀ J_j = F_iᵀ (GᵀG) F_j`` for all three edge types."""
+    prm = PhotometricParams(smooth_images(), *CAM, dtype="float64")
+    Tj, Ta, p, q, img, meas = problem(4)
+    for cls, x in ((EdgePhotometricPatch, (Tj, p)),
+                   (EdgePhotometricPatchInverseDepth, (Ta, Tj, q)),
+                   (EdgePhotometricPatchInverseDepthHost, (Ta, q))):
+        ctx = EdgeContext(prm, {"image": img})
+        e, jac = full(cls, x, meas, ctx)
+        e2, G, factors = cls.linearize_factored(x, meas, ctx)
+        np.testing.assert_array_equal(e, e2)
+        assert G.shape == (len(img), 16, 2) and len(factors) == len(jac)
+        for J, F in zip(jac, factors, strict=True):
+            np.testing.assert_allclose(np.matmul(G, F), J, rtol=1e-12, atol=1e-12)
+        GtG = np.matmul(np.swapaxes(G, 1, 2), G)
+        JtJ = np.matmul(np.swapaxes(jac[-1], 1, 2), jac[0])
+        FtF = np.swapaxes(factors[-1], 1, 2) @ GtG @ factors[0]
+        np.testing.assert_allclose(FtF, JtJ, rtol=1e-9, atol=1e-9 * np.abs(JtJ).max())
+
+
+def test_reduced_linearisation_preserves_normal_equations() -> None:
+    """``linearize`` returns 2-row Jacobians with the full ``JᵀJ`` and ``Jᵀe``."""
+    prm = PhotometricParams(smooth_images(), *CAM, dtype="float64")
+    Tj, Ta, p, q, img, meas = problem(4)
+    for cls, x in ((EdgePhotometricPatch, (Tj, p)),
+                   (EdgePhotometricPatchInverseDepth, (Ta, Tj, q)),
+                   (EdgePhotometricPatchInverseDepthHost, (Ta, q))):
+        assert cls.linearization_rows == 2
+        e, jac = full(cls, x, meas, EdgeContext(prm, {"image": img}))
+        e2, red, e_lin = cls.linearize(x, meas, EdgeContext(prm, {"image": img}))
+        np.testing.assert_array_equal(e, e2)
+        assert e_lin.shape == (len(img), 2)
+        for a in range(len(jac)):
+            gj = np.einsum("mni,mn->mi", jac[a], e)
+            gr = np.einsum("mki,mk->mi", red[a], e_lin)
+            np.testing.assert_allclose(gr, gj, rtol=1e-9, atol=1e-9 * np.abs(gj).max())
+            for b in range(len(jac)):
+                hj = np.swapaxes(jac[a], 1, 2) @ jac[b]
+                hr = np.swapaxes(red[a], 1, 2) @ red[b]
+                np.testing.assert_allclose(hr, hj, rtol=1e-9, atol=1e-9 * np.abs(hj).max())

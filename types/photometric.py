@@ -35,6 +35,7 @@ import numpy as np
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
 from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.reduction import factored_to_reduced
 
 #: Depths at or below this (in the camera frame) make an edge inactive (behind the camera).
 MIN_DEPTH = 1e-6
@@ -276,14 +277,6 @@ def _gradients(gu: np.ndarray, gv: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return g
 
 
-def _chain(g: np.ndarray, juv: np.ndarray) -> np.ndarray:
-    """``∂e/∂x = −(g_u ∂u/∂x + g_v ∂v/∂x)`` for all patch pixels: ``(m, P², d)``.
-
-    A batched ``(P², 2) @ (2, d)`` product (``matmul`` runs this far faster than broadcasting).
-    """
-    return np.matmul(g, -juv)
-
-
 def _finish(
     meas: np.ndarray, val: np.ndarray, ok: np.ndarray, ctx: EdgeContext
 ) -> np.ndarray:
@@ -370,6 +363,7 @@ class EdgePhotometricPatch(BaseEdge):
 
     patch: ClassVar[int] = 4
     dimension: ClassVar[int] = 16
+    linearization_rows: ClassVar[int | None] = 2  # J = G·F with G (P², 2)
     vertex_types = (VertexSE3Expmap, VertexPointXYZ)
 
     @classmethod
@@ -396,13 +390,38 @@ class EdgePhotometricPatch(BaseEdge):
     @classmethod
     def linearize(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and analytic Jacobians ``(m, P², 6)``, ``(m, P², 3)``.
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """Errors and the reduced linearisation (2 rows, see ``linearization_rows``).
+
+        The Jacobians ``(m, P², 6)``, ``(m, P², 3)`` factor as image gradients times a
+        ``(2, d)`` projection factor (:meth:`linearize_factored`); the normal equations need
+        only ``GᵀG``, so 2 rows carry them (:func:`graphopt.reduction.factored_to_reduced`).
 
         Args:
             x: As in :meth:`error`.
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
+        """
+        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
+
+    @classmethod
+    def linearize_factored(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """Errors and the Jacobians in factored form ``J_i = G @ F_i``.
+
+        Every pixel of a patch shares the projection's Jacobian, so each Jacobian is the
+        ``(P², 2)`` image gradients times a ``(2, d_i)`` factor. An optimizer can use this to
+        form ``J_iᵀ W J_j = F_iᵀ (Gᵀ W G) F_j`` with a 2×2 middle instead of ``P²``-row products.
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Returns:
+            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
+            in ``e`` and ``G``.
         """
         prm = cls._check(ctx)
         T, p = x[0], x[1]
@@ -416,7 +435,7 @@ class EdgePhotometricPatch(BaseEdge):
         pc = _safe_points(pc, ok)
         jp = _uv_jacobian_pose(pc, iz, prm)
         jx = _uv_jacobian_camera(pc, iz, prm) @ T[:, :3, :3]
-        return e, (_chain(g, jp), _chain(g, jx))
+        return e, g, (-jp, -jx)
 
     @classmethod
     def jacobians(
@@ -429,7 +448,8 @@ class EdgePhotometricPatch(BaseEdge):
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        return cls.linearize(x, measurement, ctx)[1]
+        _, g, factors = cls.linearize_factored(x, measurement, ctx)
+        return tuple(np.matmul(g, f) for f in factors)
 
 
 class EdgePhotometricPatchInverseDepth(BaseEdge):
@@ -451,6 +471,7 @@ class EdgePhotometricPatchInverseDepth(BaseEdge):
 
     patch: ClassVar[int] = 4
     dimension: ClassVar[int] = 16
+    linearization_rows: ClassVar[int | None] = 2  # J = G·F with G (P², 2)
     vertex_types = (VertexSE3Expmap, VertexSE3Expmap, VertexPointInverseDepth)
 
     @classmethod
@@ -486,13 +507,35 @@ class EdgePhotometricPatchInverseDepth(BaseEdge):
     @classmethod
     def linearize(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and analytic Jacobians ``(m,P²,6)``, ``(m,P²,6)``, ``(m,P²,3)``.
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """Errors and the reduced linearisation (2 rows) of ``(m,P²,6)``, ``(m,P²,6)``,
+        ``(m,P²,3)``.
 
         Args:
             x: As in :meth:`error`.
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
+        """
+        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
+
+    @classmethod
+    def linearize_factored(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """Errors and the Jacobians in factored form ``J_i = G @ F_i``.
+
+        Every pixel of a patch shares the projection's Jacobian, so each Jacobian is the
+        ``(P², 2)`` image gradients times a ``(2, d_i)`` factor. An optimizer can use this to
+        form ``J_iᵀ W J_j = F_iᵀ (Gᵀ W G) F_j`` with a 2×2 middle instead of ``P²``-row products.
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Returns:
+            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
+            in ``e`` and ``G``.
         """
         prm = cls._check(ctx)
         pc, R, pa, irho, rho_ok = cls._camera_point(x)
@@ -507,7 +550,7 @@ class EdgePhotometricPatchInverseDepth(BaseEdge):
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.
         ja = np.concatenate([np.cross(d, pa[:, None, :]), -d], axis=2)
         jq = _inverse_depth_point_jacobian(d, pa, irho)
-        return e, (_chain(g, ja), _chain(g, jj), _chain(g, jq))
+        return e, g, (-ja, -jj, -jq)
 
     @classmethod
     def jacobians(
@@ -520,7 +563,8 @@ class EdgePhotometricPatchInverseDepth(BaseEdge):
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        return cls.linearize(x, measurement, ctx)[1]
+        _, g, factors = cls.linearize_factored(x, measurement, ctx)
+        return tuple(np.matmul(g, f) for f in factors)
 
 
 class EdgePhotometricPatchInverseDepthHost(BaseEdge):
@@ -541,6 +585,7 @@ class EdgePhotometricPatchInverseDepthHost(BaseEdge):
 
     patch: ClassVar[int] = 4
     dimension: ClassVar[int] = 16
+    linearization_rows: ClassVar[int | None] = 2  # J = G·F with G (P², 2)
     vertex_types = (VertexSE3Expmap, VertexPointInverseDepth)
 
     @classmethod
@@ -567,13 +612,34 @@ class EdgePhotometricPatchInverseDepthHost(BaseEdge):
     @classmethod
     def linearize(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and analytic Jacobians ``(m,P²,6)`` (zero), ``(m,P²,3)``.
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """Errors and the reduced linearisation (2 rows) of ``(m,P²,6)`` (zero), ``(m,P²,3)``.
 
         Args:
             x: As in :meth:`error`.
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
+        """
+        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
+
+    @classmethod
+    def linearize_factored(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """Errors and the Jacobians in factored form ``J_i = G @ F_i``.
+
+        Every pixel of a patch shares the projection's Jacobian, so each Jacobian is the
+        ``(P², 2)`` image gradients times a ``(2, d_i)`` factor. An optimizer can use this to
+        form ``J_iᵀ W J_j = F_iᵀ (Gᵀ W G) F_j`` with a 2×2 middle instead of ``P²``-row products.
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Returns:
+            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
+            in ``e`` and ``G``.
         """
         prm = cls._check(ctx)
         pa, irho, rho_ok = _anchor_point(x[1])
@@ -583,8 +649,7 @@ class EdgePhotometricPatchInverseDepthHost(BaseEdge):
         g = _gradients(gu, gv, ok)
         pa = _safe_points(pa, ok)
         jq = _inverse_depth_point_jacobian(_uv_jacobian_camera(pa, iz, prm), pa, irho)
-        m, k = e.shape
-        return e, (np.zeros((m, k, 6)), _chain(g, jq))
+        return e, g, (np.zeros((len(e), 2, 6)), -jq)
 
     @classmethod
     def jacobians(
@@ -597,7 +662,8 @@ class EdgePhotometricPatchInverseDepthHost(BaseEdge):
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        return cls.linearize(x, measurement, ctx)[1]
+        _, g, factors = cls.linearize_factored(x, measurement, ctx)
+        return tuple(np.matmul(g, f) for f in factors)
 
 
 _BASES: tuple[type[BaseEdge], ...] = (
@@ -643,5 +709,6 @@ def numeric_variant(edge_type: type[BaseEdge]) -> type[BaseEdge]:
     return type(
         f"{edge_type.__name__}Numeric",
         (edge_type,),
-        {"linearize": BaseEdge.__dict__["linearize"], "jacobians": BaseEdge.__dict__["jacobians"]},
+        {"linearize": BaseEdge.__dict__["linearize"], "jacobians": BaseEdge.__dict__["jacobians"],
+         "linearization_rows": None},
     )

@@ -33,9 +33,12 @@ from graphopt.io.atomic import atomic_path
 __all__ = [
     "BALFormatError",
     "BALProblem",
+    "SyntheticScene",
+    "ground_truth_errors",
     "normalize",
     "perturb",
     "read_bal",
+    "similarity_align",
     "synthetic_scene",
     "write_bal",
 ]

@@ -45,6 +45,7 @@ class DirectBAData:
         true_points: Ground-truth points (synthetic scene only).
         hosts: ``(N,)`` index of the image each patch was taken from, when known.
         source: Where the problem came from (folder path or ``"synthetic"``).
+        extra: Generation settings of the synthetic scene (seed, noise levels, outlier indices).
     """
 
     poses: np.ndarray
