@@ -160,9 +160,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     Returns:
         The summary dictionary (also written by ``--json``).
     """
-    from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
-    from graphopt.types.vertices import VertexPointXYZ
-
     from graphopt import GraphError, LevenbergConfig, SparseOptimizer, make_kernel
     from graphopt.io.bal import (
         ground_truth_errors,
@@ -172,6 +169,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         synthetic_scene,
     )
     from graphopt.io.ply import write_scene_ply
+    from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
+    from graphopt.types.vertices import VertexPointXYZ
 
     _check_options(args)
     kernel = None
@@ -206,8 +205,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     verbose = not args.quiet
     algorithm: Any = args.algorithm
     if args.algorithm == "lm":
-        # BAL mixes parameters of very different scales (focal length ~1e3 px next to k2 ~1e-7):
-        # λ·diag(H) damps each in its own units, λ·I starves the small-curvature ones.
+        # BAL mixes parameters of very different scales (focal lengths ~1e3 px next to k2 as
+        # small as 1e-7): λ·diag(H) damps each in its own units, λ·I starves the small ones.
         algorithm = LevenbergConfig(diagonal_damping=args.lm_damping == "diagonal")
     opt = SparseOptimizer(algorithm=algorithm, solver=args.solver, verbose=verbose,
                           stream=sys.stderr)
@@ -232,10 +231,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         hook.log(0, problem.cameras, problem.points, initial_cost)
 
         def on_iteration(o: SparseOptimizer, info: Any) -> None:
+            t0 = time.perf_counter()
             cams = o.estimates_of(VertexCameraBAL)
             pts = o.estimates_of(VertexPointXYZ)
-            hook.log(info.iteration + 1, cams, pts,
-                     _residual_stats(problem, cams, pts)[0])
+            cost = _residual_stats(problem, cams, pts)[0]
+            extra = time.perf_counter() - t0
+            hook.log(info.iteration + 1, cams, pts, cost)
+            hook.seconds += extra  # keep the recording's work out of the reported seconds
 
         opt.add_callback("post_iteration", on_iteration)
 
@@ -300,6 +302,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             f.write("\n")
     if not args.quiet:
         print(format_summary(summary))
+        if res.stop_reason == "failed":
+            print(f"{PROG}: warning: no step was possible because the normal equations are "
+                  "singular (bundle adjustment has a 7-dimensional gauge freedom); use "
+                  "--algorithm lm or dogleg, which damp it", file=sys.stderr)
     return summary
 
 

@@ -44,9 +44,9 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-from graphopt.types.bal import bal_project  # noqa: E402
 
 from graphopt.io.bal import BALProblem, read_bal  # noqa: E402
+from graphopt.types.bal import bal_project  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bal"
 DEFAULT_FILES = ["problem-16-22106-pre.txt.bz2", "problem-49-7776-pre.txt.bz2"]
@@ -115,10 +115,9 @@ def run_graphopt(
         solver: Linear solver name.
         diagonal: Marquardt damping ``λ·diag(H)`` (the app's default) or g2o's ``λ·I``.
     """
+    from graphopt import LevenbergConfig, SparseOptimizer
     from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
     from graphopt.types.vertices import VertexPointXYZ
-
-    from graphopt import LevenbergConfig, SparseOptimizer
 
     nc = problem.num_cameras
     opt = SparseOptimizer(algorithm=LevenbergConfig(diagonal_damping=diagonal), solver=solver)
@@ -161,6 +160,7 @@ def _colmap_reconstruction(problem: BALProblem) -> tuple[Any, list[int]]:
     model ``f (1 + k1 r² + k2 r⁴) P'_xy / P'_z + c`` with ``c = 0`` equal to BAL's projection.
     """
     import pycolmap
+
     from graphopt.types.lie import so3_exp
 
     flip = np.diag([1.0, -1.0, -1.0])

@@ -21,8 +21,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from graphopt.apps.direct_ba import build_problem
 
+from graphopt.apps.direct_ba import build_problem
 from graphopt.io.directba import load_directba
 
 TARGET = 0.04

@@ -54,10 +54,9 @@ def time_iterations(problem: BALProblem, mode: str, iterations: int) -> tuple[fl
         mode: ``dense``, ``sparse`` or ``schur``.
         iterations: LM iterations.
     """
+    from graphopt import SparseOptimizer
     from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
     from graphopt.types.vertices import VertexPointXYZ
-
-    from graphopt import SparseOptimizer
 
     nc = problem.num_cameras
     opt = SparseOptimizer(algorithm="lm", solver="dense" if mode == "dense" else "cholmod")

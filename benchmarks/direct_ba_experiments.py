@@ -18,9 +18,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from graphopt.apps.direct_ba import build_problem, truth_report
 from scipy.stats import chi2 as chi2_dist
 
+from graphopt.apps.direct_ba import build_problem, truth_report
 from graphopt.io.directba import load_directba, synthetic_scene
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "directba"

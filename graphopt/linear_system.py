@@ -634,7 +634,7 @@ class LinearSystem:
         for k, wc in enumerate(self.wclasses):
             assert wc.to_v is not None
             assert wc.rhs is not None
-            hu[wc.rhs_dest] += wc.rhs(asm.wt[k], xv[wc.vclass][:, :, None])[:, :, 0]
+            hu[wc.rhs_dest] += wc.rhs(asm.wt[k], xv[wc.vclass][wc.vblock][:, :, None])[:, :, 0]
             hv[wc.vclass] += wc.to_v(np.matmul(asm.wt[k], xu[wc.upos][:, :, None])[:, :, 0])
         return hu, hv
 

@@ -878,7 +878,7 @@ class SparseOptimizer:
         line = (f"iteration= {info.iteration}\t chi2= {info.chi2:.6f}\t time= {dt:.6g}\t "
                 f"cumTime= {cum:.6g}\t edges= {self.active_edge_count()}\t schur= {schur}")
         if isinstance(self.algorithm, LevenbergMarquardt):
-            line += f"\t lambda= {info.lam:.6f}\t levenbergIter= {info.trials}"
+            line += f"\t lambda= {info.lam:.6g}\t levenbergIter= {info.trials}"
         elif self.algorithm.config.name == "dogleg":
             line += f"\t delta= {info.radius:.6f}\t lambda= {info.lam:.6g}"
         print(line, file=self._out)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from graphopt.apps.bal import main
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bal"
@@ -51,12 +52,12 @@ def test_synthetic_default_run(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert all(np.isfinite(v) for v in s.values() if isinstance(v, float))
 
 
-def test_quiet_robust_dogleg_and_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]):
+def test_quiet_robust_and_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]):
     paths = {k: tmp_path / f"out.{k}" for k in ("json", "rrd")}
     before, after = tmp_path / "before.ply", tmp_path / "after.ply"
     paths["json"].write_text("old")
     code, out, err = _run(
-        ["--quiet", "--iterations", "5", "--algorithm", "dogleg", "--robust", "huber",
+        ["--quiet", "--iterations", "5", "--robust", "huber",
          "--robust-delta", "0.5", "--perturb", "0.001", "0.01", "0.01", "--seed", "3",
          "--json", str(paths["json"]), "--rrd", str(paths["rrd"]),
          "--ply-before", str(before), "--ply-after", str(after)],
@@ -65,7 +66,7 @@ def test_quiet_robust_dogleg_and_outputs(tmp_path: Path, capsys: pytest.CaptureF
     assert code == 0, err
     assert out == "" and err == ""
     s = json.loads(paths["json"].read_text())
-    assert s["robust_kernel"] == "huber:0.5" and s["algorithm"] == "dogleg"
+    assert s["robust_kernel"] == "huber:0.5" and s["lm_damping"] == "diagonal"
     assert s["final_chi2"] < 2 * s["final_cost"]  # Huber down-weights large residuals
     for ply in (before, after):
         head = ply.read_bytes().split(b"end_header\n")[0].decode()
@@ -79,6 +80,28 @@ def test_quiet_robust_dogleg_and_outputs(tmp_path: Path, capsys: pytest.CaptureF
         res = subprocess.run([str(rerun), "rrd", "verify", str(paths["rrd"])],
                              capture_output=True, text=True, timeout=120, cwd=tmp_path)
         assert res.returncode == 0, res.stderr
+
+
+@pytest.mark.parametrize(
+    "options",
+    [["--algorithm", "dogleg"], ["--solver", "pcg"], ["--solver", "dense"],
+     ["--lm-damping", "identity"], ["--normalize"]],
+)
+def test_algorithms_and_solvers(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                options: list[str]) -> None:
+    js = tmp_path / "s.json"
+    code, _, err = _run(["--quiet", "--iterations", "8", "--json", str(js), *options], capsys)
+    assert code == 0, err
+    s = json.loads(js.read_text())
+    # g2o's λ·I damping is the slowest here (see docs/bal.md, "LM damping").
+    assert s["final_cost"] < 0.05 * s["initial_cost"], s
+    assert np.isfinite(s["rms_px"])
+
+
+def test_gauss_newton_reports_singular_system(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = _run(["--algorithm", "gn", "--iterations", "2"], capsys)
+    assert code == 0
+    assert "warning" in err and "gauge" in err and "final cost" in out
 
 
 @pytest.mark.parametrize(

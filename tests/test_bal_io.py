@@ -277,9 +277,8 @@ def test_bal_problem_is_dataclass() -> None:
 
 
 def test_recorder_writes_and_aborts(tmp_path: Path) -> None:
-    from graphopt.types.lie import make_transform, so3_exp
-
     from graphopt.recording import Recorder
+    from graphopt.types.lie import make_transform, so3_exp
 
     T = make_transform(so3_exp(np.array([[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]])),
                        np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))

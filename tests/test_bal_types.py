@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from graphopt.edge import EdgeContext
+from graphopt.numeric import numeric_jacobians
 from graphopt.types.bal import (
     EdgeBALProjection,
     VertexCameraBAL,
@@ -18,10 +21,7 @@ from graphopt.types.projection import (
     EdgeProjectXYZ2UV,
     EdgeSE3ProjectXYZ,
 )
-from graphopt.types.vertices import VertexSE3Expmap
-
-from graphopt.edge import EdgeContext
-from graphopt.numeric import numeric_jacobians
+from graphopt.types.vertices import VertexPointXYZ, VertexSE3Expmap
 
 
 def _bal_inputs(m: int = 400, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -207,3 +207,61 @@ def test_bal_edge_blocks_match_single_pass(monkeypatch: pytest.MonkeyPatch) -> N
     err2 = EdgeBALProjection.error((cams, X), z, ctx)
     for a, b in ((e1, e2), (Jc1, Jc2), (Jp1, Jp2), (err1, err2), (e1, err1)):
         np.testing.assert_array_equal(a, b)
+
+
+# --- the projection edges inside the optimizer (Schur complement over the points) -------------
+
+
+def _pinhole_scene(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    K = CameraParameters(400.0, 400.0, 320.0, 240.0)
+    nc, npt = 6, 200
+    xi = np.zeros((nc, 6))
+    xi[:, 3] = -0.5 * np.arange(nc)  # cameras along x, looking down +z
+    T = se3_exp(xi + rng.normal(0, 0.01, (nc, 6)))
+    Xw = rng.uniform([-2, -2, 4], [4, 2, 8], (npt, 3))
+    P = np.einsum("cij,pj->cpi", T[:, :3, :3], Xw) + T[:, None, :3, 3]
+    u = K.fx * P[..., 0] / P[..., 2] + K.cx
+    v = K.fy * P[..., 1] / P[..., 2] + K.cy
+    seen = (P[..., 2] > 0) & (u > 0) & (u < 640) & (v > 0) & (v < 480)
+    cam, pt = np.nonzero(seen)
+    uv = np.column_stack([u[cam, pt], v[cam, pt]]) + rng.normal(0, 0.5, (len(cam), 2))
+    T0 = VertexSE3Expmap.oplus(T, np.r_[np.zeros((2, 6)), rng.normal(0, 0.01, (nc - 2, 6))])
+    return K, T, T0, Xw, cam, pt, uv, rng
+
+
+def test_inverse_depth_bundle_adjustment_converges() -> None:
+    from graphopt import LevenbergConfig, SparseOptimizer
+    from graphopt.types.vertices import VertexPointInverseDepth
+
+    K, T, T0, Xw, cam, pt, uv, rng = _pinhole_scene()
+    npt = len(Xw)
+    first = np.full(npt, len(cam))
+    np.minimum.at(first, pt, np.arange(len(cam)))
+    anchor = cam[first]  # the first camera that sees each point
+    Pa = np.einsum("nij,nj->ni", T[anchor, :3, :3], Xw) + T[anchor, :3, 3]
+    ip = np.column_stack([Pa[:, 0] / Pa[:, 2], Pa[:, 1] / Pa[:, 2], 1 / Pa[:, 2]])
+    ip *= 1 + rng.normal(0, 0.02, ip.shape)
+    opt = SparseOptimizer(algorithm=LevenbergConfig(diagonal_damping=True))
+    opt.add_vertices(VertexSE3Expmap, np.arange(len(T)), T0, fixed=np.arange(len(T)) < 2)
+    opt.add_vertices(VertexPointInverseDepth, 100 + np.arange(npt), ip, marginalized=True)
+    # Includes edges whose observing camera is the anchor itself.
+    opt.add_edges(EdgeInverseDepthProjection, np.column_stack([anchor[pt], cam, 100 + pt]), uv,
+                  params=K)
+    res = opt.optimize(20)
+    assert res.final_chi2 < 1e-2 * res.initial_chi2
+    assert res.final_chi2 < 2 * 0.25 * 2 * len(uv)  # about the noise level (σ = 0.5 px)
+
+
+def test_pinhole_bundle_adjustment_converges() -> None:
+    from graphopt import LevenbergConfig, SparseOptimizer
+
+    K, T, T0, Xw, cam, pt, uv, rng = _pinhole_scene(seed=1)
+    X0 = Xw + rng.normal(0, 0.05, Xw.shape)
+    opt = SparseOptimizer(algorithm=LevenbergConfig(diagonal_damping=True))
+    opt.add_vertices(VertexSE3Expmap, np.arange(len(T)), T0, fixed=np.arange(len(T)) < 2)
+    opt.add_vertices(VertexPointXYZ, 100 + np.arange(len(Xw)), X0, marginalized=True)
+    opt.add_edges(EdgeSE3ProjectXYZ, np.column_stack([cam, 100 + pt]), uv, params=K)
+    res = opt.optimize(20)
+    assert res.final_chi2 < 1e-2 * res.initial_chi2
+    assert res.final_chi2 < 2 * 0.25 * 2 * len(uv)

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from graphopt.apps import direct_ba
 from graphopt.apps.direct_ba import build_problem, main, truth_report
-
 from graphopt.io.directba import load_directba, synthetic_scene
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "directba"

@@ -7,7 +7,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from graphopt.types.lie import quat_to_rot
 
 from graphopt.io.directba import (
     DEFAULT_INTRINSICS,
@@ -15,6 +14,7 @@ from graphopt.io.directba import (
     load_directba,
     synthetic_scene,
 )
+from graphopt.types.lie import quat_to_rot
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "directba"
 

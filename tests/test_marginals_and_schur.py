@@ -174,3 +174,29 @@ def test_edge_between_two_marginalised_vertices_is_rejected() -> None:
     opt.add_edges(EdgeLL, np.array([[100, 101]]), np.zeros((1, 3)))
     with pytest.raises(GraphError, match="two different marginalised vertices"):
         opt.initialize_optimization()
+
+
+@pytest.mark.parametrize("algorithm", ["dogleg", "gn"])
+def test_other_algorithms_with_schur_reach_the_lm_optimum(algorithm: str, schur_path: str) -> None:
+    ref = ba_toy(True)
+    ref.optimize(40)
+    opt = ba_toy(True)
+    opt.set_algorithm(algorithm)
+    res = opt.optimize(40)
+    assert res.final_chi2 == pytest.approx(ref.active_robust_chi2(), rel=1e-6)
+    np.testing.assert_allclose(opt.estimates_of(VertexLandmark), ref.estimates_of(VertexLandmark),
+                               atol=1e-6)
+
+
+def test_hessian_product_matches_the_full_hessian(schur_path: str) -> None:
+    rng = np.random.default_rng(7)
+    full, schur = ba_toy(False), ba_toy(True)
+    for o in (full, schur):
+        o.initialize_optimization()
+    xu = rng.normal(size=schur._system.n)
+    xv = [rng.normal(size=(40, 3))]
+    asm_f, _ = full.linearize()
+    ref = full.hessian_product(asm_f, (np.concatenate([xu, xv[0].ravel()]), []))[0]
+    asm_s, _ = schur.linearize()
+    hu, hv = schur.hessian_product(asm_s, (xu, xv))
+    np.testing.assert_allclose(np.concatenate([hu, hv[0].ravel()]), ref, rtol=1e-10, atol=1e-10)

@@ -236,7 +236,7 @@ def test_verbose_prints_g2o_lines() -> None:
     lines = out.getvalue().strip().splitlines()
     assert len(lines) == 3
     pat = (r"^iteration= (\d+)\t chi2= (\d+\.\d{6})\t time= \S+\t cumTime= \S+\t "
-           r"edges= (\d+)\t schur= 0\t lambda= \d+\.\d{6}\t levenbergIter= \d+$")
+           r"edges= (\d+)\t schur= 0\t lambda= [0-9.e+-]+\t levenbergIter= \d+$")
     for i, line in enumerate(lines):
         m = re.match(pat, line)
         assert m, line

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from graphopt.edge import EdgeContext
+from graphopt.numeric import numeric_jacobians
 from graphopt.types.lie import se3_exp
 from graphopt.types.photometric import (
     EdgePhotometricPatch,
@@ -14,9 +17,6 @@ from graphopt.types.photometric import (
     numeric_variant,
     photometric_edge_types,
 )
-
-from graphopt.edge import EdgeContext
-from graphopt.numeric import numeric_jacobians
 
 H, W = 120, 160
 CAM = (100.0, 110.0, 80.0, 60.0)

@@ -20,10 +20,10 @@ from collections.abc import Sequence
 from typing import ClassVar
 
 import numpy as np
-from graphopt.types.lie import so3_exp, so3_log
-from graphopt.types.vertices import VertexPointXYZ
 
 from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.types.lie import so3_exp, so3_log
+from graphopt.types.vertices import VertexPointXYZ
 from graphopt.vertex import BaseVertex
 
 __all__ = [

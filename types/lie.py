@@ -76,7 +76,8 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     scale = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
     w = v * scale[:, None]
     if np.any(near_pi):
-        # Near π, sinθ → 0: recover the axis from the symmetric part R + Rᵀ = 2cosθ I + 2(1−cosθ)aaᵀ.
+        # Near π, sinθ → 0: the axis comes from the symmetric part,
+        # R + Rᵀ = 2cosθ I + 2(1−cosθ)aaᵀ.
         idx = np.flatnonzero(near_pi)
         Rs = R[idx]
         B = (Rs + np.swapaxes(Rs, 1, 2)) * 0.5 - cos[idx, None, None] * np.eye(3)

@@ -32,10 +32,10 @@ from functools import cache
 from typing import ClassVar
 
 import numpy as np
-from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
 from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.reduction import factored_to_reduced
+from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
 #: Depths at or below this (in the camera frame) make an edge inactive (behind the camera).
 MIN_DEPTH = 1e-6

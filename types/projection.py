@@ -20,9 +20,9 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
 from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 from graphopt.vertex import BaseVertex
 
 __all__ = [
