@@ -105,21 +105,35 @@ class _PairTerm:
 
 
 @dataclass
-class _DenseSchurTerm:
-    """``W V⁻¹ Wᵀ`` of one W class as one BLAS ``syrk``: chosen where W is dense enough.
+class _Panel:
+    """A run of consecutive V blocks and the U blocks they meet: one dense ``syrk``.
 
-    ``Z = L⁻¹Wᵀ`` (``V = LLᵀ``) is placed in a dense ``(nV·dv, nU·du)`` matrix ``M``; then
-    ``W V⁻¹ Wᵀ = MᵀM``, and the entries of S's pattern are read from it.
+    ``Z = L⁻¹Wᵀ`` (``V = LLᵀ``) of the panel's W blocks is placed in a dense
+    ``(rows·dv, cols·du)`` matrix ``M`` (allocated once; the same entries are overwritten every
+    iteration, the rest stays zero); ``MᵀM`` is the panel's share of ``W V⁻¹ Wᵀ``.
+    """
+
+    w0: int  # W block range of the panel
+    w1: int
+    rows: int  # V blocks in the panel
+    cols: int  # U blocks the panel meets
+    full: bool  # every V block meets every U block: M is a transpose of Z, no scatter
+    scatter: np.ndarray  # flat index into M of every entry of Z[w0:w1]
+    dest: np.ndarray  # positions in S data of the pattern entries the panel touches
+    src: np.ndarray  # flat index into MᵀM of the same entries
+    buffer: np.ndarray  # M, flat (empty when ``full``)
+
+
+@dataclass
+class _DenseSchurTerm:
+    """``W V⁻¹ Wᵀ`` of one W class as dense BLAS ``syrk`` products over panels of V blocks.
+
+    V blocks are numbered so that vertices seen by the same U blocks are neighbours (see
+    :meth:`LinearSystem._order_v_blocks`), which keeps every panel's ``M`` narrow.
     """
 
     k: int
-    n_v: int
-    n_u: int
-    scatter: np.ndarray  # flat index into M of every entry of Z = L⁻¹Wᵀ, (nW·dv·du,)
-    dest: np.ndarray  # positions in S data of every pattern entry of this class
-    src: np.ndarray  # flat index into MᵀM of the same entries
-    buffer: np.ndarray  # M, flat, allocated once (empty when ``full``)
-    full: bool = False  # every V block meets every U block of the class
+    panels: list[_Panel]
 
 
 @dataclass
@@ -165,6 +179,7 @@ class LinearSystem:
         self.groups = groups
         self.positions = positions
         self._index_vertices()
+        self._order_v_blocks()
         self._build_terms()
         self._build_pattern()
 
@@ -202,6 +217,38 @@ class LinearSystem:
         self.uoffset = np.concatenate([[0], np.cumsum(self.udims)]).astype(np.int64)
         self.n = int(self.uoffset[-1])
         self.schur = bool(self.vclasses)
+
+    def _order_v_blocks(self) -> None:
+        """Number every V class's blocks by the U blocks they meet (smallest, then largest), so
+        that vertices seen by the same cameras are neighbours and dense panels stay narrow."""
+        for vc in self.vclasses:
+            nv = len(vc.slots)
+            vs, us = [], []
+            for pos in self.positions:  # groups and positions: structure, not numbers
+                for vi, (sv, slots_v) in enumerate(pos):
+                    if sv != vc.store:
+                        continue
+                    vb = self.vblock[sv][slots_v]
+                    for ui, (su, slots_u) in enumerate(pos):
+                        ub = self.ublock[su][slots_u]
+                        ok = (vb >= 0) & (ub >= 0) & (ui != vi)
+                        vs.append(vb[ok])
+                        us.append(ub[ok])
+            lo = np.full(nv, self.n_ublocks, dtype=np.int64)
+            hi = np.full(nv, -1, dtype=np.int64)
+            if vs:
+                v, u = np.concatenate(vs), np.concatenate(us)
+                order = np.lexsort((u, v))
+                v, u = v[order], u[order]
+                first = np.flatnonzero(np.r_[True, v[1:] != v[:-1]])
+                last = np.r_[first[1:], len(v)] - 1
+                lo[v[first]], hi[v[last]] = u[first], u[last]
+            order = np.lexsort((hi, lo))  # new block b is old block order[b]
+            new_id = np.empty(nv, dtype=np.int64)
+            new_id[order] = np.arange(nv)
+            vb = self.vblock[vc.store]
+            vb[vb >= 0] = new_id[vb[vb >= 0]]
+            vc.slots = vc.slots[order]
 
     def _contraction(self, g: EdgeGroup, left: int, right: int, sel: np.ndarray,
                      target: np.ndarray, n_t: int, d_out: int) -> EdgeContraction:
@@ -307,7 +354,7 @@ class LinearSystem:
 
         # Pairs of W blocks sharing a V block: the fill of the reduced system.
         self._pairs: list[tuple[int, int, np.ndarray, np.ndarray | None]] = []
-        self._dense_pairs: list[tuple[int, np.ndarray]] = []
+        self._dense_pairs: list[tuple[int, list[tuple[int, int, int, int, np.ndarray]]]] = []
         for k1, c1 in enumerate(self.wclasses):
             for k2 in range(k1, len(self.wclasses)):
                 c2 = self.wclasses[k2]
@@ -322,8 +369,9 @@ class LinearSystem:
                 u1, u2 = c1.ublock[w1], c2.ublock[w2]
                 ublock_pairs.append(np.stack([u1, u2], 1))
                 ublock_pairs.append(np.stack([u2, u1], 1))
-                if k1 == k2 and self._dense_is_cheaper(c1, len(w1)):
-                    self._dense_pairs.append((k1, np.stack([u1, u2], 1)))
+                panels = self._dense_panels(c1, len(w1)) if k1 == k2 else None
+                if panels is not None:
+                    self._dense_pairs.append((k1, panels))
                     continue
                 if k1 == k2:
                     self._pairs.append((k1, k1, np.arange(len(c1.ublock)), None))
@@ -336,24 +384,39 @@ class LinearSystem:
 
     #: Rough costs (seconds per unit) behind the sparse/dense choice for ``W V⁻¹ Wᵀ``:
     #: a gathered value, a multiply-add in SciPy's sparse product, a multiply-add in BLAS, a
-    #: touched element of the dense matrix.
+    #: touched element of a dense matrix, the fixed cost of one panel.
     COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC, COST_DENSE_ELEMENT = 3e-9, 0.7e-9, 4e-11, 1e-9
-    #: Largest dense matrix (elements) the dense path may allocate.
+    COST_PANEL = 3e-5
+    #: Rows of a panel's dense matrix (about 3 MB for 100 columns: it stays in cache).
+    PANEL_ROWS = 4096
+    #: Largest number of elements all panels of a class may allocate together.
     DENSE_LIMIT = 64_000_000
 
-    def _dense_is_cheaper(self, c: WClass, n_cross: int) -> bool:
-        """Whether one ``syrk`` beats the sparse pair contractions for this W class."""
+    def _dense_panels(self, c: WClass, n_cross: int
+                      ) -> list[tuple[int, int, int, int, np.ndarray]] | None:
+        """Panels ``(v0, v1, w0, w1, local U indices)`` if dense ``syrk`` products beat the
+        sparse pair contractions for this W class, else ``None``."""
         n_v = len(self.vclasses[c.vclass].slots)
-        n_u = len(np.unique(c.ublock))
-        rows, cols = n_v * c.dv, n_u * c.du
-        if rows * cols > self.DENSE_LIMIT:
-            return False
+        uu = np.unique(c.ublock)
+        lu = np.searchsorted(uu, c.ublock)
         nw = len(c.ublock)
+        full = nw == n_v * len(uu)  # every V block meets every U block (W blocks are unique)
+        step = n_v if full else max(1, self.PANEL_ROWS // c.dv)
+        vb = np.unique(np.append(np.arange(0, n_v, step), n_v))
+        wb = np.searchsorted(c.vblock, vb)
+        panels = []
+        dense = self.COST_GATHER * nw * c.dv * c.du
+        elements = 0
+        for v0, v1, w0, w1 in zip(vb[:-1], vb[1:], wb[:-1], wb[1:], strict=True):  # panels
+            cams = np.unique(lu[w0:w1])
+            rows, cols = (v1 - v0) * c.dv, len(cams) * c.du
+            elements += rows * cols
+            dense += (self.COST_BLAS_MAC * rows * cols * cols / 2 + self.COST_PANEL
+                      + self.COST_DENSE_ELEMENT * (rows * cols + cols * cols))
+            panels.append((int(v0), int(v1), int(w0), int(w1), cams))
         sparse = (self.COST_GATHER * n_cross * c.dv * c.du
                   + self.COST_SPARSE_MAC * (n_cross + nw) * c.dv * c.du * c.du)
-        dense = (self.COST_BLAS_MAC * rows * cols * cols / 2
-                 + self.COST_DENSE_ELEMENT * rows * cols + self.COST_GATHER * nw * c.dv * c.du)
-        return dense < sparse
+        return panels if dense < sparse and elements <= self.DENSE_LIMIT else None
 
     @staticmethod
     def _pairs_sharing_v(v1: np.ndarray, v2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -438,29 +501,33 @@ class LinearSystem:
                                              off if off.any() else None))
         del self._pairs
         self.dense_terms: list[_DenseSchurTerm] = []
-        for k, pairs in self._dense_pairs:
+        nb = max(self.n_ublocks, 1)
+        for k, panel_specs in self._dense_pairs:
             c = self.wclasses[k]
             uu = np.unique(c.ublock)
-            diag = np.stack([uu, uu], 1)
-            blocks = np.unique(np.concatenate([pairs, pairs[:, ::-1], diag]), axis=0)
-            dest, _ = self._dest(blocks[:, 0], blocks[:, 1])
-            l1 = np.searchsorted(uu, blocks[:, 0])
-            l2 = np.searchsorted(uu, blocks[:, 1])
-            i = np.arange(c.du)
-            rows = (l1[:, None, None] * c.du + i[None, :, None])
-            cols = (l2[:, None, None] * c.du + i[None, None, :])
-            src = (rows * (len(uu) * c.du) + cols).reshape(len(blocks), -1)
-            n_v = len(self.vclasses[c.vclass].slots)
             lu = np.searchsorted(uu, c.ublock)
-            rows = c.vblock[:, None, None] * c.dv + np.arange(c.dv)[None, :, None]
-            cols = lu[:, None, None] * c.du + np.arange(c.du)[None, None, :]
-            scatter = (rows * (len(uu) * c.du) + cols).reshape(-1)
-            full = len(c.ublock) == n_v * len(uu)  # W blocks are unique, sorted by (v, u)
-            # M is allocated (and its pages touched) here, not in the first iteration.
-            buffer = np.zeros(0 if full else n_v * c.dv * len(uu) * c.du)
-            buffer.fill(0.0)
-            self.dense_terms.append(_DenseSchurTerm(k, n_v, len(uu), scatter, dest.ravel(),
-                                                    src.ravel(), buffer, full))
+            di, dj = np.arange(c.du)[:, None], np.arange(c.du)[None, :]
+            panels = []
+            for v0, v1, w0, w1, cams in panel_specs:  # panels, not vertices
+                nc = len(cams)
+                la, lb = np.divmod(np.arange(nc * nc), nc)
+                ga, gb = uu[cams[la]], uu[cams[lb]]
+                # Keep the block pairs present in S (others have no common V block at all).
+                present = np.isin(gb * nb + ga, self._block_pairs)
+                la, lb, ga, gb = la[present], lb[present], ga[present], gb[present]
+                dest, _ = self._dest(ga, gb)
+                src = ((la[:, None, None] * c.du + di) * (nc * c.du) + lb[:, None, None] * c.du
+                       + dj)
+                loc = np.searchsorted(cams, lu[w0:w1])
+                rows = (c.vblock[w0:w1, None, None] - v0) * c.dv + np.arange(c.dv)[None, :, None]
+                cols = loc[:, None, None] * c.du + np.arange(c.du)[None, None, :]
+                full = (w1 - w0) == (v1 - v0) * nc
+                buffer = np.zeros(0 if full else (v1 - v0) * c.dv * nc * c.du)
+                buffer.fill(0.0)  # touch the pages here, not in the first iteration
+                panels.append(_Panel(w0, w1, v1 - v0, nc, full,
+                                     (rows * (nc * c.du) + cols).reshape(-1),
+                                     dest.reshape(-1), src.reshape(-1), buffer))
+            self.dense_terms.append(_DenseSchurTerm(k, panels))
         del self._dense_pairs
 
     # --- numbers -----------------------------------------------------------------------------
@@ -572,18 +639,19 @@ class LinearSystem:
                 vd = vd.copy()
                 vd[:, np.arange(vd.shape[1]), np.arange(vd.shape[1])] += vdamp[wc.vclass]
             z = np.matmul(batched_cholesky_inverse(vd)[wc.vblock], asm.wt[dt.k])
-            if dt.full:
-                # Every V block meets every U block and W is sorted (v, u): M is a transpose.
-                m2 = np.ascontiguousarray(
-                    z.reshape(dt.n_v, dt.n_u, wc.dv, wc.du).transpose(0, 2, 1, 3)
-                ).reshape(dt.n_v * wc.dv, dt.n_u * wc.du)
-            else:
-                # The same entries are overwritten every time; the rest of M stays zero.
-                np.put(dt.buffer, dt.scatter, z.reshape(-1))
-                m2 = dt.buffer.reshape(dt.n_v * wc.dv, dt.n_u * wc.du)
-            c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle (m2.T is F-ordered)
-            c = np.triu(c) + np.triu(c, 1).T
-            s[dt.dest] -= c.ravel()[dt.src]
+            for p in dt.panels:  # a handful of cache-sized tiles, not vertices
+                shape = (p.rows * wc.dv, p.cols * wc.du)
+                zp = z[p.w0:p.w1]
+                if p.full:
+                    m2 = np.ascontiguousarray(
+                        zp.reshape(p.rows, p.cols, wc.dv, wc.du).transpose(0, 2, 1, 3)
+                    ).reshape(shape)
+                else:
+                    np.put(p.buffer, p.scatter, zp.reshape(-1))
+                    m2 = p.buffer.reshape(shape)
+                c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle (m2.T is F-ordered)
+                c = np.triu(c) + np.triu(c, 1).T
+                s[p.dest] -= c.ravel()[p.src]
         for pt in self.pair_terms:
             red = pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(len(pt.dest), -1)
             s[pt.dest] -= red

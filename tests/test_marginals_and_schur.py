@@ -62,6 +62,8 @@ def schur_path(request, monkeypatch):
         monkeypatch.setattr(LinearSystem, "COST_BLAS_MAC", 0.0)
         monkeypatch.setattr(LinearSystem, "COST_DENSE_ELEMENT", 0.0)
         monkeypatch.setattr(LinearSystem, "COST_GATHER", 0.0)
+        monkeypatch.setattr(LinearSystem, "COST_PANEL", 0.0)
+        monkeypatch.setattr(LinearSystem, "PANEL_ROWS", 30)  # several panels of 10 points
     return request.param
 
 
@@ -75,12 +77,17 @@ def test_schur_step_equals_full_step(solver: str, schur_path: str, per_point: in
     schur = ba_toy(True, solver, per_point=per_point)
     schur.initialize_optimization()
     if schur_path == "dense":
-        assert schur._system.dense_terms[0].full == (per_point == 6)
+        panels = schur._system.dense_terms[0].panels
+        assert len(panels) == (1 if per_point == 6 else 4)
+        assert all(p.full == (per_point == 6) for p in panels)
     assert schur._system.schur and not full._system.schur
     assert bool(schur._system.dense_terms) == (schur_path == "dense")
     asm, _ = schur.linearize()
     du, dv = schur.solve(asm, 1e-3)
-    np.testing.assert_allclose(np.concatenate([du, dv[0].ravel()]), ref, rtol=1e-7, atol=1e-10)
+    by_slot = np.zeros_like(dv[0])
+    by_slot[schur._system.vclasses[0].slots] = dv[0]  # V blocks are numbered internally
+    np.testing.assert_allclose(np.concatenate([du, by_slot.ravel()]), ref, rtol=1e-7,
+                               atol=1e-10)
 
 
 def test_schur_and_full_converge_to_the_same_optimum(schur_path: str) -> None:
@@ -195,8 +202,14 @@ def test_hessian_product_matches_the_full_hessian(schur_path: str) -> None:
         o.initialize_optimization()
     xu = rng.normal(size=schur._system.n)
     xv = [rng.normal(size=(40, 3))]
+    slots = schur._system.vclasses[0].slots  # V block b is the landmark in slot slots[b]
     asm_f, _ = full.linearize()
-    ref = full.hessian_product(asm_f, (np.concatenate([xu, xv[0].ravel()]), []))[0]
+    by_slot = np.zeros_like(xv[0])
+    by_slot[slots] = xv[0]
+    ref = full.hessian_product(asm_f, (np.concatenate([xu, by_slot.ravel()]), []))[0]
     asm_s, _ = schur.linearize()
     hu, hv = schur.hessian_product(asm_s, (xu, xv))
-    np.testing.assert_allclose(np.concatenate([hu, hv[0].ravel()]), ref, rtol=1e-10, atol=1e-10)
+    hv_slot = np.zeros_like(hv[0])
+    hv_slot[slots] = hv[0]
+    np.testing.assert_allclose(np.concatenate([hu, hv_slot.ravel()]), ref, rtol=1e-10,
+                               atol=1e-10)
