@@ -2,8 +2,9 @@
 
 Usage::
 
-    graphopt-bal [INPUT] [--iterations N] [--algorithm lm|gn|dogleg] [--solver cholmod|dense|pcg]
-                 [--robust KERNEL --robust-delta D] [--normalize] [--perturb R T P] [--seed S]
+    graphopt-bal [INPUT] [--iterations N] [--algorithm lm|gn|dogleg]
+                 [--solver auto|cholmod|dense|pcg] [--robust KERNEL --robust-delta D]
+                 [--normalize] [--perturb R T P] [--seed S]
                  [--ply-before FILE] [--ply-after FILE] [--rrd FILE] [--json FILE] [--quiet]
                  [--lm-damping diagonal|identity]
 
@@ -63,8 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lm-damping", choices=("diagonal", "identity"), default="diagonal",
                    help="LM damping: lambda*diag(H) (Marquardt, as Ceres; default) or "
                         "lambda*I (g2o)")
-    p.add_argument("--solver", choices=("cholmod", "dense", "pcg"), default="cholmod",
-                   help="linear solver for the reduced camera system (default cholmod)")
+    p.add_argument("--solver", choices=("auto", "cholmod", "dense", "pcg"), default="auto",
+                   help="linear solver for the reduced camera system (default auto: dense "
+                        "Cholesky for a small dense system, else CHOLMOD)")
     p.add_argument("--robust", metavar="KERNEL", default=None,
                    help="robust kernel (huber, cauchy, pseudohuber, tukey, ...)")
     p.add_argument("--robust-delta", type=float, default=1.0, metavar="D",

@@ -36,7 +36,7 @@ from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, Ver
 
 PROG = "graphopt-direct-ba"
 PARAMETRIZATIONS = ("xyz", "inverse-depth")
-SOLVERS = ("cholmod", "dense", "pcg", "scipy")
+SOLVERS = ("auto", "cholmod", "dense", "pcg", "scipy")
 PATCHES = (2, 4, 6, 8)
 
 #: Synthetic scene used without DATA_DIR (7 frames like the task's data).
@@ -141,7 +141,7 @@ def build_problem(
     parametrization: str = "xyz",
     robust: str | None = "huber",
     delta: float = 0.5,
-    solver: str = "cholmod",
+    solver: str = "auto",
     algorithm: str = "lm",
     gradient: str = "central",
     numeric: bool = False,
@@ -436,8 +436,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="point parametrisation (default xyz)")
     ap.add_argument("--patch", type=int, choices=PATCHES, default=4,
                     help="patch side (default 4; other sizes need the synthetic scene)")
-    ap.add_argument("--solver", choices=SOLVERS, default="cholmod",
-                    help="linear solver of the reduced camera system (default cholmod)")
+    ap.add_argument("--solver", choices=SOLVERS, default="auto",
+                    help="linear solver of the reduced camera system (default auto: dense "
+                         "Cholesky for a small dense system, else CHOLMOD)")
     ap.add_argument("--rrd", metavar="FILE", help="write a rerun recording")
     ap.add_argument("--png", metavar="FILE", help="write a top-down before/after picture")
     ap.add_argument("--json", metavar="FILE", help="write a JSON summary")

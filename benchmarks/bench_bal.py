@@ -105,7 +105,7 @@ def bal_cost(problem: BALProblem, cameras: np.ndarray, points: np.ndarray) -> fl
 
 
 def run_graphopt(
-    problem: BALProblem, iterations: int, solver: str = "cholmod", diagonal: bool = True
+    problem: BALProblem, iterations: int, solver: str = "auto", diagonal: bool = True
 ) -> Trace:
     """LM with points marginalised, as ``graphopt-bal`` runs it.
 
