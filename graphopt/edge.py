@@ -72,6 +72,11 @@ class BaseEdge:
     numeric_step: ClassVar[float] = 1e-6
     #: Rows of a *reduced linearisation* (see :meth:`linearize`), or ``None``.
     linearization_rows: ClassVar[int | None] = None
+    #: Evaluate trial steps with :meth:`linearize` instead of :meth:`error`. Worth it when
+    #: ``linearize`` costs little more than ``error`` (they share the expensive part, such as
+    #: image sampling): an accepted step then needs no second evaluation at the next
+    #: linearisation.
+    linearize_on_trial: ClassVar[bool] = False
 
     # --- the batched type interface --------------------------------------------------------
 

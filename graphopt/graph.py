@@ -37,9 +37,12 @@ class VertexStore:
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         #: Incremented whenever fixed/marginalized flags change (the structure is then stale).
         self.flags_version = 0
+        #: Incremented whenever estimates are replaced or written (cached evaluations are stale).
+        self.version = 0
 
     def _consolidate(self) -> None:
         if self._pending:
+            self.version += 1
             ids, est, fixed, marg = zip(*self._pending, strict=True)
             self._ids = np.concatenate([self._ids, *ids])
             self._est = np.concatenate([self._est, *est])
@@ -66,6 +69,7 @@ class VertexStore:
     def estimates(self, value: np.ndarray) -> None:
         self._consolidate()
         self._est = value
+        self.version += 1
 
     @property
     def fixed(self) -> np.ndarray:
@@ -125,6 +129,7 @@ class VertexStore:
             )
         self.check_estimates(value[None], np.array([vid]))
         self.estimates[slot] = value
+        self.version += 1
 
     def set_flag(self, name: str, slot: int, value: bool) -> None:
         """Set ``fixed`` or ``marginalized`` of one vertex.

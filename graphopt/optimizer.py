@@ -126,6 +126,7 @@ class SparseOptimizer:
         self._last_eval: _Evaluation | None = None
         self._timing = {"schur": 0.0, "solve": 0.0}
         self._positions: list[list[tuple[int, np.ndarray]]] = []
+        self._lin_cache: dict[int, tuple[tuple[int, ...], tuple[Any, ...], Any]] = {}
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -530,6 +531,7 @@ class SparseOptimizer:
         self.solver = make_solver(self._solver_spec)
         self.solver.analyze(self._system.pattern, self._system.udims)
         self._build_update_maps()
+        self._lin_cache = {}
         self._structure_key = self._key()
         self.algorithm.reset()
         return True
@@ -604,12 +606,32 @@ class SparseOptimizer:
             raise FloatingPointError(f"{name}: non-finite reduced error at linearisation")
         return e_lin
 
+    def _state(self) -> tuple[int, ...]:
+        """Versions of every store's estimates: the key of cached linearisations."""
+        return tuple(st.version for st in self._store_list)
+
+    def _group_linearization(self, gi: int, g: EdgeGroup) -> tuple[tuple[Any, ...], Any]:
+        """``(linearize output, active mask)`` of a group, reusing a trial's if still valid."""
+        key = self._state()
+        hit = self._lin_cache.get(gi)
+        if hit is not None and hit[0] == key:
+            return hit[1], hit[2]
+        ctx = g.context()
+        out = g.etype.linearize(self._gather(gi), g.measurements, ctx)
+        if g.etype.linearize_on_trial:
+            self._lin_cache[gi] = (key, out, ctx.active)
+        return out, ctx.active
+
     def _evaluate(self) -> _Evaluation:
         chi2 = rchi2 = 0.0
         active = 0
         for gi, g in enumerate(self._group_list):
             ctx = g.context()
-            e = g.etype.error(self._gather(gi), g.measurements, ctx)
+            if g.etype.linearize_on_trial:
+                out, ctx.active = self._group_linearization(gi, g)
+                e = out[0]
+            else:
+                e = g.etype.error(self._gather(gi), g.measurements, ctx)
             _, s = self._sq(g, e)
             rho, _ = self._robustify(g, s)
             g.last_chi2 = s
@@ -636,8 +658,7 @@ class SparseOptimizer:
         chi2 = rchi2 = 0.0
         active = 0
         for gi, g in enumerate(self._group_list):
-            ctx = g.context()
-            out = g.etype.linearize(self._gather(gi), g.measurements, ctx)
+            out, active_mask = self._group_linearization(gi, g)
             e, J = out[0], out[1]
             oe, s = self._sq(g, e)
             if g.etype.linearization_rows is not None:
@@ -654,7 +675,8 @@ class SparseOptimizer:
                     "linearisation"
                 )
             g.last_chi2 = s
-            g.active_count = g.size if ctx.active is None else int(np.count_nonzero(ctx.active))
+            g.active_count = (g.size if active_mask is None
+                              else int(np.count_nonzero(active_mask)))
             active += g.active_count
             chi2 += float(s.sum())
             rchi2 += float(rho.sum())

@@ -484,3 +484,35 @@ def test_reduced_linearisation_checks_its_output() -> None:
                   data={"g": np.ones((3, 4, 2)) + np.eye(4, 2)})
     with pytest.raises(GraphError, match="must return \\(error, jacobians, e_lin\\)"):
         opt.optimize(1)
+
+
+def test_linearize_on_trial_reuses_the_accepted_linearisation() -> None:
+    calls = {"lin": 0, "err": 0}
+
+    class Counting(EdgeCurve):
+        @classmethod
+        def error(cls, x, measurement, ctx):
+            calls["err"] += 1
+            return EdgeCurve.error(x, measurement, ctx)
+
+        @classmethod
+        def linearize(cls, x, measurement, ctx):
+            calls["lin"] += 1
+            return EdgeCurve.error(x, measurement, ctx), EdgeCurve.jacobians(x, measurement, ctx)
+
+    class OnTrial(Counting):
+        linearize_on_trial = True
+
+    meas = curve_data()
+    histories = {}
+    for et in (Counting, OnTrial):
+        calls.update(lin=0, err=0)
+        abc, res = fit_curve(meas, "lm", edge=et, iters=8)
+        histories[et.__name__] = (res.chi2_history, abc, dict(calls), sum(res.trials))
+    h1, a1, c1, t1 = histories["Counting"]
+    h2, a2, c2, t2 = histories["OnTrial"]
+    assert h1 == h2 and np.array_equal(a1, a2)
+    assert c1["lin"] == 8 and c2["err"] == 0
+    # One linearisation per trial plus the first: accepted trials are not linearised again.
+    assert c2["lin"] == t2 + 1
+    assert c2["lin"] + c2["err"] < c1["lin"] + c1["err"]

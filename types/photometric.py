@@ -345,7 +345,72 @@ def _check_params(cls: type, ctx: EdgeContext) -> PhotometricParams:
 # edge types
 
 
-class EdgePhotometricPatch(BaseEdge):
+class _PatchEdge(BaseEdge):
+    """What the photometric edges share: patch layout, parameter check, and the reduced
+    linearisation built from :meth:`linearize_factored`.
+
+    Every pixel of a patch shares the projection's Jacobian, so each Jacobian is the ``(P², 2)``
+    image gradients times a ``(2, d_i)`` factor, ``J_i = G · F_i``, and
+    ``J_iᵀ W J_j = F_iᵀ (Gᵀ W G) F_j`` needs a 2×2 middle instead of ``P²``-row products.
+    """
+
+    patch: ClassVar[int] = 4
+    dimension: ClassVar[int] = 16
+    linearization_rows: ClassVar[int | None] = 2  # J = G·F with G (P², 2)
+    # Sampling dominates both error and linearize; linearising trial points makes an accepted
+    # step's next linearisation free.
+    linearize_on_trial: ClassVar[bool] = True
+
+    @classmethod
+    def _check(cls, ctx: EdgeContext) -> PhotometricParams:
+        return _check_params(cls, ctx)
+
+    @classmethod
+    def linearize_factored(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """Errors, image gradients ``G (m, P², 2)`` and projection factors ``F_i (m, 2, d_i)``.
+
+        Args:
+            x: Per-position estimates.
+            measurement: ``(m, P²)`` reference patches.
+            ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
+        """
+        raise NotImplementedError
+
+    @classmethod
+    def linearize(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """Errors and the reduced linearisation (2 rows, see ``linearization_rows``).
+
+        The ``(m, P², d_i)`` Jacobians factor as image gradients times a ``(2, d_i)``
+        projection factor (:meth:`linearize_factored`); the normal equations need only ``GᵀG``,
+        so 2 rows carry them (:func:`graphopt.reduction.factored_to_reduced`).
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+        """
+        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
+
+    @classmethod
+    def jacobians(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, ...]:
+        """The full ``(m, P², d_i)`` analytic Jacobians, ``G @ F_i``.
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+        """
+        _, g, factors = cls.linearize_factored(x, measurement, ctx)
+        return tuple(np.matmul(g, f) for f in factors)
+
+
+class EdgePhotometricPatch(_PatchEdge):
     """Photometric 4×4 patch error of a world point in one image.
 
     Vertices: ``(VertexSE3Expmap T_cw, VertexPointXYZ)``. Measurement: the ``P²`` reference
@@ -361,14 +426,7 @@ class EdgePhotometricPatch(BaseEdge):
         data: ``{"image": index}``.
     """
 
-    patch: ClassVar[int] = 4
-    dimension: ClassVar[int] = 16
-    linearization_rows: ClassVar[int | None] = 2  # J = G·F with G (P², 2)
     vertex_types = (VertexSE3Expmap, VertexPointXYZ)
-
-    @classmethod
-    def _check(cls, ctx: EdgeContext) -> PhotometricParams:
-        return _check_params(cls, ctx)
 
     @classmethod
     def error(
@@ -388,31 +446,10 @@ class EdgePhotometricPatch(BaseEdge):
         return _finish(measurement, val, ok, ctx)
 
     @classmethod
-    def linearize(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
-        """Errors and the reduced linearisation (2 rows, see ``linearization_rows``).
-
-        The Jacobians ``(m, P², 6)``, ``(m, P², 3)`` factor as image gradients times a
-        ``(2, d)`` projection factor (:meth:`linearize_factored`); the normal equations need
-        only ``GᵀG``, so 2 rows carry them (:func:`graphopt.reduction.factored_to_reduced`).
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-        """
-        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
-
-    @classmethod
     def linearize_factored(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and the Jacobians in factored form ``J_i = G @ F_i``.
-
-        Every pixel of a patch shares the projection's Jacobian, so each Jacobian is the
-        ``(P², 2)`` image gradients times a ``(2, d_i)`` factor. An optimizer can use this to
-        form ``J_iᵀ W J_j = F_iᵀ (Gᵀ W G) F_j`` with a 2×2 middle instead of ``P²``-row products.
+        """Errors and the Jacobians in factored form ``J_i = G @ F_i`` (see :class:`_PatchEdge`).
 
         Args:
             x: As in :meth:`error`.
@@ -437,22 +474,8 @@ class EdgePhotometricPatch(BaseEdge):
         jx = _uv_jacobian_camera(pc, iz, prm) @ T[:, :3, :3]
         return e, g, (-jp, -jx)
 
-    @classmethod
-    def jacobians(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, ...]:
-        """Analytic Jacobians (see :meth:`linearize`).
 
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-        """
-        _, g, factors = cls.linearize_factored(x, measurement, ctx)
-        return tuple(np.matmul(g, f) for f in factors)
-
-
-class EdgePhotometricPatchInverseDepth(BaseEdge):
+class EdgePhotometricPatchInverseDepth(_PatchEdge):
     """Photometric patch error of an inverse-depth point seen from a non-anchor image.
 
     Vertices: ``(anchor VertexSE3Expmap T_aw, observing VertexSE3Expmap T_jw,
@@ -469,14 +492,7 @@ class EdgePhotometricPatchInverseDepth(BaseEdge):
         data: ``{"image": index of the observing image}``.
     """
 
-    patch: ClassVar[int] = 4
-    dimension: ClassVar[int] = 16
-    linearization_rows: ClassVar[int | None] = 2  # J = G·F with G (P², 2)
     vertex_types = (VertexSE3Expmap, VertexSE3Expmap, VertexPointInverseDepth)
-
-    @classmethod
-    def _check(cls, ctx: EdgeContext) -> PhotometricParams:
-        return _check_params(cls, ctx)
 
     @classmethod
     def _camera_point(
@@ -505,28 +521,10 @@ class EdgePhotometricPatchInverseDepth(BaseEdge):
         return _finish(measurement, val, ok, ctx)
 
     @classmethod
-    def linearize(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
-        """Errors and the reduced linearisation (2 rows) of ``(m,P²,6)``, ``(m,P²,6)``,
-        ``(m,P²,3)``.
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-        """
-        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
-
-    @classmethod
     def linearize_factored(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and the Jacobians in factored form ``J_i = G @ F_i``.
-
-        Every pixel of a patch shares the projection's Jacobian, so each Jacobian is the
-        ``(P², 2)`` image gradients times a ``(2, d_i)`` factor. An optimizer can use this to
-        form ``J_iᵀ W J_j = F_iᵀ (Gᵀ W G) F_j`` with a 2×2 middle instead of ``P²``-row products.
+        """Errors and the Jacobians in factored form ``J_i = G @ F_i`` (see :class:`_PatchEdge`).
 
         Args:
             x: As in :meth:`error`.
@@ -552,22 +550,8 @@ class EdgePhotometricPatchInverseDepth(BaseEdge):
         jq = _inverse_depth_point_jacobian(d, pa, irho)
         return e, g, (-ja, -jj, -jq)
 
-    @classmethod
-    def jacobians(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, ...]:
-        """Analytic Jacobians (see :meth:`linearize`).
 
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-        """
-        _, g, factors = cls.linearize_factored(x, measurement, ctx)
-        return tuple(np.matmul(g, f) for f in factors)
-
-
-class EdgePhotometricPatchInverseDepthHost(BaseEdge):
+class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
     """Photometric patch error of an inverse-depth point in its own anchor image.
 
     Vertices: ``(anchor VertexSE3Expmap, VertexPointInverseDepth)``. The point in the anchor
@@ -583,14 +567,7 @@ class EdgePhotometricPatchInverseDepthHost(BaseEdge):
         data: ``{"image": index of the anchor image}``.
     """
 
-    patch: ClassVar[int] = 4
-    dimension: ClassVar[int] = 16
-    linearization_rows: ClassVar[int | None] = 2  # J = G·F with G (P², 2)
     vertex_types = (VertexSE3Expmap, VertexPointInverseDepth)
-
-    @classmethod
-    def _check(cls, ctx: EdgeContext) -> PhotometricParams:
-        return _check_params(cls, ctx)
 
     @classmethod
     def error(
@@ -610,27 +587,10 @@ class EdgePhotometricPatchInverseDepthHost(BaseEdge):
         return _finish(measurement, val, ok, ctx)
 
     @classmethod
-    def linearize(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
-        """Errors and the reduced linearisation (2 rows) of ``(m,P²,6)`` (zero), ``(m,P²,3)``.
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-        """
-        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
-
-    @classmethod
     def linearize_factored(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and the Jacobians in factored form ``J_i = G @ F_i``.
-
-        Every pixel of a patch shares the projection's Jacobian, so each Jacobian is the
-        ``(P², 2)`` image gradients times a ``(2, d_i)`` factor. An optimizer can use this to
-        form ``J_iᵀ W J_j = F_iᵀ (Gᵀ W G) F_j`` with a 2×2 middle instead of ``P²``-row products.
+        """Errors and the Jacobians in factored form ``J_i = G @ F_i`` (see :class:`_PatchEdge`).
 
         Args:
             x: As in :meth:`error`.
@@ -650,20 +610,6 @@ class EdgePhotometricPatchInverseDepthHost(BaseEdge):
         pa = _safe_points(pa, ok)
         jq = _inverse_depth_point_jacobian(_uv_jacobian_camera(pa, iz, prm), pa, irho)
         return e, g, (np.zeros((len(e), 2, 6)), -jq)
-
-    @classmethod
-    def jacobians(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, ...]:
-        """Analytic Jacobians (see :meth:`linearize`).
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-        """
-        _, g, factors = cls.linearize_factored(x, measurement, ctx)
-        return tuple(np.matmul(g, f) for f in factors)
 
 
 _BASES: tuple[type[BaseEdge], ...] = (
@@ -710,5 +656,5 @@ def numeric_variant(edge_type: type[BaseEdge]) -> type[BaseEdge]:
         f"{edge_type.__name__}Numeric",
         (edge_type,),
         {"linearize": BaseEdge.__dict__["linearize"], "jacobians": BaseEdge.__dict__["jacobians"],
-         "linearization_rows": None},
+         "linearization_rows": None, "linearize_on_trial": False},
     )
