@@ -172,6 +172,9 @@ class EdgeBALProjection(BaseEdge):
 
     dimension: ClassVar[int] = 2
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexCameraBAL, VertexPointXYZ)
+    # The Jacobians share the projection with the error; linearising trial points lets an
+    # accepted LM step skip the next linearisation (≈ 8 % per iteration on Dubrovnik-16).
+    linearize_on_trial: ClassVar[bool] = True
 
     #: Edges processed per block: the ~150 elementwise temporaries of one block stay in the CPU
     #: cache, which makes the whole evaluation 2-3x faster than one pass over all edges.
