@@ -29,7 +29,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cache
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -366,17 +366,60 @@ class _PatchEdge(BaseEdge):
         return _check_params(cls, ctx)
 
     @classmethod
+    def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
+        """Camera-frame points ``(m, 3)``, an extra activity mask (or ``None``) and what
+        :meth:`_projection_jacobians` needs besides."""
+        raise NotImplementedError
+
+    @classmethod
+    def _projection_jacobians(
+        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
+        prm: PhotometricParams,
+    ) -> tuple[np.ndarray, ...]:
+        """``∂(u, v)/∂δ`` of every vertex position, ``(m, 2, d_i)``, at safe points ``pc``."""
+        raise NotImplementedError
+
+    @classmethod
+    def error(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """Patch errors ``C − I(π(P_c) + offsets)``, zero for inactive edges.
+
+        Args:
+            x: Per-position estimates (see the edge type).
+            measurement: ``(m, P²)`` reference patches.
+            ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
+        """
+        prm = cls._check(ctx)
+        pc, extra_ok, _ = cls._geometry(x)
+        u, v, _, ok = _project(pc, prm, extra_ok)
+        val, _, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
+        return _finish(measurement, val, ok, ctx)
+
+    @classmethod
     def linearize_factored(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
         """Errors, image gradients ``G (m, P², 2)`` and projection factors ``F_i (m, 2, d_i)``.
 
         Args:
-            x: Per-position estimates.
-            measurement: ``(m, P²)`` reference patches.
-            ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Returns:
+            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
+            in ``e`` and ``G`` (inactive edges have ``iz = 0``, which zeroes only part of
+            ``∂(u,v)/∂ξ``, so their gradients are zeroed instead).
         """
-        raise NotImplementedError
+        prm = cls._check(ctx)
+        pc, extra_ok, geo = cls._geometry(x)
+        u, v, iz, ok = _project(pc, prm, extra_ok)
+        val, gu, gv = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
+        e = _finish(measurement, val, ok, ctx)
+        g = _gradients(gu, gv, ok)
+        factors = cls._projection_jacobians(x, _safe_points(pc, ok), iz, ok, geo, prm)
+        return e, g, tuple(-f for f in factors)
 
     @classmethod
     def linearize(
@@ -429,51 +472,16 @@ class EdgePhotometricPatch(_PatchEdge):
     vertex_types = (VertexSE3Expmap, VertexPointXYZ)
 
     @classmethod
-    def error(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """Patch errors ``C − I(π(T p) + offsets)``, zero for inactive edges.
-
-        Args:
-            x: ``(T (m,4,4), p (m,3))``.
-            measurement: ``(m, P²)`` reference patches.
-            ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
-        """
-        prm = cls._check(ctx)
-        pc = _transform(x[0], x[1])
-        u, v, _, ok = _project(pc, prm)
-        val, _, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
-        return _finish(measurement, val, ok, ctx)
+    def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
+        return _transform(x[0], x[1]), None, None
 
     @classmethod
-    def linearize_factored(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and the Jacobians in factored form ``J_i = G @ F_i`` (see :class:`_PatchEdge`).
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-
-        Returns:
-            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
-            in ``e`` and ``G``.
-        """
-        prm = cls._check(ctx)
-        T, p = x[0], x[1]
-        pc = _transform(T, p)
-        u, v, iz, ok = _project(pc, prm)
-        val, gu, gv = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
-        e = _finish(measurement, val, ok, ctx)
-        # Inactive edges have iz = 0, which zeroes ∂(u,v)/∂ξ's translation part but not the
-        # rotation part; their gradients are zeroed instead so every Jacobian row vanishes.
-        g = _gradients(gu, gv, ok)
-        pc = _safe_points(pc, ok)
-        jp = _uv_jacobian_pose(pc, iz, prm)
-        jx = _uv_jacobian_camera(pc, iz, prm) @ T[:, :3, :3]
-        return e, g, (-jp, -jx)
-
+    def _projection_jacobians(
+        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
+        prm: PhotometricParams,
+    ) -> tuple[np.ndarray, ...]:
+        return (_uv_jacobian_pose(pc, iz, prm),
+                _uv_jacobian_camera(pc, iz, prm) @ x[0][:, :3, :3])
 
 class EdgePhotometricPatchInverseDepth(_PatchEdge):
     """Photometric patch error of an inverse-depth point seen from a non-anchor image.
@@ -495,60 +503,23 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
     vertex_types = (VertexSE3Expmap, VertexSE3Expmap, VertexPointInverseDepth)
 
     @classmethod
-    def _camera_point(
-        cls, x: Sequence[np.ndarray]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
         R, t = _relative(x[0], x[1])
         pa, irho, ok = _anchor_point(x[2])
         pc = np.matmul(R, pa[:, :, None])[:, :, 0] + t
-        return pc, R, pa, irho, ok
+        return pc, ok, (R, pa, irho)
 
     @classmethod
-    def error(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """Patch errors, zero for inactive edges.
-
-        Args:
-            x: ``(T_a (m,4,4), T_j (m,4,4), [a,b,ρ] (m,3))``.
-            measurement: ``(m, P²)`` reference patches.
-            ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
-        """
-        prm = cls._check(ctx)
-        pc, _, _, _, rho_ok = cls._camera_point(x)
-        u, v, _, ok = _project(pc, prm, rho_ok)
-        val, _, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
-        return _finish(measurement, val, ok, ctx)
-
-    @classmethod
-    def linearize_factored(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and the Jacobians in factored form ``J_i = G @ F_i`` (see :class:`_PatchEdge`).
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-
-        Returns:
-            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
-            in ``e`` and ``G``.
-        """
-        prm = cls._check(ctx)
-        pc, R, pa, irho, rho_ok = cls._camera_point(x)
-        u, v, iz, ok = _project(pc, prm, rho_ok)
-        val, gu, gv = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
-        e = _finish(measurement, val, ok, ctx)
-        g = _gradients(gu, gv, ok)
-        pc = _safe_points(pc, ok)
+    def _projection_jacobians(
+        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
+        prm: PhotometricParams,
+    ) -> tuple[np.ndarray, ...]:
+        R, pa, irho = geo
         pa = _safe_points(pa, ok)
-        jj = _uv_jacobian_pose(pc, iz, prm)
         d = _uv_jacobian_camera(pc, iz, prm) @ R  # ∂(u,v)/∂P_a
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.
         ja = np.concatenate([np.cross(d, pa[:, None, :]), -d], axis=2)
-        jq = _inverse_depth_point_jacobian(d, pa, irho)
-        return e, g, (-ja, -jj, -jq)
+        return ja, _uv_jacobian_pose(pc, iz, prm), _inverse_depth_point_jacobian(d, pa, irho)
 
 
 class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
@@ -570,47 +541,17 @@ class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
     vertex_types = (VertexSE3Expmap, VertexPointInverseDepth)
 
     @classmethod
-    def error(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """Patch errors, zero for inactive edges.
-
-        Args:
-            x: ``(T_a (m,4,4), [a,b,ρ] (m,3))``.
-            measurement: ``(m, P²)`` reference patches.
-            ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
-        """
-        prm = cls._check(ctx)
-        pa, _, rho_ok = _anchor_point(x[1])
-        u, v, _, ok = _project(pa, prm, rho_ok)
-        val, _, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
-        return _finish(measurement, val, ok, ctx)
+    def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
+        pa, irho, ok = _anchor_point(x[1])
+        return pa, ok, irho
 
     @classmethod
-    def linearize_factored(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors and the Jacobians in factored form ``J_i = G @ F_i`` (see :class:`_PatchEdge`).
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: As in :meth:`error`.
-
-        Returns:
-            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
-            in ``e`` and ``G``.
-        """
-        prm = cls._check(ctx)
-        pa, irho, rho_ok = _anchor_point(x[1])
-        u, v, iz, ok = _project(pa, prm, rho_ok)
-        val, gu, gv = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
-        e = _finish(measurement, val, ok, ctx)
-        g = _gradients(gu, gv, ok)
-        pa = _safe_points(pa, ok)
-        jq = _inverse_depth_point_jacobian(_uv_jacobian_camera(pa, iz, prm), pa, irho)
-        return e, g, (np.zeros((len(e), 2, 6)), -jq)
-
+    def _projection_jacobians(
+        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
+        prm: PhotometricParams,
+    ) -> tuple[np.ndarray, ...]:
+        jq = _inverse_depth_point_jacobian(_uv_jacobian_camera(pc, iz, prm), pc, geo)
+        return np.zeros((len(pc), 2, 6)), jq
 
 _BASES: tuple[type[BaseEdge], ...] = (
     EdgePhotometricPatch,
