@@ -164,7 +164,6 @@ class EdgeGroup:
         self._info: list[np.ndarray] = []  # per chunk: (e, e) shared or (n, e, e)
         self._kern: list[np.ndarray] = []
         self._data: list[dict[str, np.ndarray]] = []
-        self._objects: list[tuple[int, BaseEdge]] = []
         self.kernels: list[RobustKernel] = []
         self.size = 0
         self.dim = e

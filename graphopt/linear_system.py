@@ -87,6 +87,7 @@ class WClass:
     ublock: np.ndarray  # (n,) global U block
     vblock: np.ndarray  # (n,) block within the V class
     upos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+    keys: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # v·nb + u
     to_v: SegmentSum | None = None
     rhs: EdgeContraction | None = None  # Σ_w W_w x_v[v_w] into U blocks of this store
     rhs_dest: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
@@ -342,9 +343,9 @@ class LinearSystem:
             uu, inv = np.unique(wc.ublock, return_inverse=True)
             wc.rhs = EdgeContraction(np.arange(len(keys)), inv, len(uu), len(keys), wc.dv, wc.du)
             wc.rhs_dest = self.uoffset[uu][:, None] + np.arange(wc.du)
-            wc._keys = keys  # type: ignore[attr-defined]
+            wc.keys = keys
         for gt, g, vi, ui, k, sel, ubs, vbs in pending_w:
-            keys = self.wclasses[k]._keys  # type: ignore[attr-defined]
+            keys = self.wclasses[k].keys
             widx = np.searchsorted(keys, vbs * nb + ubs)
             uniq, inv = np.unique(widx, return_inverse=True)
             # Wᵀ block = J_vᵀ Ω J_u: the V position's Jacobian on the left.

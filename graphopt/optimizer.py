@@ -247,13 +247,9 @@ class SparseOptimizer:
         uniq, counts = np.unique(ids, return_counts=True)
         if np.any(counts > 1):
             raise GraphError(f"duplicate vertex id {int(uniq[counts > 1][0])} ({vtype.__name__})")
-        for vid in ids.tolist() if n < 64 else ():
-            if vid in self._ids:
-                raise GraphError(f"duplicate vertex id {vid} ({vtype.__name__})")
-        if n >= 64 and self._ids:
-            dup = [v for v in ids.tolist() if v in self._ids]
-            if dup:
-                raise GraphError(f"duplicate vertex id {dup[0]} ({vtype.__name__})")
+        dup = next((v for v in ids.tolist() if v in self._ids), None)
+        if dup is not None:
+            raise GraphError(f"duplicate vertex id {dup} ({vtype.__name__})")
         store.check_estimates(est, ids)
         fixed_arr = np.broadcast_to(np.asarray(fixed, dtype=bool), (n,)).copy()
         marg_arr = np.broadcast_to(np.asarray(marg, dtype=bool), (n,)).copy()
@@ -444,20 +440,14 @@ class SparseOptimizer:
         if np.any(low[:, 0] < -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)):
             raise GraphError(f"{et.__name__}: information matrix is not positive semi-definite")
         for pos, vt in enumerate(et.vertex_types):
+            # Check each distinct id once; report the first edge that names a bad one.
             col = vids[:, pos]
-            for i, vid in enumerate(col.tolist()) if m < 64 else ():
-                self._check_vertex(et, vids[i], pos, vid, vt)
-            if m >= 64:
-                missing = [v for v in np.unique(col).tolist() if v not in self._ids]
-                if missing:
-                    i = int(np.flatnonzero(col == missing[0])[0])
-                    self._check_vertex(et, vids[i], pos, missing[0], vt)
-                stores = {id(self._ids[v][0]): self._ids[v][0]
-                          for v in np.unique(col).tolist()}
-                for st in stores.values():
-                    if not issubclass(st.vtype, vt):
-                        i = int(np.flatnonzero(np.isin(col, st.ids))[0])
-                        self._check_vertex(et, vids[i], pos, int(col[i]), vt)
+            distinct = np.unique(col).tolist()
+            bad = [v for v in distinct
+                   if v not in self._ids or not issubclass(self._ids[v][0].vtype, vt)]
+            if bad:
+                i = int(np.flatnonzero(np.isin(col, bad))[0])
+                self._check_vertex(et, vids[i], pos, int(col[i]), vt)
         kslot = group.kernel_slot(kernel)
         self._system = None
         return group.append(vids, meas, info, kslot, data)
@@ -791,12 +781,8 @@ class SparseOptimizer:
     def compute_active_errors(self) -> None:
         """Evaluate every edge's error at the current estimates (g2o's
         ``computeActiveErrors``)."""
-        self._ensure_groups_ready()
+        self._ensure_initialized()
         self._evaluate()
-
-    def _ensure_groups_ready(self) -> None:
-        if self._system is None or self._structure_key != self._key():
-            self.initialize_optimization()
 
     def chi2(self) -> float:
         """Σ e'Ωe over the edges, without robust kernels, at the last evaluation."""
