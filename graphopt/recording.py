@@ -139,7 +139,7 @@ class Recorder:
 
         Args:
             T_cw: ``(c, 4, 4)`` world-to-camera transforms (or ``(c, 3, 4)``).
-            focal: Focal length in pixels: scalar, ``(c,)`` or ``(c, 2)`` (fx, fy).
+            focal: Focal length in pixels: scalar, ``(fx, fy)``, ``(c,)`` or ``(c, 2)``.
             resolution: ``(width, height)`` in pixels, or ``(c, 2)``.
             principal_point: ``(cx, cy)`` or ``(c, 2)``; the image centre if None.
             images: Optional sequence of ``c`` images (``(h, w)`` grey or ``(h, w, 3)`` RGB,
@@ -155,8 +155,16 @@ class Recorder:
         R_cw, t_cw = T[:, :3, :3], T[:, :3, 3]
         R_wc = np.swapaxes(R_cw, 1, 2)
         centers = -np.einsum("nij,nj->ni", R_wc, t_cw)
-        f = np.broadcast_to(np.asarray(focal, dtype=float).reshape(-1, 1) if np.ndim(focal) <= 1
-                            else np.asarray(focal, dtype=float), (c, 2))
+        fa = np.asarray(focal, dtype=float)
+        if fa.ndim == 1 and len(fa) == 2 and c != 2:
+            fa = fa[None, :]  # one (fx, fy) for every camera
+        elif fa.ndim <= 1:
+            fa = fa.reshape(-1, 1)  # a scalar, or one focal per camera
+        try:
+            f = np.broadcast_to(fa, (c, 2))
+        except ValueError:
+            raise ValueError(f"focal must be a scalar, (fx, fy), ({c},) or ({c}, 2); "
+                             f"got shape {np.shape(focal)}") from None
         res = np.broadcast_to(np.asarray(resolution, dtype=float), (c, 2))
         pp = (res / 2.0 if principal_point is None
               else np.broadcast_to(np.asarray(principal_point, dtype=float), (c, 2)))

@@ -303,3 +303,18 @@ def test_recorder_writes_and_aborts(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="view coordinates"):
         Recorder(tmp_path / "x.rrd", camera_xyz="sideways")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.rrd"]
+
+
+def test_recorder_focal_forms(tmp_path: Path) -> None:
+    from graphopt.recording import Recorder
+
+    T = np.repeat(np.eye(4)[None], 3, axis=0)
+    T[:, 0, 3] = [0.0, 1.0, 2.0]
+    with Recorder(tmp_path / "f.rrd") as rec:
+        rec.log_cameras(T, focal=[277.3, 291.4], resolution=(640, 480))  # one (fx, fy)
+        rec.log_cameras(T, focal=300.0, resolution=(640, 480))
+        rec.log_cameras(T, focal=[300.0, 310.0, 320.0], resolution=(640, 480))  # per camera
+        rec.log_cameras(T, focal=np.full((3, 2), 300.0), resolution=(640, 480))
+        with pytest.raises(ValueError, match=r"focal must be .* got shape \(4,\)"):
+            rec.log_cameras(T, focal=np.ones(4), resolution=(640, 480))
+    assert (tmp_path / "f.rrd").stat().st_size > 0
