@@ -370,16 +370,11 @@ class _RerunLog:
     """Log the run to a rerun recording: frusta with images, points, chi2 per iteration."""
 
     def __init__(self, path: str, problem: DirectBAProblem) -> None:
-        import rerun as rr
 
         from graphopt.recording import Recorder
 
-        self.rec = Recorder(path, application_id=PROG, camera_xyz="RDF")
-        # The data's world frame is a camera-like frame (x right, y down, z forward); Recorder
-        # declares Z-up, so override it (Recorder has no option for this yet).
-        stream = getattr(self.rec, "_rec", None)
-        if stream is not None:
-            stream.log("world", rr.ViewCoordinates.RDF, static=True)
+        # The data's world frame is camera-like (x right, y down, z forward).
+        self.rec = Recorder(path, application_id=PROG, camera_xyz="RDF", world_xyz="RDF")
         self.problem = problem
         data = problem.data
         fx, fy, cx, cy = data.intrinsics
