@@ -102,7 +102,9 @@ class BaseEdge:
     ) -> tuple[np.ndarray, ...]:
         """Analytic Jacobians of the error w.r.t. each vertex's tangent increment.
 
-        Not implemented by default, which selects the numeric Jacobian.
+        By default, a type that overrides :meth:`linearize` (without a reduced linearisation)
+        gets its Jacobians from there; any other type has none, which selects the numeric
+        Jacobian.
 
         Args:
             x: As in :meth:`error`.
@@ -112,6 +114,9 @@ class BaseEdge:
         Returns:
             One ``(m, dimension, vertex_type.dimension)`` array per vertex position.
         """
+        own_linearize = cls.linearize.__func__ is not BaseEdge.linearize.__func__  # type: ignore[attr-defined]
+        if own_linearize and cls.linearization_rows is None:
+            return cls.linearize(x, measurement, ctx)[1]
         raise NotImplementedError
 
     @classmethod

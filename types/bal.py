@@ -225,19 +225,6 @@ class EdgeBALProjection(BaseEdge):
             _linearize_block(cam[sl], X[sl], measurement[sl], e[sl], Jc[sl], Jp[sl])
         return e, (Jc, Jp)
 
-    @classmethod
-    def jacobians(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, ...]:
-        """Analytic Jacobians (see :meth:`linearize`).
-
-        Args:
-            x: ``(cameras (m, 9), points (m, 3))``.
-            measurement: ``(m, 2)`` observed pixels.
-            ctx: Unused.
-        """
-        return cls.linearize(x, measurement, ctx)[1]
-
 
 def _linearize_block(
     cam: np.ndarray,

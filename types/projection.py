@@ -155,19 +155,6 @@ class EdgeSE3ProjectXYZ(BaseEdge):
         J_point = D @ T[:, :3, :3]
         return e, (J_pose, J_point)
 
-    @classmethod
-    def jacobians(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, ...]:
-        """Analytic Jacobians (see :meth:`linearize`).
-
-        Args:
-            x: ``(T_cw, X)``.
-            measurement: ``(m, 2)`` pixels.
-            ctx: Intrinsics in ``ctx.params``.
-        """
-        return cls.linearize(x, measurement, ctx)[1]
-
 
 class EdgeProjectXYZ2UV(EdgeSE3ProjectXYZ):
     """g2o's name for the same pinhole reprojection edge (see :class:`EdgeSE3ProjectXYZ`).
@@ -270,15 +257,3 @@ class EdgeInverseDepthProjection(BaseEdge):
         J_point = np.concatenate([DR[:, :, :2], Dt], axis=2)
         return e, (J_anchor, J_obs, J_point)
 
-    @classmethod
-    def jacobians(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, ...]:
-        """Analytic Jacobians (see :meth:`linearize`).
-
-        Args:
-            x: ``(T_aw, T_cw, [a, b, ρ])``.
-            measurement: ``(m, 2)`` pixels.
-            ctx: Intrinsics in ``ctx.params``.
-        """
-        return cls.linearize(x, measurement, ctx)[1]
