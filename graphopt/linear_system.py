@@ -109,20 +109,23 @@ class _PairTerm:
 class _Panel:
     """A run of consecutive V blocks and the U blocks they meet: one dense ``syrk``.
 
-    ``Z = L⁻¹Wᵀ`` (``V = LLᵀ``) of the panel's W blocks is placed in a dense
-    ``(rows·dv, cols·du)`` matrix ``M`` (allocated once; the same entries are overwritten every
-    iteration, the rest stays zero); ``MᵀM`` is the panel's share of ``W V⁻¹ Wᵀ``.
+    ``L⁻¹ b_v`` (``V = LLᵀ``) fills column 0 of a dense ``(rows·dv, 1 + cols·du)`` matrix ``M``,
+    and ``Z = L⁻¹Wᵀ`` of the panel's W blocks the other columns (allocated once; the same
+    entries are overwritten every iteration, the rest stays zero). ``MᵀM`` holds the panel's
+    share of ``W V⁻¹ Wᵀ`` and, in its row 0, of ``W V⁻¹ b_v``.
     """
 
+    v0: int  # first V block of the panel
     w0: int  # W block range of the panel
     w1: int
     rows: int  # V blocks in the panel
     cols: int  # U blocks the panel meets
-    full: bool  # every V block meets every U block: M is a transpose of Z, no scatter
-    scatter: np.ndarray  # flat index into M of every entry of Z[w0:w1]
+    full: bool  # every V block meets every U block: placed by a strided copy, no scatter
+    scatter: np.ndarray  # flat index into M of every entry of Z[w0:w1] (empty when ``full``)
     dest: np.ndarray  # positions in S data of the pattern entries the panel touches
-    src: np.ndarray  # flat index into MᵀM of the same entries
-    buffer: np.ndarray  # M, flat (empty when ``full``)
+    src: np.ndarray  # flat (column-major) index into MᵀM's upper triangle of the same entries
+    rhs_pos: np.ndarray  # positions in the reduced right-hand side of the panel's U columns
+    buffer: np.ndarray  # M, flat
 
 
 @dataclass
@@ -220,36 +223,74 @@ class LinearSystem:
         self.schur = bool(self.vclasses)
 
     def _order_v_blocks(self) -> None:
-        """Number every V class's blocks by the U blocks they meet (smallest, then largest), so
-        that vertices seen by the same cameras are neighbours and dense panels stay narrow."""
+        """Number every V class's blocks so that vertices seen by the same U blocks are
+        neighbours, which keeps dense panels narrow and lets vertices with identical U sets
+        share a panel.
+
+        U blocks are first put in a 1-D order that follows their co-visibility (the Fiedler
+        vector of the co-visibility graph for up to ``SPECTRAL_MAX`` U blocks). V blocks are
+        then sorted by the last and first U block they meet in that order, and by a hash of
+        their whole U set (identical sets become runs).
+        """
+        nb = max(self.n_ublocks, 1)
+        rng = np.random.default_rng(0x5EED)
+        tag = rng.integers(0, 2**62, size=nb, dtype=np.int64)  # per U block, for set hashes
         for vc in self.vclasses:
             nv = len(vc.slots)
-            vs, us = [], []
-            for pos in self.positions:  # groups and positions: structure, not numbers
-                for vi, (sv, slots_v) in enumerate(pos):
-                    if sv != vc.store:
-                        continue
-                    vb = self.vblock[sv][slots_v]
-                    for ui, (su, slots_u) in enumerate(pos):
-                        ub = self.ublock[su][slots_u]
-                        ok = (vb >= 0) & (ub >= 0) & (ui != vi)
-                        vs.append(vb[ok])
-                        us.append(ub[ok])
+            v, u = self._v_u_incidence(vc)
             lo = np.full(nv, self.n_ublocks, dtype=np.int64)
             hi = np.full(nv, -1, dtype=np.int64)
-            if vs:
-                v, u = np.concatenate(vs), np.concatenate(us)
-                order = np.lexsort((u, v))
-                v, u = v[order], u[order]
+            h = np.zeros(nv, dtype=np.int64)
+            if len(v):
+                rank = self._u_rank(v, u, nv)
+                ru = rank[u]
                 first = np.flatnonzero(np.r_[True, v[1:] != v[:-1]])
-                last = np.r_[first[1:], len(v)] - 1
-                lo[v[first]], hi[v[last]] = u[first], u[last]
-            order = np.lexsort((hi, lo))  # new block b is old block order[b]
+                lo[v[first]] = np.minimum.reduceat(ru, first)
+                hi[v[first]] = np.maximum.reduceat(ru, first)
+                with np.errstate(over="ignore"):
+                    h[v[first]] = np.add.reduceat(tag[u], first)  # wraps: a set hash
+            order = np.lexsort((h, lo, hi))  # new block b is old block order[b]
             new_id = np.empty(nv, dtype=np.int64)
             new_id[order] = np.arange(nv)
             vb = self.vblock[vc.store]
             vb[vb >= 0] = new_id[vb[vb >= 0]]
             vc.slots = vc.slots[order]
+
+    def _v_u_incidence(self, vc: VClass) -> tuple[np.ndarray, np.ndarray]:
+        """Unique (V block, U block) pairs linked by an edge, sorted by V then U block."""
+        nb = max(self.n_ublocks, 1)
+        keys = []
+        for pos in self.positions:  # groups and positions: structure, not numbers
+            for vi, (sv, slots_v) in enumerate(pos):
+                if sv != vc.store:
+                    continue
+                vb = self.vblock[sv][slots_v]
+                for ui, (su, slots_u) in enumerate(pos):
+                    ub = self.ublock[su][slots_u]
+                    ok = (vb >= 0) & (ub >= 0) & (ui != vi)
+                    keys.append(vb[ok] * nb + ub[ok])
+        if not keys:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        k = np.unique(np.concatenate(keys))
+        return k // nb, k % nb
+
+    #: Largest number of U blocks ordered by the co-visibility graph's Fiedler vector.
+    SPECTRAL_MAX = 600
+
+    def _u_rank(self, v: np.ndarray, u: np.ndarray, nv: int) -> np.ndarray:
+        """Position of every U block in a 1-D order that keeps co-visible U blocks close."""
+        nb = self.n_ublocks
+        if nb < 3 or nb > self.SPECTRAL_MAX:
+            return np.arange(nb)
+        inc = sp.csr_matrix((np.ones(len(v)), (v, u)), shape=(nv, nb))
+        c = (inc.T @ inc).toarray()
+        np.fill_diagonal(c, 0.0)
+        lap = np.diag(c.sum(axis=1)) - c
+        _, vec = np.linalg.eigh(lap)
+        order = np.argsort(vec[:, 1], kind="stable")
+        rank = np.empty(nb, dtype=np.int64)
+        rank[order] = np.arange(nb)
+        return rank
 
     def _contraction(self, g: EdgeGroup, left: int, right: int, sel: np.ndarray,
                      target: np.ndarray, n_t: int, d_out: int) -> EdgeContraction:
@@ -383,41 +424,97 @@ class LinearSystem:
         bp = np.concatenate(ublock_pairs)
         self._block_pairs = np.unique(bp[:, 1] * nb + bp[:, 0])
 
-    #: Rough costs (seconds per unit) behind the sparse/dense choice for ``W V⁻¹ Wᵀ``:
-    #: a gathered value, a multiply-add in SciPy's sparse product, a multiply-add in BLAS, a
-    #: touched element of a dense matrix, the fixed cost of one panel.
-    COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC, COST_DENSE_ELEMENT = 3e-9, 0.7e-9, 4e-11, 1e-9
-    COST_PANEL = 3e-5
-    #: Rows of a panel's dense matrix (about 3 MB for 100 columns: it stays in cache).
-    PANEL_ROWS = 4096
+    #: Costs (seconds per unit, fitted on this project's 2-core machine) behind the sparse/dense
+    #: choice for ``W V⁻¹ Wᵀ``: a value gathered by ``np.take``, a multiply-add in SciPy's
+    #: sparse product, a multiply-add in BLAS ``syrk`` on wide panels, a value scattered by
+    #: ``np.put``, an element of a panel's ``n × n`` product, the fixed cost of one panel.
+    COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC = 1.8e-9, 0.4e-9, 3.2e-11
+    COST_SCATTER, COST_DENSE_ELEMENT, COST_PANEL = 3.4e-9, 4.2e-9, 3e-5
+    #: ``syrk`` on ``n`` columns runs at about ``n / (n + BLAS_HALF)`` of its peak rate.
+    BLAS_HALF = 45
+    #: Most rows of a panel's dense matrix (about 3 MB for 100 columns: it stays in cache).
+    PANEL_ROWS = 2048
     #: Largest number of elements all panels of a class may allocate together.
     DENSE_LIMIT = 64_000_000
+
+    def _panel_cost(self, rows: int, n: int, placed: int, full: bool) -> float:
+        """Modelled seconds of one panel: ``rows × n`` matrix, ``placed`` values written."""
+        syrk = self.COST_BLAS_MAC * rows * n * (n + self.BLAS_HALF) / 2
+        place = (0.4 if full else 1.0) * self.COST_SCATTER * placed
+        return self.COST_PANEL + syrk + place + self.COST_DENSE_ELEMENT * n * n
 
     def _dense_panels(self, c: WClass, n_cross: int
                       ) -> list[tuple[int, int, int, int, np.ndarray]] | None:
         """Panels ``(v0, v1, w0, w1, local U indices)`` if dense ``syrk`` products beat the
-        sparse pair contractions for this W class, else ``None``."""
+        sparse pair contractions for this W class, else ``None``.
+
+        V blocks come in runs with identical U sets (see :meth:`_order_v_blocks`). A greedy
+        scan merges the next run into the current panel while that is cheaper than starting a
+        new one (fewer, larger BLAS calls against wider panels); a run alone is a *full*
+        panel, placed without a scatter.
+        """
         n_v = len(self.vclasses[c.vclass].slots)
+        nw = len(c.ublock)
+        if nw == 0:
+            return None
         uu = np.unique(c.ublock)
         lu = np.searchsorted(uu, c.ublock)
-        nw = len(c.ublock)
-        full = nw == n_v * len(uu)  # every V block meets every U block (W blocks are unique)
-        step = n_v if full else max(1, self.PANEL_ROWS // c.dv)
-        vb = np.unique(np.append(np.arange(0, n_v, step), n_v))
-        wb = np.searchsorted(c.vblock, vb)
-        panels = []
-        dense = self.COST_GATHER * nw * c.dv * c.du
-        elements = 0
-        for v0, v1, w0, w1 in zip(vb[:-1], vb[1:], wb[:-1], wb[1:], strict=True):  # panels
-            cams = np.unique(lu[w0:w1])
-            rows, cols = (v1 - v0) * c.dv, len(cams) * c.du
-            elements += rows * cols
-            dense += (self.COST_BLAS_MAC * rows * cols * cols / 2 + self.COST_PANEL
-                      + self.COST_DENSE_ELEMENT * (rows * cols + cols * cols))
-            panels.append((int(v0), int(v1), int(w0), int(w1), cams))
-        sparse = (self.COST_GATHER * n_cross * c.dv * c.du
-                  + self.COST_SPARSE_MAC * (n_cross + nw) * c.dv * c.du * c.du)
+        dv, du = c.dv, c.du
+        wstart = np.searchsorted(c.vblock, np.arange(n_v + 1))
+        # Runs of V blocks with the same U set: a block continues the run of its predecessor
+        # when both meet as many U blocks and the same ones (lists are sorted; compare each
+        # W block with its counterpart in the previous V block).
+        cnt = np.diff(wstart)
+        eq = np.zeros(n_v, dtype=bool)
+        eq[1:] = cnt[1:] == cnt[:-1]
+        w = np.flatnonzero(eq[c.vblock])
+        prev = w - cnt[c.vblock[w] - 1]
+        eq[c.vblock[w[lu[w] != lu[prev]]]] = False
+        same = eq
+        run_start = np.flatnonzero(~same)
+        run_end = np.r_[run_start[1:], n_v]
+        max_rows = max(1, self.PANEL_ROWS // dv)
+        lul = lu.tolist()
+        ws = wstart.tolist()
+        panels: list[tuple[int, int, int, int, np.ndarray]] = []
+        dense = elements = 0.0
+        cur: list[int] = []  # v0, v1, mask, cost, full
+        for r0, r1 in zip(run_start.tolist(), run_end.tolist(), strict=True):  # runs, not vertices
+            mask = 0
+            for x in lul[ws[r0]:ws[r0 + 1]]:
+                mask |= 1 << x
+            nset = mask.bit_count()
+            if nset == 0:
+                continue  # V blocks that meet no U block of this class
+            for a in range(r0, r1, max_rows):  # split runs longer than a panel
+                b = min(r1, a + max_rows)
+                alone = self._panel_cost((b - a) * dv, nset * du, (ws[b] - ws[a]) * dv * du, True)
+                if cur:
+                    v0, v1, cmask, ccost, _ = cur
+                    um = cmask | mask
+                    merged = self._panel_cost((b - v0) * dv, um.bit_count() * du,
+                                              (ws[b] - ws[v0]) * dv * du, False)
+                    if b - v0 <= max_rows and merged < ccost + alone:
+                        cur = [v0, b, um, merged, 0]
+                        continue
+                    panels.append(self._panel_spec(cur, ws))
+                    dense += ccost
+                    elements += (v1 - v0) * dv * cmask.bit_count() * du
+                cur = [a, b, mask, alone, 1]
+        if cur:
+            panels.append(self._panel_spec(cur, ws))
+            dense += cur[3]
+            elements += (cur[1] - cur[0]) * dv * cur[2].bit_count() * du
+        sparse = (self.COST_GATHER * n_cross * dv * du
+                  + self.COST_SPARSE_MAC * (n_cross + nw) * dv * du * du
+                  + self.COST_SPARSE_MAC * nw * dv * du)  # the rhs product, folded when dense
         return panels if dense < sparse and elements <= self.DENSE_LIMIT else None
+
+    @staticmethod
+    def _panel_spec(cur: list[int], ws: list[int]) -> tuple[int, int, int, int, np.ndarray]:
+        v0, v1, mask = cur[0], cur[1], cur[2]
+        cams = np.array([i for i in range(mask.bit_length()) if mask >> i & 1], dtype=np.int64)
+        return v0, v1, ws[v0], ws[v1], cams
 
     @staticmethod
     def _pairs_sharing_v(v1: np.ndarray, v2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -511,23 +608,30 @@ class LinearSystem:
             panels = []
             for v0, v1, w0, w1, cams in panel_specs:  # panels, not vertices
                 nc = len(cams)
+                n1 = nc * c.du + 1  # columns of M: the U blocks' and L⁻¹b_v
                 la, lb = np.divmod(np.arange(nc * nc), nc)
                 ga, gb = uu[cams[la]], uu[cams[lb]]
                 # Keep the block pairs present in S (others have no common V block at all).
                 present = np.isin(gb * nb + ga, self._block_pairs)
                 la, lb, ga, gb = la[present], lb[present], ga[present], gb[present]
                 dest, _ = self._dest(ga, gb)
-                src = ((la[:, None, None] * c.du + di) * (nc * c.du) + lb[:, None, None] * c.du
-                       + dj)
-                loc = np.searchsorted(cams, lu[w0:w1])
-                rows = (c.vblock[w0:w1, None, None] - v0) * c.dv + np.arange(c.dv)[None, :, None]
-                cols = loc[:, None, None] * c.du + np.arange(c.du)[None, None, :]
+                # M's column 0 holds L⁻¹b_v, then the U blocks' columns.
+                i = 1 + la[:, None, None] * c.du + di
+                j = 1 + lb[:, None, None] * c.du + dj
+                src = np.maximum(i, j) * n1 + np.minimum(i, j)  # upper triangle, column-major
                 full = (w1 - w0) == (v1 - v0) * nc
-                buffer = np.zeros(0 if full else (v1 - v0) * c.dv * nc * c.du)
+                scatter = np.zeros(0, dtype=np.int64)
+                if not full:
+                    rows = ((c.vblock[w0:w1, None, None] - v0) * c.dv
+                            + np.arange(c.dv)[None, :, None])
+                    cols = (1 + np.searchsorted(cams, lu[w0:w1])[:, None, None] * c.du
+                            + np.arange(c.du)[None, None, :])
+                    scatter = (rows * n1 + cols).reshape(-1)
+                buffer = np.zeros((v1 - v0) * c.dv * n1)
                 buffer.fill(0.0)  # touch the pages here, not in the first iteration
-                panels.append(_Panel(w0, w1, v1 - v0, nc, full,
-                                     (rows * (nc * c.du) + cols).reshape(-1),
-                                     dest.reshape(-1), src.reshape(-1), buffer))
+                rhs_pos = (self.uoffset[uu[cams]][:, None] + np.arange(c.du)).reshape(-1)
+                panels.append(_Panel(v0, w0, w1, v1 - v0, nc, full, scatter,
+                                     dest.reshape(-1), src.reshape(-1), rhs_pos, buffer))
             self.dense_terms.append(_DenseSchurTerm(k, panels))
         del self._dense_pairs
 
@@ -550,8 +654,8 @@ class LinearSystem:
         bu = np.zeros(self.n)
         v = [np.zeros((len(c.slots), c.dim, c.dim)) for c in self.vclasses]
         bv = [np.zeros((len(c.slots), c.dim)) for c in self.vclasses]
-        wt = [np.zeros((len(c.ublock), c.dv, c.du)) for c in self.wclasses]
-        w_written = [False] * len(wt)
+        # W classes are allocated on first use: a one-to-one first term is used as it is.
+        wt: list[np.ndarray | None] = [None] * len(self.wclasses)
         for gt, J, WJ, we in zip(self.terms, jacobians, weighted, weighted_errors, strict=True):
             mats = []
             for t in gt.hterms:
@@ -567,12 +671,13 @@ class LinearSystem:
                     v[t.cls][t.dest] += blk
                     if t.mirror:
                         v[t.cls][t.dest] += np.swapaxes(blk, 1, 2)
-                elif t.identity and not w_written[t.cls]:
+                elif wt[t.cls] is None and t.identity:
                     wt[t.cls] = blk  # one-to-one and first: no scatter needed
                 else:
+                    if wt[t.cls] is None:
+                        c = self.wclasses[t.cls]
+                        wt[t.cls] = np.zeros((len(c.ublock), c.dv, c.du))
                     wt[t.cls][t.dest] += blk
-                if t.kind == "W":
-                    w_written[t.cls] = True
             we3 = we[:, :, None]
             for g in gt.gterms:
                 M = mats[g.shared] if g.shared >= 0 else g.contraction.matrix(
@@ -582,7 +687,9 @@ class LinearSystem:
                     bu[g.dest] += gb
                 else:
                     bv[g.cls][g.dest] += gb
-        return Assembly(h, bu, v, bv, wt)
+        wfull = [w if w is not None else np.zeros((len(c.ublock), c.dv, c.du))
+                 for w, c in zip(wt, self.wclasses, strict=True)]
+        return Assembly(h, bu, v, bv, wfull)
 
     def damping(self, asm: Assembly, diagonal: bool) -> tuple[np.ndarray, list[np.ndarray]]:
         """The damping matrix ``D`` (a diagonal) as ``(u part, [v parts])``.
@@ -628,31 +735,42 @@ class LinearSystem:
                 vb[:, np.arange(vb.shape[1]), np.arange(vb.shape[1])] += d
             vinv.append(batched_inverse_spd(vb))
         rhs = asm.bu.copy()
-        vb_rhs = [np.matmul(vi, b[:, :, None]) for vi, b in zip(vinv, asm.bv, strict=True)]
+        dense = {dt.k for dt in self.dense_terms}  # their rhs share is folded into the panels
+        vb_rhs: list[np.ndarray | None] = [None] * len(vinv)
         for k, wc in enumerate(self.wclasses):
+            if k in dense:
+                continue
+            if vb_rhs[wc.vclass] is None:
+                vb_rhs[wc.vclass] = np.einsum("nij,nj->ni", vinv[wc.vclass], asm.bv[wc.vclass])
             assert wc.rhs is not None
-            rhs[wc.rhs_dest] -= wc.rhs(asm.wt[k], vb_rhs[wc.vclass][wc.vblock])[:, :, 0]
+            y = vb_rhs[wc.vclass]
+            assert y is not None
+            rhs[wc.rhs_dest] -= wc.rhs(asm.wt[k], y[wc.vblock][:, :, None])[:, :, 0]
         yt = self.y_transposed(asm, vinv, only={pt.k1 for pt in self.pair_terms})
         for dt in self.dense_terms:
             wc = self.wclasses[dt.k]
+            dv, du = wc.dv, wc.du
             vd = asm.v[wc.vclass]
             if vdamp[wc.vclass] is not None:
                 vd = vd.copy()
-                vd[:, np.arange(vd.shape[1]), np.arange(vd.shape[1])] += vdamp[wc.vclass]
-            z = np.matmul(batched_cholesky_inverse(vd)[wc.vblock], asm.wt[dt.k])
-            for p in dt.panels:  # a handful of cache-sized tiles, not vertices
-                shape = (p.rows * wc.dv, p.cols * wc.du)
-                zp = z[p.w0:p.w1]
+                vd[:, np.arange(dv), np.arange(dv)] += vdamp[wc.vclass]
+            linv = batched_cholesky_inverse(vd)
+            lw = linv[wc.vblock]
+            wtk = asm.wt[dt.k]
+            x = np.einsum("nij,nj->ni", linv, asm.bv[wc.vclass])  # L⁻¹ b_v
+            for p in dt.panels:  # cache-sized tiles of V blocks with similar U sets
+                n = p.cols * du
+                m2 = p.buffer.reshape(p.rows * dv, 1 + n)
+                zp = np.matmul(lw[p.w0:p.w1], wtk[p.w0:p.w1])  # per panel: stays in cache
                 if p.full:
-                    m2 = np.ascontiguousarray(
-                        zp.reshape(p.rows, p.cols, wc.dv, wc.du).transpose(0, 2, 1, 3)
-                    ).reshape(shape)
+                    m4 = m2[:, 1:].reshape(p.rows, dv, p.cols, du)  # a view
+                    np.copyto(m4, zp.reshape(p.rows, p.cols, dv, du).transpose(0, 2, 1, 3))
                 else:
-                    np.put(p.buffer, p.scatter, zp.reshape(-1))
-                    m2 = p.buffer.reshape(shape)
-                c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle (m2.T is F-ordered)
-                c = np.triu(c) + np.triu(c, 1).T
-                s[p.dest] -= c.ravel()[p.src]
+                    p.buffer[p.scatter] = zp.reshape(-1)
+                m2[:, 0] = x[p.v0:p.v0 + p.rows].reshape(-1)
+                c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle, column-major
+                s[p.dest] -= c.ravel(order="F")[p.src]
+                rhs[p.rhs_pos] -= c[0, 1:]
         for pt in self.pair_terms:
             red = pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(len(pt.dest), -1)
             s[pt.dest] -= red
@@ -686,7 +804,7 @@ class LinearSystem:
         r = [b.copy() for b in asm.bv]
         for k, wc in enumerate(self.wclasses):
             assert wc.to_v is not None
-            r[wc.vclass] -= wc.to_v(np.matmul(asm.wt[k], du[wc.upos][:, :, None])[:, :, 0])
+            r[wc.vclass] -= wc.to_v(np.einsum("wij,wj->wi", asm.wt[k], du[wc.upos]))
         return [np.matmul(vi, ri[:, :, None])[:, :, 0] for vi, ri in zip(vinv, r, strict=True)]
 
     def hessian_product(self, asm: Assembly, xu: np.ndarray, xv: list[np.ndarray]
@@ -704,7 +822,7 @@ class LinearSystem:
             assert wc.to_v is not None
             assert wc.rhs is not None
             hu[wc.rhs_dest] += wc.rhs(asm.wt[k], xv[wc.vclass][wc.vblock][:, :, None])[:, :, 0]
-            hv[wc.vclass] += wc.to_v(np.matmul(asm.wt[k], xu[wc.upos][:, :, None])[:, :, 0])
+            hv[wc.vclass] += wc.to_v(np.einsum("wij,wj->wi", asm.wt[k], xu[wc.upos]))
         return hu, hv
 
     def csc(self, data: np.ndarray) -> sp.csc_matrix:

@@ -59,11 +59,14 @@ def schur_path(request, monkeypatch):
     if request.param == "sparse":
         monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
     else:
+        # Only the per-panel cost counts: runs of points merge into panels of at most 10
+        # points (30 rows), and the sparse path is never cheaper.
         monkeypatch.setattr(LinearSystem, "COST_BLAS_MAC", 0.0)
         monkeypatch.setattr(LinearSystem, "COST_DENSE_ELEMENT", 0.0)
-        monkeypatch.setattr(LinearSystem, "COST_GATHER", 0.0)
-        monkeypatch.setattr(LinearSystem, "COST_PANEL", 0.0)
-        monkeypatch.setattr(LinearSystem, "PANEL_ROWS", 30)  # several panels of 10 points
+        monkeypatch.setattr(LinearSystem, "COST_SCATTER", 0.0)
+        monkeypatch.setattr(LinearSystem, "COST_PANEL", 1.0)
+        monkeypatch.setattr(LinearSystem, "COST_SPARSE_MAC", 1e9)
+        monkeypatch.setattr(LinearSystem, "PANEL_ROWS", 30)
     return request.param
 
 
@@ -78,8 +81,14 @@ def test_schur_step_equals_full_step(solver: str, schur_path: str, per_point: in
     schur.initialize_optimization()
     if schur_path == "dense":
         panels = schur._system.dense_terms[0].panels
-        assert len(panels) == (1 if per_point == 6 else 4)
-        assert all(p.full == (per_point == 6) for p in panels)
+        # Panels cover the W blocks in order, each once; 40 points, at most 10 per panel.
+        nw = len(schur._system.wclasses[0].ublock)
+        assert [p.w0 for p in panels] == [0] + [p.w1 for p in panels[:-1]]
+        assert panels[-1].w1 == nw and 4 <= len(panels) <= 8
+        assert all(p.rows <= 10 for p in panels)
+        # Every point sees all cameras (6): one U set, full panels placed without a scatter.
+        # Three random cameras per point: merged runs of different sets.
+        assert all(p.full for p in panels) == (per_point == 6)
     assert schur._system.schur and not full._system.schur
     assert bool(schur._system.dense_terms) == (schur_path == "dense")
     asm, _ = schur.linearize()
