@@ -261,8 +261,9 @@ class EdgeContraction:
         count = np.zeros(m * r, dtype=np.int64)
         count.reshape(m, r)[sel] = d1
         self.indptr = np.concatenate([[0], np.cumsum(count)]).astype(np.int32)
-        rows = np.asarray(target)[:, None, None] * d1 + np.arange(d1)[None, None, :]
-        self.indices = np.broadcast_to(rows, (len(sel), r, d1)).ravel().astype(np.int32)
+        rows = (np.asarray(target)[:, None, None] * d1 + np.arange(d1)[None, None, :]).astype(
+            np.int32)
+        self.indices = np.broadcast_to(rows, (len(sel), r, d1)).ravel()
         self.shape = (n_targets * d1, m * r)
 
     def matrix(self, A: np.ndarray) -> sp.csc_matrix:

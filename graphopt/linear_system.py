@@ -159,9 +159,20 @@ class Assembly:
     wt: list[np.ndarray]
 
 
-def _positions(keys_sorted: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
-    """Data positions of entries (rows, cols) in a CSC pattern given its sorted col*n+row keys."""
-    return np.searchsorted(keys_sorted, cols.astype(np.int64) * n + rows)
+def _unique(x: np.ndarray, size: int, return_inverse: bool = False
+            ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """``np.unique`` for non-negative integers below ``size``: a bitmap and a cumulative sum
+    (linear time) when ``size`` is small against ``len(x)``, NumPy's sort otherwise."""
+    x = np.asarray(x, dtype=np.int64)
+    if size > 16 * len(x) + 65536:
+        return np.unique(x, return_inverse=return_inverse)
+    present = np.zeros(size, dtype=bool)
+    present[x] = True
+    uniq = np.flatnonzero(present)
+    if not return_inverse:
+        return uniq
+    rank = np.cumsum(present, dtype=np.int64) - 1
+    return uniq, rank[x]
 
 
 class LinearSystem:
@@ -271,7 +282,7 @@ class LinearSystem:
                     keys.append(vb[ok] * nb + ub[ok])
         if not keys:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        k = np.unique(np.concatenate(keys))
+        k = _unique(np.concatenate(keys), len(vc.slots) * nb)
         return k // nb, k % nb
 
     #: Largest number of U blocks ordered by the co-visibility graph's Fiedler vector.
@@ -324,7 +335,7 @@ class LinearSystem:
                         ublock_pairs.append(np.stack([pa, pb], 1))
                         if a != b:
                             ublock_pairs.append(np.stack([pb, pa], 1))
-                        uniq, inv = np.unique(pa * nb + pb, return_inverse=True)
+                        uniq, inv = _unique(pa * nb + pb, nb * nb, True)
                         gt.hterms.append(_HTerm(
                             a, b, "U", self._contraction(g, a, b, sel, inv, len(uniq), dims[a]),
                             np.stack([uniq // nb, uniq % nb], 1)))
@@ -338,7 +349,8 @@ class LinearSystem:
                                 "vertices that are independent given the others"
                             )
                         sel = np.flatnonzero(mask)
-                        uniq, inv = np.unique(vb[a][sel], return_inverse=True)
+                        nvc = len(self.vclasses[self.vclass_of_store[pos[a][0]]].slots)
+                        uniq, inv = _unique(vb[a][sel], nvc, True)
                         gt.hterms.append(_HTerm(
                             a, b, "V", self._contraction(g, a, b, sel, inv, len(uniq), dims[a]),
                             uniq, cls=self.vclass_of_store[pos[a][0]], mirror=a != b))
@@ -364,8 +376,9 @@ class LinearSystem:
                     if not isx.any():
                         continue
                     sel = np.flatnonzero(isx)
-                    uniq, inv = np.unique(xb[sel], return_inverse=True)
                     cls = self.vclass_of_store[pos[a][0]] if kind == "V" else -1
+                    size = nb if kind == "U" else len(self.vclasses[cls].slots)
+                    uniq, inv = _unique(xb[sel], size, True)
                     shared = next((i for i, t in enumerate(gt.hterms)
                                    if t.left == a and t.right == a and t.kind == kind), -1)
                     con = (gt.hterms[shared].contraction if shared >= 0 else
@@ -376,19 +389,19 @@ class LinearSystem:
         # Unique W blocks per class, ordered by V block, then each W term's edges onto them.
         for k, wc in enumerate(self.wclasses):
             allp = np.concatenate(w_pairs[k])
-            keys = np.unique(allp[:, 1] * nb + allp[:, 0])
+            keys = _unique(allp[:, 1] * nb + allp[:, 0], len(self.vclasses[wc.vclass].slots) * nb)
             wc.vblock, wc.ublock = keys // nb, keys % nb
             wc.to_v = SegmentSum(wc.vblock, len(self.vclasses[wc.vclass].slots))
             wc.upos = (self.uoffset[wc.ublock][:, None] + np.arange(wc.du)).astype(np.int64)
             # rhs: Σ_w Y_w b_v = Σ_w (Wᵀ_w)ᵀ (V⁻¹ b_v)[v_w] per U block: Wᵀ used in place.
-            uu, inv = np.unique(wc.ublock, return_inverse=True)
+            uu, inv = _unique(wc.ublock, nb, True)
             wc.rhs = EdgeContraction(np.arange(len(keys)), inv, len(uu), len(keys), wc.dv, wc.du)
             wc.rhs_dest = self.uoffset[uu][:, None] + np.arange(wc.du)
             wc.keys = keys
         for gt, g, vi, ui, k, sel, ubs, vbs in pending_w:
             keys = self.wclasses[k].keys
             widx = np.searchsorted(keys, vbs * nb + ubs)
-            uniq, inv = np.unique(widx, return_inverse=True)
+            uniq, inv = _unique(widx, len(keys), True)
             # Wᵀ block = J_vᵀ Ω J_u: the V position's Jacobian on the left.
             con = self._contraction(g, vi, ui, sel, inv, len(uniq), self.wclasses[k].dv)
             ident = len(uniq) == len(keys) and len(inv) == len(uniq)
@@ -422,7 +435,7 @@ class LinearSystem:
         diag = np.arange(self.n_ublocks)
         ublock_pairs.append(np.stack([diag, diag], 1))
         bp = np.concatenate(ublock_pairs)
-        self._block_pairs = np.unique(bp[:, 1] * nb + bp[:, 0])
+        self._block_pairs = _unique(bp[:, 1] * nb + bp[:, 0], nb * nb)
 
     #: Costs (seconds per unit, fitted on this project's 2-core machine) behind the sparse/dense
     #: choice for ``W V⁻¹ Wᵀ``: a value gathered by ``np.take``, a multiply-add in SciPy's
@@ -457,7 +470,7 @@ class LinearSystem:
         nw = len(c.ublock)
         if nw == 0:
             return None
-        uu = np.unique(c.ublock)
+        uu = _unique(c.ublock, max(self.n_ublocks, 1))
         lu = np.searchsorted(uu, c.ublock)
         dv, du = c.dv, c.du
         wstart = np.searchsorted(c.vblock, np.arange(n_v + 1))
@@ -542,12 +555,21 @@ class LinearSystem:
 
     def _dest(self, br: np.ndarray, bc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Data positions of blocks (br, bc) and of their transposes, entry-aligned."""
-        n = self.n
         r, c = self._block_entries(br, bc)
         d1, d2 = int(self.udims[br[0]]), int(self.udims[bc[0]])
-        pos = _positions(self._keys, r, c, n)
-        post = _positions(self._keys, c.reshape(-1, d1, d2), r.reshape(-1, d1, d2), n)
+        pos = self._positions(r, c)
+        post = self._positions(c.reshape(-1, d1, d2), r.reshape(-1, d1, d2))
         return pos, post.reshape(len(br), -1)
+
+    #: Largest ``n²`` for which pattern positions are looked up in a dense table.
+    POSMAP_MAX = 4_000_000
+
+    def _positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Data positions of entries (rows, cols) in the CSC pattern."""
+        k = cols.astype(np.int64) * self.n + rows
+        if self._posmap is not None:
+            return self._posmap[k]
+        return np.searchsorted(self._keys, k)
 
     def _build_pattern(self) -> None:
         n, nb = self.n, max(self.n_ublocks, 1)
@@ -564,12 +586,17 @@ class LinearSystem:
         cols = np.concatenate(cols_l) if cols_l else np.zeros(0, np.int64)
         keys = np.unique(cols.astype(np.int64) * n + rows)
         self._keys = keys
+        # Small systems: a dense (col, row) → position table is faster than binary searches.
+        self._posmap: np.ndarray | None = None
+        if n * n <= self.POSMAP_MAX:
+            self._posmap = np.full(n * n, -1, dtype=np.int64)
+            self._posmap[keys] = np.arange(len(keys))
         indices = (keys % max(n, 1)).astype(np.int32)
         indptr = np.searchsorted(keys // max(n, 1), np.arange(n + 1)).astype(np.int32)
         self.pattern = sp.csc_matrix((np.zeros(len(keys)), indices, indptr), shape=(n, n))
         self.nnz = len(keys)
         diag = np.arange(n)
-        self.diag_pos = _positions(keys, diag, diag, n)
+        self.diag_pos = self._positions(diag, diag)
 
         for gt in self.terms:
             for t in gt.hterms:
@@ -584,12 +611,12 @@ class LinearSystem:
         for k1, k2, w1, w2 in self._pairs:
             c1, c2 = self.wclasses[k1], self.wclasses[k2]
             if w2 is None:  # self pairs (w, w): diagonal blocks
-                uniq, inv = np.unique(c1.ublock, return_inverse=True)
+                uniq, inv = _unique(c1.ublock, nb, True)
                 con: BlockContraction | EdgeContraction = EdgeContraction(
                     w1, inv, len(uniq), len(w1), c1.dv, c1.du)
                 tu1 = tu2 = uniq
             else:
-                uniq, inv = np.unique(c1.ublock[w1] * nb + c2.ublock[w2], return_inverse=True)
+                uniq, inv = _unique(c1.ublock[w1] * nb + c2.ublock[w2], nb * nb, True)
                 tu1, tu2 = uniq // nb, uniq % nb
                 # S_t −= Σ Y_w1 W_w2ᵀ = Σ (Yᵀ_w1)ᵀ Wᵀ_w2: A = Yᵀ (dv, du1), B = Wᵀ (dv, du2).
                 con = BlockContraction(inv, w1, w2, len(uniq), c1.dv, c1.du, len(c2.ublock))
@@ -602,7 +629,7 @@ class LinearSystem:
         nb = max(self.n_ublocks, 1)
         for k, panel_specs in self._dense_pairs:
             c = self.wclasses[k]
-            uu = np.unique(c.ublock)
+            uu = _unique(c.ublock, nb)
             lu = np.searchsorted(uu, c.ublock)
             di, dj = np.arange(c.du)[:, None], np.arange(c.du)[None, :]
             panels = []
