@@ -1,4 +1,4 @@
-"""Small batched linear-algebra kernels and the precomputed segment-sum used for scattering."""
+"""Small batched linear-algebra kernels and the constant-structure sparse contractions."""
 
 from __future__ import annotations
 
@@ -8,48 +8,6 @@ import scipy.sparse as sp
 
 class NotPositiveDefiniteError(np.linalg.LinAlgError):
     """A block or the reduced system is not positive definite."""
-
-
-class SegmentSum:
-    """Sum rows of a ``(n, D)`` array into ``n_targets`` rows, the map fixed at construction.
-
-    Implemented as a product with a constant CSR matrix (a C loop over rows, about 10x faster
-    than ``np.add.at``); a one-to-one map degenerates to a gather, or to nothing.
-
-    Args:
-        target: ``(n,)`` target row of every input row.
-        n_targets: Number of output rows.
-    """
-
-    def __init__(self, target: np.ndarray, n_targets: int) -> None:
-        target = np.asarray(target, dtype=np.int64)
-        self.n_targets = n_targets
-        self.identity = len(target) == n_targets and np.array_equal(target, np.arange(n_targets))
-        self.perm: np.ndarray | None = None
-        self.matrix: sp.csr_matrix | None = None
-        if self.identity:
-            return
-        if len(target) == n_targets and len(np.unique(target)) == n_targets:
-            self.perm = np.argsort(target)  # output row t = input row perm[t]
-            return
-        n = len(target)
-        self.matrix = sp.csr_matrix(
-            (np.ones(n), (target, np.arange(n))), shape=(n_targets, n)
-        )
-
-    def __call__(self, values: np.ndarray) -> np.ndarray:
-        """Apply to ``values`` of shape ``(n, ...)``; returns ``(n_targets, ...)``.
-
-        Args:
-            values: Per-input-row values.
-        """
-        if self.identity:
-            return values
-        if self.perm is not None:
-            return values[self.perm]
-        assert self.matrix is not None
-        flat = values.reshape(len(values), -1)
-        return np.asarray(self.matrix @ flat).reshape((self.n_targets, *values.shape[1:]))
 
 
 def batched_inverse_spd(A: np.ndarray) -> np.ndarray:

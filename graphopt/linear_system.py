@@ -23,7 +23,6 @@ import scipy.sparse as sp
 from graphopt.block_ops import (
     BlockContraction,
     EdgeContraction,
-    SegmentSum,
     batched_cholesky_inverse,
     batched_inverse_spd,
 )
@@ -88,9 +87,13 @@ class WClass:
     vblock: np.ndarray  # (n,) block within the V class
     upos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # v·nb + u
-    to_v: SegmentSum | None = None
     rhs: EdgeContraction | None = None  # Σ_w W_w x_v[v_w] into U blocks of this store
     rhs_dest: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+    # Wᵀ of the class as a block-sparse (BSR) matrix over the store's U columns: its data is
+    # the W array as it is, so ``Wᵀ x`` for every V block is one SciPy product.
+    bsr_cols: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    bsr_indptr: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    ucols: slice = field(default_factory=lambda: slice(0, 0))  # the store's U entries
 
 
 @dataclass
@@ -391,13 +394,17 @@ class LinearSystem:
             allp = np.concatenate(w_pairs[k])
             keys = _unique(allp[:, 1] * nb + allp[:, 0], len(self.vclasses[wc.vclass].slots) * nb)
             wc.vblock, wc.ublock = keys // nb, keys % nb
-            wc.to_v = SegmentSum(wc.vblock, len(self.vclasses[wc.vclass].slots))
             wc.upos = (self.uoffset[wc.ublock][:, None] + np.arange(wc.du)).astype(np.int64)
             # rhs: Σ_w Y_w b_v = Σ_w (Wᵀ_w)ᵀ (V⁻¹ b_v)[v_w] per U block: Wᵀ used in place.
             uu, inv = _unique(wc.ublock, nb, True)
             wc.rhs = EdgeContraction(np.arange(len(keys)), inv, len(uu), len(keys), wc.dv, wc.du)
             wc.rhs_dest = self.uoffset[uu][:, None] + np.arange(wc.du)
             wc.keys = keys
+            ub_store = np.flatnonzero(self.ustore == wc.ustore)  # contiguous U blocks
+            wc.bsr_cols = wc.ublock - ub_store[0]
+            n_vc = len(self.vclasses[wc.vclass].slots)
+            wc.bsr_indptr = np.searchsorted(wc.vblock, np.arange(n_vc + 1))
+            wc.ucols = slice(int(self.uoffset[ub_store[0]]), int(self.uoffset[ub_store[-1] + 1]))
         for gt, g, vi, ui, k, sel, ubs, vbs in pending_w:
             keys = self.wclasses[k].keys
             widx = np.searchsorted(keys, vbs * nb + ubs)
@@ -830,9 +837,23 @@ class LinearSystem:
         """
         r = [b.copy() for b in asm.bv]
         for k, wc in enumerate(self.wclasses):
-            assert wc.to_v is not None
-            r[wc.vclass] -= wc.to_v(np.einsum("wij,wj->wi", asm.wt[k], du[wc.upos]))
+            r[wc.vclass] -= self.wt_product(asm, k, du)
         return [np.matmul(vi, ri[:, :, None])[:, :, 0] for vi, ri in zip(vinv, r, strict=True)]
+
+    def wt_product(self, asm: Assembly, k: int, xu: np.ndarray) -> np.ndarray:
+        """``Σ_w Wᵀ_w x_u[u_w]`` per V block of W class ``k``, as ``(n_v, dv)``.
+
+        Args:
+            asm: The assembled system.
+            k: W class.
+            xu: A vector over the U part.
+        """
+        wc = self.wclasses[k]
+        n_v = len(wc.bsr_indptr) - 1
+        n_u = (wc.ucols.stop - wc.ucols.start) // wc.du
+        m = sp.bsr_matrix((asm.wt[k], wc.bsr_cols, wc.bsr_indptr),
+                          shape=(n_v * wc.dv, n_u * wc.du))
+        return (m @ xu[wc.ucols]).reshape(n_v, wc.dv)
 
     def hessian_product(self, asm: Assembly, xu: np.ndarray, xv: list[np.ndarray]
                         ) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -846,10 +867,9 @@ class LinearSystem:
         hu = self.csc(asm.h_data) @ xu
         hv = [np.matmul(vb, x[:, :, None])[:, :, 0] for vb, x in zip(asm.v, xv, strict=True)]
         for k, wc in enumerate(self.wclasses):
-            assert wc.to_v is not None
             assert wc.rhs is not None
             hu[wc.rhs_dest] += wc.rhs(asm.wt[k], xv[wc.vclass][wc.vblock][:, :, None])[:, :, 0]
-            hv[wc.vclass] += wc.to_v(np.einsum("wij,wj->wi", asm.wt[k], xu[wc.upos]))
+            hv[wc.vclass] += self.wt_product(asm, k, xu)
         return hu, hv
 
     def csc(self, data: np.ndarray) -> sp.csc_matrix:
