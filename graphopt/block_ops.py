@@ -115,9 +115,11 @@ class BlockContraction:
     """``out[t] = Σ_{q: target[q]=t} A[a_idx[q]]ᵀ · B[b_idx[q]]`` for fixed index arrays.
 
     ``A`` holds blocks ``(nA, r, d1)`` and ``B`` blocks ``(nB, r, d2)``. The sum is one product of
-    a CSR matrix — rows ``(t, i)``, columns ``(b_idx, k)``, values gathered from ``A`` — with
-    ``B`` viewed as ``(nB·r, d2)``: the scatter-add happens inside SciPy's C loop, and ``B`` is
-    never gathered. The CSR layout and the gather index are computed once, here.
+    a CSC matrix — rows ``(t, i)``, columns ``(b_idx, k)``, values from ``A`` — with ``B`` viewed
+    as ``(nB·r, d2)``: the scatter-add happens inside SciPy's C loop, and ``B`` is never gathered.
+    Column ``(b, k)`` lists, for every term with ``b_idx = b``, the row ``A[a][k, :]``, so the
+    values are gathered as whole ``d1``-long rows of ``A`` (one index per row, not per value).
+    The layout and the row index are computed once, here.
 
     Args:
         target: ``(q,)`` output block of every term.
@@ -140,40 +142,39 @@ class BlockContraction:
         n_b: int,
     ) -> None:
         target = np.asarray(target, dtype=np.int64)
-        order = np.lexsort((b_idx, target))
-        target, a_idx, b_idx = target[order], np.asarray(a_idx)[order], np.asarray(b_idx)[order]
-        q = len(target)
+        a_idx, b_idx = np.asarray(a_idx, dtype=np.int64), np.asarray(b_idx, dtype=np.int64)
+        order = np.lexsort((target, b_idx))
+        target, a_idx, b_idx = target[order], a_idx[order], b_idx[order]
         self.n_targets, self.r, self.d1, self.n_b = n_targets, r, d1, n_b
-        count = np.bincount(target, minlength=n_targets)  # terms per target
-        start = np.concatenate([[0], np.cumsum(count)[:-1]])  # first term of each target
-        # Row (t, i) holds count[t]*r entries; rows are laid out t-major, then i.
-        row_len = np.repeat(count * r, d1)
-        indptr = np.concatenate([[0], np.cumsum(row_len)]).astype(np.int64)
-        i = np.arange(d1)[None, :, None]
-        k = np.arange(r)[None, None, :]
-        tq = target[:, None, None]
-        pos = indptr[tq * d1 + i] + (np.arange(q)[:, None, None] - start[tq]) * r + k
-        src = a_idx[:, None, None] * (r * d1) + k * d1 + i
-        cols = b_idx[:, None, None] * r + k
-        nnz = q * r * d1
-        self.src = np.empty(nnz, dtype=np.int64)
-        self.indices = np.empty(nnz, dtype=np.int32 if n_b * r < 2**31 else np.int64)
-        pos = pos.ravel()
-        self.src[pos] = np.broadcast_to(src, (q, d1, r)).ravel()
-        self.indices[pos] = np.broadcast_to(cols, (q, d1, r)).ravel()
-        self.indptr = indptr.astype(self.indices.dtype)
+        count = np.bincount(b_idx, minlength=n_b)  # terms per B block
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        # Columns (b, k) in order; column (b, k) holds count[b] runs of d1 entries.
+        col_len = np.repeat(count * d1, r)
+        indptr = np.concatenate([[0], np.cumsum(col_len)])
+        k = np.arange(r)
+        q_in_b = np.arange(len(b_idx)) - start[b_idx]
+        # Run (b, k, q): source row a·r + k of A viewed as (nA·r, d1); output rows t·d1 + i.
+        run_pos = indptr[b_idx[:, None] * r + k[None, :]] // d1 + q_in_b[:, None]
+        n_runs = len(b_idx) * r
+        self.rows = np.empty(n_runs, dtype=np.int64)
+        self.rows[run_pos.ravel()] = (a_idx[:, None] * r + k[None, :]).ravel()
+        run_target = np.empty(n_runs, dtype=np.int64)
+        run_target[run_pos.ravel()] = np.broadcast_to(target[:, None], (len(b_idx), r)).ravel()
+        idx_t = np.int32 if n_targets * d1 < 2**31 else np.int64
+        self.indices = (run_target[:, None] * d1 + np.arange(d1)[None, :]).astype(idx_t).ravel()
+        self.indptr = indptr.astype(idx_t if indptr[-1] < 2**31 else np.int64)
         self.shape = (n_targets * d1, n_b * r)
 
-    def matrix(self, A: np.ndarray) -> sp.csr_matrix:
-        """The CSR operator filled with values from ``A`` (reusable for several ``B``).
+    def matrix(self, A: np.ndarray) -> sp.csc_matrix:
+        """The CSC operator filled with rows of ``A`` (reusable for several ``B``).
 
         Args:
             A: ``(nA, r, d1)`` blocks (C-contiguous).
         """
-        data = np.take(A.reshape(-1), self.src)
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
+        data = np.take(A.reshape(-1, self.d1), self.rows, axis=0).reshape(-1)
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
 
-    def apply(self, M: sp.csr_matrix, B: np.ndarray) -> np.ndarray:
+    def apply(self, M: sp.csc_matrix, B: np.ndarray) -> np.ndarray:
         """``M @ B`` reshaped to ``(n_targets, d1, d2)``.
 
         Args:

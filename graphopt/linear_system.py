@@ -445,10 +445,10 @@ class LinearSystem:
         self._block_pairs = _unique(bp[:, 1] * nb + bp[:, 0], nb * nb)
 
     #: Costs (seconds per unit, fitted on this project's 2-core machine) behind the sparse/dense
-    #: choice for ``W V⁻¹ Wᵀ``: a value gathered by ``np.take``, a multiply-add in SciPy's
-    #: sparse product, a multiply-add in BLAS ``syrk`` on wide panels, a value scattered by
-    #: ``np.put``, an element of a panel's ``n × n`` product, the fixed cost of one panel.
-    COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC = 1.8e-9, 0.4e-9, 3.2e-11
+    #: choice for ``W V⁻¹ Wᵀ``: a value gathered (in whole rows) by ``np.take``, a multiply-add
+    #: in SciPy's sparse product, a multiply-add in BLAS ``syrk`` on wide panels, a value
+    #: scattered into a panel, an element of a panel's ``n × n`` product, one panel.
+    COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC = 0.6e-9, 0.4e-9, 3.2e-11
     COST_SCATTER, COST_DENSE_ELEMENT, COST_PANEL = 3.4e-9, 4.2e-9, 3e-5
     #: ``syrk`` on ``n`` columns runs at about ``n / (n + BLAS_HALF)`` of its peak rate.
     BLAS_HALF = 45
