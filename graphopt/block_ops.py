@@ -111,7 +111,52 @@ def batched_cholesky_inverse(A: np.ndarray) -> np.ndarray:
     return out
 
 
-class BlockContraction:
+class _CscContraction:
+    """A constant-structure CSC operator ``M`` (rows ``(t, i)``, ``shape[1]`` rows of ``B``) whose
+    values come from ``A``: ``out[t] = Σ A-blocksᵀ · B-blocks`` is ``M @ B``, the scatter-add
+    done by SciPy's C loop. Subclasses set ``indices``, ``indptr``, ``shape``, ``n_targets``,
+    ``d1`` and say how ``A`` becomes the data array."""
+
+    indices: np.ndarray
+    indptr: np.ndarray
+    shape: tuple[int, int]
+    n_targets: int
+    d1: int
+
+    def _values(self, A: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def matrix(self, A: np.ndarray) -> sp.csc_matrix:
+        """The CSC operator filled with values from ``A`` (reusable for several ``B``).
+
+        Args:
+            A: ``(nA, r, d1)`` blocks (C-contiguous).
+        """
+        return sp.csc_matrix((self._values(A), self.indices, self.indptr), shape=self.shape,
+                             copy=False)
+
+    def apply(self, M: sp.csc_matrix, B: np.ndarray) -> np.ndarray:
+        """``M @ B`` reshaped to ``(n_targets, d1, d2)``.
+
+        Args:
+            M: From :meth:`matrix`.
+            B: ``(nB, r, d2)`` blocks.
+        """
+        d2 = B.shape[-1]
+        out = M @ B.reshape(self.shape[1], d2)
+        return np.asarray(out).reshape(self.n_targets, self.d1, d2)
+
+    def __call__(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """``out[t]`` as ``(n_targets, d1, d2)``.
+
+        Args:
+            A: ``(nA, r, d1)`` blocks.
+            B: ``(nB, r, d2)`` blocks.
+        """
+        return self.apply(self.matrix(A), B)
+
+
+class BlockContraction(_CscContraction):
     """``out[t] = Σ_{q: target[q]=t} A[a_idx[q]]ᵀ · B[b_idx[q]]`` for fixed index arrays.
 
     ``A`` holds blocks ``(nA, r, d1)`` and ``B`` blocks ``(nB, r, d2)``. The sum is one product of
@@ -165,37 +210,11 @@ class BlockContraction:
         self.indptr = indptr.astype(idx_t if indptr[-1] < 2**31 else np.int64)
         self.shape = (n_targets * d1, n_b * r)
 
-    def matrix(self, A: np.ndarray) -> sp.csc_matrix:
-        """The CSC operator filled with rows of ``A`` (reusable for several ``B``).
-
-        Args:
-            A: ``(nA, r, d1)`` blocks (C-contiguous).
-        """
-        data = np.take(A.reshape(-1, self.d1), self.rows, axis=0).reshape(-1)
-        return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
-
-    def apply(self, M: sp.csc_matrix, B: np.ndarray) -> np.ndarray:
-        """``M @ B`` reshaped to ``(n_targets, d1, d2)``.
-
-        Args:
-            M: From :meth:`matrix`.
-            B: ``(nB, r, d2)`` blocks.
-        """
-        d2 = B.shape[-1]
-        out = M @ B.reshape(self.n_b * self.r, d2)
-        return np.asarray(out).reshape(self.n_targets, self.d1, d2)
-
-    def __call__(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
-        """``out[t] = Σ A[a]ᵀ B[b]`` as ``(n_targets, d1, d2)``.
-
-        Args:
-            A: ``(nA, r, d1)`` blocks.
-            B: ``(nB, r, d2)`` blocks.
-        """
-        return self.apply(self.matrix(A), B)
+    def _values(self, A: np.ndarray) -> np.ndarray:
+        return np.take(A.reshape(-1, self.d1), self.rows, axis=0).reshape(-1)
 
 
-class EdgeContraction:
+class EdgeContraction(_CscContraction):
     """``out[t] = Σ_{e ∈ sel, target[e]=t} A[e]ᵀ · B[e]``: :class:`BlockContraction` for the case
     where every term has its own ``A`` and ``B`` block (edge blocks).
 
@@ -225,30 +244,5 @@ class EdgeContraction:
         self.indices = np.broadcast_to(rows, (len(sel), r, d1)).ravel()
         self.shape = (n_targets * d1, m * r)
 
-    def matrix(self, A: np.ndarray) -> sp.csc_matrix:
-        """The CSC operator holding ``A``'s values.
-
-        Args:
-            A: ``(m, r, d1)`` blocks.
-        """
-        data = A.reshape(-1) if self.all else A[self.sel].reshape(-1)
-        return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
-
-    def apply(self, M: sp.csc_matrix, B: np.ndarray) -> np.ndarray:
-        """``M @ B`` reshaped to ``(n_targets, d1, d2)``.
-
-        Args:
-            M: From :meth:`matrix`.
-            B: ``(m, r, d2)`` blocks.
-        """
-        d2 = B.shape[-1]
-        return np.asarray(M @ B.reshape(self.m * self.r, d2)).reshape(self.n_targets, self.d1, d2)
-
-    def __call__(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
-        """``out[t] = Σ A[e]ᵀ B[e]`` as ``(n_targets, d1, d2)``.
-
-        Args:
-            A: ``(m, r, d1)`` blocks.
-            B: ``(m, r, d2)`` blocks.
-        """
-        return self.apply(self.matrix(A), B)
+    def _values(self, A: np.ndarray) -> np.ndarray:
+        return A.reshape(-1) if self.all else A[self.sel].reshape(-1)

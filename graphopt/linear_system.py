@@ -452,7 +452,7 @@ class LinearSystem:
     COST_SCATTER, COST_DENSE_ELEMENT, COST_PANEL = 3.4e-9, 4.2e-9, 3e-5
     #: ``syrk`` on ``n`` columns runs at about ``n / (n + BLAS_HALF)`` of its peak rate.
     BLAS_HALF = 45
-    #: Most rows of a panel's dense matrix (about 3 MB for 100 columns: it stays in cache).
+    #: Most rows of a panel's dense matrix (about 1.6 MB for 100 columns: it stays in cache).
     PANEL_ROWS = 2048
     #: Largest number of elements all panels of a class may allocate together.
     DENSE_LIMIT = 64_000_000
@@ -490,15 +490,13 @@ class LinearSystem:
         w = np.flatnonzero(eq[c.vblock])
         prev = w - cnt[c.vblock[w] - 1]
         eq[c.vblock[w[lu[w] != lu[prev]]]] = False
-        same = eq
-        run_start = np.flatnonzero(~same)
+        run_start = np.flatnonzero(~eq)
         run_end = np.r_[run_start[1:], n_v]
         max_rows = max(1, self.PANEL_ROWS // dv)
         lul = lu.tolist()
         ws = wstart.tolist()
-        panels: list[tuple[int, int, int, int, np.ndarray]] = []
-        dense = elements = 0.0
-        cur: list[int] = []  # v0, v1, mask, cost, full
+        closed: list[tuple[int, int, int, float]] = []  # panels: v0, v1, U mask, cost
+        cur: tuple[int, int, int, float] | None = None  # the open panel
         for r0, r1 in zip(run_start.tolist(), run_end.tolist(), strict=True):  # runs, not vertices
             mask = 0
             for x in lul[ws[r0]:ws[r0 + 1]]:
@@ -509,30 +507,30 @@ class LinearSystem:
             for a in range(r0, r1, max_rows):  # split runs longer than a panel
                 b = min(r1, a + max_rows)
                 alone = self._panel_cost((b - a) * dv, nset * du, (ws[b] - ws[a]) * dv * du, True)
-                if cur:
-                    v0, v1, cmask, ccost, _ = cur
+                if cur is not None:
+                    v0, _, cmask, ccost = cur
                     um = cmask | mask
                     merged = self._panel_cost((b - v0) * dv, um.bit_count() * du,
                                               (ws[b] - ws[v0]) * dv * du, False)
                     if b - v0 <= max_rows and merged < ccost + alone:
-                        cur = [v0, b, um, merged, 0]
+                        cur = (v0, b, um, merged)
                         continue
-                    panels.append(self._panel_spec(cur, ws))
-                    dense += ccost
-                    elements += (v1 - v0) * dv * cmask.bit_count() * du
-                cur = [a, b, mask, alone, 1]
-        if cur:
-            panels.append(self._panel_spec(cur, ws))
-            dense += cur[3]
-            elements += (cur[1] - cur[0]) * dv * cur[2].bit_count() * du
+                    closed.append(cur)
+                cur = (a, b, mask, alone)
+        if cur is not None:
+            closed.append(cur)
+        dense = sum(p[3] for p in closed)
+        elements = sum((v1 - v0) * dv * m.bit_count() * du for v0, v1, m, _ in closed)
+        panels = [self._panel_spec(p, ws) for p in closed]
         sparse = (self.COST_GATHER * n_cross * dv * du
                   + self.COST_SPARSE_MAC * (n_cross + nw) * dv * du * du
                   + self.COST_SPARSE_MAC * nw * dv * du)  # the rhs product, folded when dense
         return panels if dense < sparse and elements <= self.DENSE_LIMIT else None
 
     @staticmethod
-    def _panel_spec(cur: list[int], ws: list[int]) -> tuple[int, int, int, int, np.ndarray]:
-        v0, v1, mask = cur[0], cur[1], cur[2]
+    def _panel_spec(cur: tuple[int, int, int, float], ws: list[int]
+                    ) -> tuple[int, int, int, int, np.ndarray]:
+        v0, v1, mask, _ = cur
         cams = np.array([i for i in range(mask.bit_length()) if mask >> i & 1], dtype=np.int64)
         return v0, v1, ws[v0], ws[v1], cams
 
@@ -762,36 +760,35 @@ class LinearSystem:
             du, dv = self.damping(asm, diagonal)
             s[self.diag_pos] += lam * du
             vdamp = [lam * d for d in dv]
-        vinv = []
+        vdamped, vinv = [], []
         for vb, d in zip(asm.v, vdamp, strict=True):
             if d is not None:
                 vb = vb.copy()
                 vb[:, np.arange(vb.shape[1]), np.arange(vb.shape[1])] += d
+            vdamped.append(vb)
             vinv.append(batched_inverse_spd(vb))
         rhs = asm.bu.copy()
         dense = {dt.k for dt in self.dense_terms}  # their rhs share is folded into the panels
-        vb_rhs: list[np.ndarray | None] = [None] * len(vinv)
+        vb_rhs: dict[int, np.ndarray] = {}  # V⁻¹ b_v per V class, when a sparse class needs it
         for k, wc in enumerate(self.wclasses):
             if k in dense:
                 continue
-            if vb_rhs[wc.vclass] is None:
+            if wc.vclass not in vb_rhs:
                 vb_rhs[wc.vclass] = np.einsum("nij,nj->ni", vinv[wc.vclass], asm.bv[wc.vclass])
             assert wc.rhs is not None
-            y = vb_rhs[wc.vclass]
-            assert y is not None
-            rhs[wc.rhs_dest] -= wc.rhs(asm.wt[k], y[wc.vblock][:, :, None])[:, :, 0]
+            y = vb_rhs[wc.vclass][wc.vblock]
+            rhs[wc.rhs_dest] -= wc.rhs(asm.wt[k], y[:, :, None])[:, :, 0]
         yt = self.y_transposed(asm, vinv, only={pt.k1 for pt in self.pair_terms})
+        linvs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # (L⁻¹, L⁻¹ b_v) per V class
         for dt in self.dense_terms:
             wc = self.wclasses[dt.k]
             dv, du = wc.dv, wc.du
-            vd = asm.v[wc.vclass]
-            if vdamp[wc.vclass] is not None:
-                vd = vd.copy()
-                vd[:, np.arange(dv), np.arange(dv)] += vdamp[wc.vclass]
-            linv = batched_cholesky_inverse(vd)
+            if wc.vclass not in linvs:
+                li = batched_cholesky_inverse(vdamped[wc.vclass])
+                linvs[wc.vclass] = li, np.einsum("nij,nj->ni", li, asm.bv[wc.vclass])
+            linv, x = linvs[wc.vclass]
             lw = linv[wc.vblock]
             wtk = asm.wt[dt.k]
-            x = np.einsum("nij,nj->ni", linv, asm.bv[wc.vclass])  # L⁻¹ b_v
             for p in dt.panels:  # cache-sized tiles of V blocks with similar U sets
                 n = p.cols * du
                 m2 = p.buffer.reshape(p.rows * dv, 1 + n)
