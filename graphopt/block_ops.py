@@ -5,6 +5,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+try:  # SciPy's C kernel of ``csr @ dense``; it accumulates into a given output array.
+    from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs
+except ImportError:  # pragma: no cover - private module: fall back to the public product
+    _csr_matvecs = None
+
 
 class NotPositiveDefiniteError(np.linalg.LinAlgError):
     """A block or the reduced system is not positive definite."""
@@ -68,47 +73,102 @@ def batched_inverse_spd(A: np.ndarray) -> np.ndarray:
     return np.swapaxes(Linv, 1, 2) @ Linv
 
 
-def batched_cholesky_inverse(A: np.ndarray) -> np.ndarray:
-    """``L⁻¹`` for many SPD matrices ``A = L Lᵀ`` (``L`` lower triangular).
+def batched_cholesky_inverses(
+    A: np.ndarray, diag: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``L⁻¹`` and ``(A + diag)⁻¹ = L⁻ᵀL⁻¹`` for many SPD matrices ``A + diag = LLᵀ``.
 
-    Closed forms for sizes 1–3, batched LAPACK otherwise.
+    For ``d ≤ 4`` Cholesky, the triangular inverse and the product are unrolled over the
+    entries and vectorised over the blocks (a dozen array operations for ``d = 3``, no
+    per-block LAPACK call); larger blocks use batched LAPACK. The damping ``diag`` is added on
+    the fly, so ``A`` is neither copied nor changed.
 
     Args:
-        A: ``(n, d, d)`` symmetric positive definite matrices.
+        A: ``(n, d, d)`` symmetric matrices (only the lower triangle is read).
+        diag: Optional ``(n, d)`` added to the diagonals.
 
     Returns:
-        ``(n, d, d)`` lower-triangular inverses of the Cholesky factors.
+        ``(L⁻¹, A⁻¹)``, both ``(n, d, d)``; ``L⁻¹`` is lower triangular.
 
     Raises:
         NotPositiveDefiniteError: if any block is not positive definite.
     """
     n, d, _ = A.shape
-    out = np.zeros_like(A)
+    if d > 4:
+        Ad = A.copy()
+        if diag is not None:
+            Ad[:, np.arange(d), np.arange(d)] += diag
+        try:
+            m_full = np.tril(np.linalg.inv(np.linalg.cholesky(Ad)))  # exact zeros above
+        except np.linalg.LinAlgError as exc:
+            raise NotPositiveDefiniteError(f"a {d}x{d} block is not positive definite") from exc
+        return m_full, np.swapaxes(m_full, 1, 2) @ m_full
+    a = A.reshape(n, d * d)
+    L: dict[tuple[int, int], np.ndarray] = {}
+    m: dict[tuple[int, int], np.ndarray] = {}  # L⁻¹
     with np.errstate(invalid="ignore", divide="ignore"):
-        if d == 1:
-            out[:, 0, 0] = 1.0 / np.sqrt(A[:, 0, 0])
-        elif d in (2, 3):
-            l00 = np.sqrt(A[:, 0, 0])
-            l10 = A[:, 1, 0] / l00
-            l11 = np.sqrt(A[:, 1, 1] - l10 * l10)
-            m00, m11 = 1.0 / l00, 1.0 / l11
-            out[:, 0, 0], out[:, 1, 1] = m00, m11
-            out[:, 1, 0] = -l10 * m00 * m11
-            if d == 3:
-                l20 = A[:, 2, 0] / l00
-                l21 = (A[:, 2, 1] - l20 * l10) / l11
-                m22 = 1.0 / np.sqrt(A[:, 2, 2] - l20 * l20 - l21 * l21)
-                out[:, 2, 2] = m22
-                out[:, 2, 1] = -l21 * m11 * m22
-                out[:, 2, 0] = -(l20 * m00 + l21 * out[:, 1, 0]) * m22
-        else:
-            try:
-                return np.linalg.inv(np.linalg.cholesky(A))
-            except np.linalg.LinAlgError as exc:
-                raise NotPositiveDefiniteError(f"a {d}x{d} block is not positive definite") from exc
-    if not np.isfinite(out.sum()):
+        for j in range(d):  # Cholesky–Crout, column by column
+            s = a[:, j * d + j] if diag is None else a[:, j * d + j] + diag[:, j]
+            for k in range(j):
+                s = s - L[j, k] * L[j, k]
+            m[j, j] = 1.0 / np.sqrt(s)  # NaN or inf unless the pivot is positive
+            for i in range(j + 1, d):
+                t = a[:, i * d + j]
+                for k in range(j):
+                    t = t - L[i, k] * L[j, k]
+                L[i, j] = t * m[j, j]
+        for i in range(1, d):  # forward substitution for the strictly lower part of L⁻¹
+            for j in range(i):
+                t = L[i, j] * m[j, j]
+                for k in range(j + 1, i):
+                    t = t + L[i, k] * m[k, j]
+                m[i, j] = -t * m[i, i]
+        linv = np.zeros((n, d * d))
+        inv = np.empty((n, d * d))
+        for i in range(d):
+            for j in range(i + 1):
+                linv[:, i * d + j] = m[i, j]
+                t = m[i, i] * m[i, j]
+                for k in range(i + 1, d):
+                    t = t + m[k, i] * m[k, j]
+                inv[:, i * d + j] = t
+                inv[:, j * d + i] = t
+    if not np.isfinite(inv[:, :: d + 1].sum()):
         raise NotPositiveDefiniteError(f"a {d}x{d} block is not positive definite")
-    return out
+    return linv.reshape(n, d, d), inv.reshape(n, d, d)
+
+
+def csr_product_into(
+    n_rows: int,
+    n_cols: int,
+    width: int,
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    b: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """``out = A @ B`` for a CSR matrix ``A`` and a dense ``B``, written into ``out``.
+
+    Writing into a preallocated (cache-resident) buffer instead of a new array saves an
+    allocation and its page faults per product; SciPy's public product is the fallback.
+
+    Args:
+        n_rows: Rows of ``A``.
+        n_cols: Columns of ``A`` (rows of ``B``).
+        width: Columns of ``B``.
+        indptr: ``A``'s CSR row pointer (same integer type as ``indices``).
+        indices: ``A``'s column indices.
+        data: ``A``'s values (float64).
+        b: ``B`` flattened, C order, ``n_cols · width`` values.
+        out: Flat C-order output of ``n_rows · width`` values (overwritten).
+    """
+    if _csr_matvecs is None:
+        a = sp.csr_matrix((data, indices, indptr), shape=(n_rows, n_cols))
+        out[:] = (a @ b.reshape(n_cols, width)).reshape(-1)
+        return
+    out.fill(0.0)
+    _csr_matvecs(n_rows, n_cols, width, indptr, indices, data, b, out)
 
 
 class _CscContraction:

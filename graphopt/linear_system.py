@@ -23,8 +23,8 @@ import scipy.sparse as sp
 from graphopt.block_ops import (
     BlockContraction,
     EdgeContraction,
-    batched_cholesky_inverse,
-    batched_inverse_spd,
+    batched_cholesky_inverses,
+    csr_product_into,
 )
 from graphopt.graph import EdgeGroup, GraphError, VertexStore
 
@@ -112,10 +112,11 @@ class _PairTerm:
 class _Panel:
     """A run of consecutive V blocks and the U blocks they meet: one dense ``syrk``.
 
-    ``L⁻¹ b_v`` (``V = LLᵀ``) fills column 0 of a dense ``(rows·dv, 1 + cols·du)`` matrix ``M``,
-    and ``Z = L⁻¹Wᵀ`` of the panel's W blocks the other columns (allocated once; the same
-    entries are overwritten every iteration, the rest stays zero). ``MᵀM`` holds the panel's
-    share of ``W V⁻¹ Wᵀ`` and, in its row 0, of ``W V⁻¹ b_v``.
+    With ``V = LLᵀ``, ``M = L⁻¹Wᵀ`` of the panel's W blocks, laid out densely as
+    ``(rows·dv, cols·du)`` (zeros where a V block does not meet a U block), is one product of a
+    constant-structure CSR matrix holding the entries of ``L⁻¹`` with the W array as it is: the
+    small products and their placement happen in one C loop. ``MᵀM`` is the panel's share of
+    ``W V⁻¹ Wᵀ`` and ``Mᵀ L⁻¹b_v`` its share of ``W V⁻¹ b_v``.
     """
 
     v0: int  # first V block of the panel
@@ -123,12 +124,13 @@ class _Panel:
     w1: int
     rows: int  # V blocks in the panel
     cols: int  # U blocks the panel meets
-    full: bool  # every V block meets every U block: placed by a strided copy, no scatter
-    scatter: np.ndarray  # flat index into M of every entry of Z[w0:w1] (empty when ``full``)
+    indptr: np.ndarray  # CSR rows: (V block, row of L⁻¹, U block) → entries of L⁻¹ ...
+    indices: np.ndarray  # ... times rows (W block, i) of the panel's W array
+    d0: int  # the panel's range in the term's gathered L⁻¹ entries
+    d1: int
     dest: np.ndarray  # positions in S data of the pattern entries the panel touches
     src: np.ndarray  # flat (column-major) index into MᵀM's upper triangle of the same entries
     rhs_pos: np.ndarray  # positions in the reduced right-hand side of the panel's U columns
-    buffer: np.ndarray  # M, flat
 
 
 @dataclass
@@ -141,6 +143,8 @@ class _DenseSchurTerm:
 
     k: int
     panels: list[_Panel]
+    lidx: np.ndarray  # flat index into L⁻¹ of every CSR entry of every panel, in order
+    scratch: np.ndarray  # room for the largest panel's M
 
 
 @dataclass
@@ -446,22 +450,23 @@ class LinearSystem:
 
     #: Costs (seconds per unit, fitted on this project's 2-core machine) behind the sparse/dense
     #: choice for ``W V⁻¹ Wᵀ``: a value gathered (in whole rows) by ``np.take``, a multiply-add
-    #: in SciPy's sparse product, a multiply-add in BLAS ``syrk`` on wide panels, a value
-    #: scattered into a panel, an element of a panel's ``n × n`` product, one panel.
+    #: in SciPy's sparse product, a multiply-add in BLAS ``syrk`` on wide panels, a value of
+    #: ``L⁻¹Wᵀ`` formed and placed in a panel, an element of a panel (zeroed, read again for the
+    #: right-hand side), an element of a panel's ``n × n`` product, one panel.
     COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC = 0.6e-9, 0.4e-9, 3.2e-11
-    COST_SCATTER, COST_DENSE_ELEMENT, COST_PANEL = 3.4e-9, 4.2e-9, 3e-5
+    COST_PLACE, COST_AREA, COST_DENSE_ELEMENT, COST_PANEL = 2.4e-9, 0.8e-9, 4.2e-9, 3e-5
     #: ``syrk`` on ``n`` columns runs at about ``n / (n + BLAS_HALF)`` of its peak rate.
     BLAS_HALF = 45
     #: Most rows of a panel's dense matrix (about 1.6 MB for 100 columns: it stays in cache).
     PANEL_ROWS = 2048
-    #: Largest number of elements all panels of a class may allocate together.
+    #: Largest total number of elements of a class's panels (their work grows with it).
     DENSE_LIMIT = 64_000_000
 
-    def _panel_cost(self, rows: int, n: int, placed: int, full: bool) -> float:
-        """Modelled seconds of one panel: ``rows × n`` matrix, ``placed`` values written."""
+    def _panel_cost(self, rows: int, n: int, placed: int) -> float:
+        """Modelled seconds of one panel: ``rows × n`` matrix, ``placed`` values of it formed."""
         syrk = self.COST_BLAS_MAC * rows * n * (n + self.BLAS_HALF) / 2
-        place = (0.4 if full else 1.0) * self.COST_SCATTER * placed
-        return self.COST_PANEL + syrk + place + self.COST_DENSE_ELEMENT * n * n
+        return (self.COST_PANEL + syrk + self.COST_PLACE * placed + self.COST_AREA * rows * n
+                + self.COST_DENSE_ELEMENT * n * n)
 
     def _dense_panels(self, c: WClass, n_cross: int
                       ) -> list[tuple[int, int, int, int, np.ndarray]] | None:
@@ -470,8 +475,7 @@ class LinearSystem:
 
         V blocks come in runs with identical U sets (see :meth:`_order_v_blocks`). A greedy
         scan merges the next run into the current panel while that is cheaper than starting a
-        new one (fewer, larger BLAS calls against wider panels); a run alone is a *full*
-        panel, placed without a scatter.
+        new one (fewer, larger BLAS calls against wider panels, but more zeros in them).
         """
         n_v = len(self.vclasses[c.vclass].slots)
         nw = len(c.ublock)
@@ -506,12 +510,12 @@ class LinearSystem:
                 continue  # V blocks that meet no U block of this class
             for a in range(r0, r1, max_rows):  # split runs longer than a panel
                 b = min(r1, a + max_rows)
-                alone = self._panel_cost((b - a) * dv, nset * du, (ws[b] - ws[a]) * dv * du, True)
+                alone = self._panel_cost((b - a) * dv, nset * du, (ws[b] - ws[a]) * dv * du)
                 if cur is not None:
                     v0, _, cmask, ccost = cur
                     um = cmask | mask
                     merged = self._panel_cost((b - v0) * dv, um.bit_count() * du,
-                                              (ws[b] - ws[v0]) * dv * du, False)
+                                              (ws[b] - ws[v0]) * dv * du)
                     if b - v0 <= max_rows and merged < ccost + alone:
                         cur = (v0, b, um, merged)
                         continue
@@ -634,37 +638,48 @@ class LinearSystem:
         nb = max(self.n_ublocks, 1)
         for k, panel_specs in self._dense_pairs:
             c = self.wclasses[k]
+            dv, du = c.dv, c.du
             uu = _unique(c.ublock, nb)
             lu = np.searchsorted(uu, c.ublock)
-            di, dj = np.arange(c.du)[:, None], np.arange(c.du)[None, :]
-            panels = []
+            di, dj = np.arange(du)[:, None], np.arange(du)[None, :]
+            # L⁻¹ is lower triangular: row i of a V block's Z = L⁻¹Wᵀ takes entries j ≤ i.
+            ti, tj = np.tril_indices(dv)
+            panels, lidx, d0, largest = [], [], 0, 0
             for v0, v1, w0, w1, cams in panel_specs:  # panels, not vertices
                 nc = len(cams)
-                n1 = nc * c.du + 1  # columns of M: the U blocks' and L⁻¹b_v
+                n = nc * du  # columns of M
                 la, lb = np.divmod(np.arange(nc * nc), nc)
                 ga, gb = uu[cams[la]], uu[cams[lb]]
                 # Keep the block pairs present in S (others have no common V block at all).
                 present = np.isin(gb * nb + ga, self._block_pairs)
                 la, lb, ga, gb = la[present], lb[present], ga[present], gb[present]
                 dest, _ = self._dest(ga, gb)
-                # M's column 0 holds L⁻¹b_v, then the U blocks' columns.
-                i = 1 + la[:, None, None] * c.du + di
-                j = 1 + lb[:, None, None] * c.du + dj
-                src = np.maximum(i, j) * n1 + np.minimum(i, j)  # upper triangle, column-major
-                full = (w1 - w0) == (v1 - v0) * nc
-                scatter = np.zeros(0, dtype=np.int64)
-                if not full:
-                    rows = ((c.vblock[w0:w1, None, None] - v0) * c.dv
-                            + np.arange(c.dv)[None, :, None])
-                    cols = (1 + np.searchsorted(cams, lu[w0:w1])[:, None, None] * c.du
-                            + np.arange(c.du)[None, None, :])
-                    scatter = (rows * n1 + cols).reshape(-1)
-                buffer = np.zeros((v1 - v0) * c.dv * n1)
-                buffer.fill(0.0)  # touch the pages here, not in the first iteration
-                rhs_pos = (self.uoffset[uu[cams]][:, None] + np.arange(c.du)).reshape(-1)
-                panels.append(_Panel(v0, w0, w1, v1 - v0, nc, full, scatter,
-                                     dest.reshape(-1), src.reshape(-1), rhs_pos, buffer))
-            self.dense_terms.append(_DenseSchurTerm(k, panels))
+                i = la[:, None, None] * du + di
+                j = lb[:, None, None] * du + dj
+                src = np.maximum(i, j) * n + np.minimum(i, j)  # upper triangle, column-major
+                # CSR of the panel's Z: output row (V block r, i, U block c) of du values is
+                # Σ_j L⁻¹[r][i, j] · (row j of the W block (r, c)); each output row has at most
+                # one W block, so rows are ordered by (r, i, c) and entries by j.
+                w = np.arange(w0, w1)
+                r = c.vblock[w] - v0
+                lc = np.searchsorted(cams, lu[w])
+                out_row = ((r[:, None] * dv + ti) * nc + lc[:, None]).ravel()
+                order = np.argsort(out_row, kind="stable")
+                n_out = (v1 - v0) * dv * nc
+                indptr = np.searchsorted(out_row[order], np.arange(n_out + 1))
+                indices = ((w - w0)[:, None] * dv + tj).ravel()[order]
+                lidx.append((c.vblock[w][:, None] * dv * dv + ti * dv + tj).ravel()[order])
+                idx_t = np.int32 if max(n_out, (w1 - w0) * dv) < 2**31 else np.int64
+                rhs_pos = (self.uoffset[uu[cams]][:, None] + np.arange(du)).reshape(-1)
+                panels.append(_Panel(v0, w0, w1, v1 - v0, nc, indptr.astype(idx_t),
+                                     indices.astype(idx_t), d0, d0 + len(indices),
+                                     dest.reshape(-1), src.reshape(-1), rhs_pos))
+                d0 += len(indices)
+                largest = max(largest, n_out * du)
+            scratch = np.zeros(largest)
+            scratch.fill(0.0)  # touch the pages here, not in the first iteration
+            self.dense_terms.append(_DenseSchurTerm(
+                k, panels, np.concatenate(lidx) if lidx else np.zeros(0, np.int64), scratch))
         del self._dense_pairs
 
     # --- numbers -----------------------------------------------------------------------------
@@ -760,13 +775,11 @@ class LinearSystem:
             du, dv = self.damping(asm, diagonal)
             s[self.diag_pos] += lam * du
             vdamp = [lam * d for d in dv]
-        vdamped, vinv = [], []
+        linv, vinv = [], []  # L⁻¹ and V⁻¹ of the damped V blocks (V + λD = LLᵀ)
         for vb, d in zip(asm.v, vdamp, strict=True):
-            if d is not None:
-                vb = vb.copy()
-                vb[:, np.arange(vb.shape[1]), np.arange(vb.shape[1])] += d
-            vdamped.append(vb)
-            vinv.append(batched_inverse_spd(vb))
+            li, vi = batched_cholesky_inverses(vb, d)
+            linv.append(li)
+            vinv.append(vi)
         rhs = asm.bu.copy()
         dense = {dt.k for dt in self.dense_terms}  # their rhs share is folded into the panels
         vb_rhs: dict[int, np.ndarray] = {}  # V⁻¹ b_v per V class, when a sparse class needs it
@@ -779,29 +792,24 @@ class LinearSystem:
             y = vb_rhs[wc.vclass][wc.vblock]
             rhs[wc.rhs_dest] -= wc.rhs(asm.wt[k], y[:, :, None])[:, :, 0]
         yt = self.y_transposed(asm, vinv, only={pt.k1 for pt in self.pair_terms})
-        linvs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # (L⁻¹, L⁻¹ b_v) per V class
+        lb: dict[int, np.ndarray] = {}  # L⁻¹ b_v per V class
         for dt in self.dense_terms:
             wc = self.wclasses[dt.k]
             dv, du = wc.dv, wc.du
-            if wc.vclass not in linvs:
-                li = batched_cholesky_inverse(vdamped[wc.vclass])
-                linvs[wc.vclass] = li, np.einsum("nij,nj->ni", li, asm.bv[wc.vclass])
-            linv, x = linvs[wc.vclass]
-            lw = linv[wc.vblock]
-            wtk = asm.wt[dt.k]
+            if wc.vclass not in lb:
+                lb[wc.vclass] = np.einsum("nij,nj->ni", linv[wc.vclass], asm.bv[wc.vclass])
+            x = lb[wc.vclass]
+            lvals = np.take(linv[wc.vclass].reshape(-1), dt.lidx)
+            wflat = np.ascontiguousarray(asm.wt[dt.k]).reshape(-1)
             for p in dt.panels:  # cache-sized tiles of V blocks with similar U sets
-                n = p.cols * du
-                m2 = p.buffer.reshape(p.rows * dv, 1 + n)
-                zp = np.matmul(lw[p.w0:p.w1], wtk[p.w0:p.w1])  # per panel: stays in cache
-                if p.full:
-                    m4 = m2[:, 1:].reshape(p.rows, dv, p.cols, du)  # a view
-                    np.copyto(m4, zp.reshape(p.rows, p.cols, dv, du).transpose(0, 2, 1, 3))
-                else:
-                    p.buffer[p.scatter] = zp.reshape(-1)
-                m2[:, 0] = x[p.v0:p.v0 + p.rows].reshape(-1)
+                n_out, n = p.rows * dv * p.cols, p.cols * du
+                m = dt.scratch[:n_out * du]
+                csr_product_into(n_out, (p.w1 - p.w0) * dv, du, p.indptr, p.indices,
+                                 lvals[p.d0:p.d1], wflat[p.w0 * dv * du:p.w1 * dv * du], m)
+                m2 = m.reshape(p.rows * dv, n)  # Z = L⁻¹Wᵀ, dense over the panel
                 c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle, column-major
                 s[p.dest] -= c.ravel(order="F")[p.src]
-                rhs[p.rhs_pos] -= c[0, 1:]
+                rhs[p.rhs_pos] -= m2.T @ x[p.v0:p.v0 + p.rows].reshape(-1)
         for pt in self.pair_terms:
             red = pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(len(pt.dest), -1)
             s[pt.dest] -= red

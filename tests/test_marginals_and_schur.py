@@ -63,7 +63,8 @@ def schur_path(request, monkeypatch):
         # points (30 rows), and the sparse path is never cheaper.
         monkeypatch.setattr(LinearSystem, "COST_BLAS_MAC", 0.0)
         monkeypatch.setattr(LinearSystem, "COST_DENSE_ELEMENT", 0.0)
-        monkeypatch.setattr(LinearSystem, "COST_SCATTER", 0.0)
+        monkeypatch.setattr(LinearSystem, "COST_PLACE", 0.0)
+        monkeypatch.setattr(LinearSystem, "COST_AREA", 0.0)
         monkeypatch.setattr(LinearSystem, "COST_PANEL", 1.0)
         monkeypatch.setattr(LinearSystem, "COST_SPARSE_MAC", 1e9)
         monkeypatch.setattr(LinearSystem, "PANEL_ROWS", 30)
@@ -86,9 +87,11 @@ def test_schur_step_equals_full_step(solver: str, schur_path: str, per_point: in
         assert [p.w0 for p in panels] == [0] + [p.w1 for p in panels[:-1]]
         assert panels[-1].w1 == nw and 4 <= len(panels) <= 8
         assert all(p.rows <= 10 for p in panels)
-        # Every point sees all cameras (6): one U set, full panels placed without a scatter.
-        # Three random cameras per point: merged runs of different sets.
-        assert all(p.full for p in panels) == (per_point == 6)
+        # Each W block enters its panel's Z = L⁻¹Wᵀ through the 6 entries of a 3x3 L⁻¹.
+        assert sum(p.d1 - p.d0 for p in panels) == 6 * nw
+        # Every point sees all cameras (6, one fixed): every panel is 5 U blocks wide.
+        if per_point == 6:
+            assert all(p.cols == schur._system.n_ublocks == 5 for p in panels)
     assert schur._system.schur and not full._system.schur
     assert bool(schur._system.dense_terms) == (schur_path == "dense")
     asm, _ = schur.linearize()

@@ -1,0 +1,54 @@
+"""The small batched kernels against NumPy/SciPy references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import graphopt.block_ops as bo
+from graphopt.block_ops import NotPositiveDefiniteError, batched_cholesky_inverses
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 4, 6])
+def test_cholesky_inverses_match_lapack(d: int) -> None:
+    rng = np.random.default_rng(d)
+    B = rng.normal(size=(50, d, d + 2))
+    A = B @ np.swapaxes(B, 1, 2)
+    diag = rng.uniform(0.1, 1.0, size=(50, d))
+    A_before = A.copy()
+    linv, inv = batched_cholesky_inverses(A, diag)
+    Ad = A + diag[:, :, None] * np.eye(d)
+    L = np.linalg.cholesky(Ad)
+    np.testing.assert_allclose(linv, np.linalg.inv(L), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(inv @ Ad, np.broadcast_to(np.eye(d), Ad.shape), atol=1e-9)
+    assert np.all(np.triu(linv, 1) == 0.0)
+    np.testing.assert_array_equal(A, A_before)  # the damping is not written into A
+    np.testing.assert_allclose(batched_cholesky_inverses(Ad)[1], inv, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("d", [1, 3, 5])
+def test_cholesky_inverses_reject_indefinite_blocks(d: int) -> None:
+    A = np.broadcast_to(np.eye(d), (4, d, d)).copy()
+    A[2, d - 1, d - 1] = -1.0  # the last pivot is negative
+    with pytest.raises(NotPositiveDefiniteError):
+        batched_cholesky_inverses(A)
+    A[2, d - 1, d - 1] = 0.0  # a zero pivot
+    with pytest.raises(NotPositiveDefiniteError):
+        batched_cholesky_inverses(A)
+    A[2, d - 1, d - 1] = 0.5
+    with pytest.raises(NotPositiveDefiniteError):  # damped into indefiniteness
+        batched_cholesky_inverses(A, np.full((4, d), -1.0))
+
+
+@pytest.mark.parametrize("kernel", ["scipy", "fallback"])
+def test_csr_product_into_overwrites_the_output(kernel: str, monkeypatch) -> None:
+    if kernel == "fallback":
+        monkeypatch.setattr(bo, "_csr_matvecs", None)
+    rng = np.random.default_rng(3)
+    A = sp.random(30, 20, density=0.2, format="csr", random_state=4)
+    A.indices, A.indptr = A.indices.astype(np.int32), A.indptr.astype(np.int32)
+    B = rng.normal(size=(20, 7))
+    out = np.full(30 * 7, 5.0)  # stale values must not survive
+    bo.csr_product_into(30, 20, 7, A.indptr, A.indices, A.data, B.reshape(-1), out)
+    np.testing.assert_allclose(out.reshape(30, 7), A @ B, rtol=1e-12)
