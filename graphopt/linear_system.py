@@ -738,6 +738,17 @@ class LinearSystem:
                  for w, c in zip(wt, self.wclasses, strict=True)]
         return Assembly(h, bu, v, bv, wfull)
 
+    @staticmethod
+    def is_finite(asm: Assembly) -> bool:
+        """Whether the U part, the V blocks and both right-hand sides are finite.
+
+        Args:
+            asm: The assembled system.
+        """
+        total = asm.h_data.sum() + asm.bu.sum()
+        total += sum(float(v.sum()) for v in asm.v) + sum(float(b.sum()) for b in asm.bv)
+        return bool(np.isfinite(total))
+
     def damping(self, asm: Assembly, diagonal: bool) -> tuple[np.ndarray, list[np.ndarray]]:
         """The damping matrix ``D`` (a diagonal) as ``(u part, [v parts])``.
 

@@ -654,16 +654,8 @@ class SparseOptimizer:
             if g.etype.linearization_rows is not None:
                 oe = self._reduced(g, out, J)
             rho, w = self._robustify(g, s)
-            # One sum per array is cheaper than isfinite().all(); NaN/inf survive the sum.
-            if not (np.isfinite(s.sum()) and all(np.isfinite(j.sum()) for j in J)):
-                ok = np.isfinite(e).all(axis=1)
-                for j in J:
-                    ok &= np.isfinite(j.reshape(len(j), -1)).all(axis=1)
-                ids = g.vertex_ids[int(np.flatnonzero(~ok)[0])].tolist()
-                raise FloatingPointError(
-                    f"{g.etype.__name__} on vertices {ids}: non-finite error or Jacobian at "
-                    "linearisation"
-                )
+            if not np.isfinite(s.sum()):  # one sum is cheaper than isfinite().all()
+                self._raise_non_finite(g, e, J)
             g.last_chi2 = s
             g.active_count = (g.size if active_mask is None
                               else int(np.count_nonzero(active_mask)))
@@ -683,9 +675,28 @@ class SparseOptimizer:
             wjac.append(wj)
             wes.append(oe * w[:, None] if weighted else oe)
         asm = self._system.assemble(jac, wjac, wes)
+        # A non-finite Jacobian of a free vertex reaches its U or V block (every block holds
+        # Σ J'ΩJ): checking the small assembled arrays spares a pass over the Jacobians.
+        if not self._system.is_finite(asm):
+            for g, J, e in zip(self._group_list, jac, wes, strict=True):
+                self._raise_non_finite(g, e, J)
+            raise FloatingPointError("the normal equations are not finite (overflow)")
         self._last_eval = _Evaluation(chi2, rchi2, active)
         self._timing["linearize"] = time.perf_counter() - t0
         return asm, rchi2
+
+    @staticmethod
+    def _raise_non_finite(g: EdgeGroup, e: np.ndarray, J: tuple[np.ndarray, ...]) -> None:
+        """Raise naming the first edge of ``g`` with a non-finite error or Jacobian, if any."""
+        ok = np.isfinite(e.reshape(len(e), -1)).all(axis=1)
+        for j in J:
+            ok &= np.isfinite(j.reshape(len(j), -1)).all(axis=1)
+        if ok.all():
+            return
+        ids = g.vertex_ids[int(np.flatnonzero(~ok)[0])].tolist()
+        raise FloatingPointError(
+            f"{g.etype.__name__} on vertices {ids}: non-finite error or Jacobian at linearisation"
+        )
 
     def solve(self, asm: Assembly, lam: float, diagonal: bool = False
               ) -> tuple[np.ndarray, list[np.ndarray]]:
