@@ -34,11 +34,16 @@ class EdgeContext:
         active: An edge may set this to a boolean mask ``(m,)`` of edges that are active in this
             evaluation (e.g. a projection inside the image). Inactive edges must return zero
             error and zero Jacobians; the optimizer counts them.
+        derived: For edge types with ``uses_derived``: per vertex position, the vertex type's
+            :meth:`~graphopt.vertex.BaseVertex.derived` values of each edge's vertex
+            (``(m, k)``), or ``None``. A cache of functions of the estimates in ``x``: numeric
+            differentiation, which perturbs ``x``, calls without it.
     """
 
     params: Any = None
     data: dict[str, np.ndarray] = field(default_factory=dict)
     active: np.ndarray | None = None
+    derived: tuple[np.ndarray | None, ...] | None = None
 
     def subset(self, index: np.ndarray | slice) -> EdgeContext:
         """A context restricted to some edges.
@@ -46,7 +51,10 @@ class EdgeContext:
         Args:
             index: Edge indices or slice.
         """
-        return EdgeContext(self.params, {k: v[index] for k, v in self.data.items()})
+        derived = (None if self.derived is None
+                   else tuple(None if d is None else d[index] for d in self.derived))
+        return EdgeContext(self.params, {k: v[index] for k, v in self.data.items()},
+                           derived=derived)
 
 
 class BaseEdge:
@@ -77,6 +85,9 @@ class BaseEdge:
     #: image sampling): an accepted step then needs no second evaluation at the next
     #: linearisation.
     linearize_on_trial: ClassVar[bool] = False
+    #: Receive the vertices' :meth:`~graphopt.vertex.BaseVertex.derived` values in
+    #: ``ctx.derived`` (gathered per edge by the optimizer).
+    uses_derived: ClassVar[bool] = False
 
     # --- the batched type interface --------------------------------------------------------
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -34,6 +35,8 @@ def numeric_jacobians(
         One ``(m, dimension, vertex_dimension)`` array per vertex position.
     """
     h = edge_type.numeric_step if step is None else step
+    # Derived vertex values belong to the unperturbed x: the perturbed errors must not see them.
+    ctx = replace(ctx, derived=None) if ctx is not None and ctx.derived is not None else ctx
     m = len(measurement)
     out = []
     for pos, vtype in enumerate(edge_type.vertex_types):

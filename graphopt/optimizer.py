@@ -25,7 +25,7 @@ from graphopt.algorithms import (
     make_algorithm,
 )
 from graphopt.block_ops import NotPositiveDefiniteError
-from graphopt.edge import BaseEdge
+from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.graph import EdgeGroup, GraphError, VertexStore
 from graphopt.linear_system import Assembly, LinearSystem
 from graphopt.robust_kernel import RobustKernel
@@ -127,6 +127,8 @@ class SparseOptimizer:
         self._timing = {"schur": 0.0, "solve": 0.0}
         self._positions: list[list[tuple[int, np.ndarray]]] = []
         self._lin_cache: dict[int, tuple[tuple[int, ...], tuple[Any, ...], Any]] = {}
+        # Per store: (estimate version, the vertex type's derived values) for edges that use them.
+        self._derived: dict[int, tuple[int, np.ndarray | None]] = {}
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -522,6 +524,7 @@ class SparseOptimizer:
         self.solver.analyze(self._system.pattern, self._system.udims)
         self._build_update_maps()
         self._lin_cache = {}
+        self._derived = {}
         self._structure_key = self._key()
         self.algorithm.reset()
         return True
@@ -551,6 +554,21 @@ class SparseOptimizer:
 
     def _gather(self, gi: int) -> tuple[np.ndarray, ...]:
         return tuple(self._store_list[si].estimates[slots] for si, slots in self._positions[gi])
+
+    def _context(self, gi: int, g: EdgeGroup) -> EdgeContext:
+        """The group's context, with the vertices' derived values if its type uses them."""
+        ctx = g.context()
+        if g.etype.uses_derived:
+            derived = []
+            for si, slots in self._positions[gi]:
+                st = self._store_list[si]
+                hit = self._derived.get(si)
+                if hit is None or hit[0] != st.version:
+                    hit = (st.version, st.vtype.derived(st.estimates))
+                    self._derived[si] = hit
+                derived.append(None if hit[1] is None else hit[1][slots])
+            ctx.derived = tuple(derived)
+        return ctx
 
     def _robustify(self, g: EdgeGroup, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-edge ρ(s) and the weight ρ'(s) (clipped at 0)."""
@@ -606,7 +624,7 @@ class SparseOptimizer:
         hit = self._lin_cache.get(gi)
         if hit is not None and hit[0] == key:
             return hit[1], hit[2]
-        ctx = g.context()
+        ctx = self._context(gi, g)
         out = g.etype.linearize(self._gather(gi), g.measurements, ctx)
         if g.etype.linearize_on_trial:
             self._lin_cache[gi] = (key, out, ctx.active)
@@ -616,11 +634,12 @@ class SparseOptimizer:
         chi2 = rchi2 = 0.0
         active = 0
         for gi, g in enumerate(self._group_list):
-            ctx = g.context()
             if g.etype.linearize_on_trial:
+                ctx = g.context()
                 out, ctx.active = self._group_linearization(gi, g)
                 e = out[0]
             else:
+                ctx = self._context(gi, g)
                 e = g.etype.error(self._gather(gi), g.measurements, ctx)
             _, s = self._sq(g, e)
             rho, _ = self._robustify(g, s)

@@ -48,6 +48,22 @@ class BaseVertex:
         raise NotImplementedError
 
     @classmethod
+    def derived(cls, estimates: np.ndarray) -> np.ndarray | None:
+        """Per-vertex quantities that edges would otherwise recompute per edge, or ``None``.
+
+        Computed once per state for the whole type (a rotation matrix per camera, say) and
+        handed, gathered per edge, to edge types that set ``uses_derived`` (as
+        ``EdgeContext.derived``). Optional: edges must give the same result without it.
+
+        Args:
+            estimates: ``(n, *estimate_shape)`` estimates.
+
+        Returns:
+            ``(n, k)`` values, or ``None`` (the default: nothing to share).
+        """
+        return None
+
+    @classmethod
     def validate(cls, estimates: np.ndarray) -> np.ndarray:
         """Return a boolean mask ``(n,)`` of estimates that are valid (finite by default).
 

@@ -265,3 +265,15 @@ def test_pinhole_bundle_adjustment_converges() -> None:
     res = opt.optimize(20)
     assert res.final_chi2 < 1e-2 * res.initial_chi2
     assert res.final_chi2 < 2 * 0.25 * 2 * len(uv)
+
+
+def test_bal_edge_with_derived_rotations_matches_rodrigues() -> None:
+    """The camera's derived rotation matrices give the edge's own Rodrigues results."""
+    cams, X, z = _bal_inputs(m=500, seed=9)
+    plain = EdgeBALProjection.linearize((cams, X), z, EdgeContext())
+    ctx = EdgeContext(derived=(VertexCameraBAL.derived(cams), None))
+    shared = EdgeBALProjection.linearize((cams, X), z, ctx)
+    for a, b in ((plain[0], shared[0]), *zip(plain[1], shared[1], strict=True)):
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-9 * np.abs(a).max())
+    np.testing.assert_allclose(EdgeBALProjection.error((cams, X), z, ctx), plain[0],
+                               rtol=1e-12, atol=1e-9)

@@ -516,3 +516,40 @@ def test_linearize_on_trial_reuses_the_accepted_linearisation() -> None:
     # One linearisation per trial plus the first: accepted trials are not linearised again.
     assert c2["lin"] == t2 + 1
     assert c2["lin"] + c2["err"] < c1["lin"] + c1["err"]
+
+
+def test_derived_vertex_values_reach_the_edges_and_follow_the_state() -> None:
+    """``derived`` is computed per state, gathered per edge, and withheld from perturbed calls."""
+    seen: list[bool] = []
+
+    class VertexExp(VertexCurve):
+        @classmethod
+        def derived(cls, estimates):
+            return np.exp(estimates[:, 2:3])  # exp(c), shared by all edges of the vertex
+
+    class EdgeExp(EdgeCurveNumeric):  # numeric Jacobians: perturbed calls get no derived values
+        vertex_types = (VertexExp,)
+        uses_derived = True
+
+        @classmethod
+        def error(cls, x, measurement, ctx):
+            p = x[0]
+            xs, ys = measurement[:, 0], measurement[:, 1]
+            ec = np.exp(p[:, 2]) if ctx.derived is None else ctx.derived[0][:, 0]
+            seen.append(ctx.derived is not None)
+            # A stale or mismatched cache would break the fit below.
+            np.testing.assert_allclose(ec, np.exp(p[:, 2]), rtol=1e-15)
+            return (ys - np.exp(p[:, 0] * xs**2 + p[:, 1] * xs) * ec)[:, None]
+
+    meas = curve_data(sigma=0.0)
+    ref = SparseOptimizer("lm", "dense")
+    ref.add_vertices(VertexCurve, [0], [[0.5, 1.5, 0.5]])
+    ref.add_edges(EdgeCurve, np.zeros((len(meas), 1), int), meas)
+    ref.optimize(30)
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(VertexExp, [0], [[0.5, 1.5, 0.5]])
+    opt.add_edges(EdgeExp, np.zeros((len(meas), 1), int), meas)
+    opt.optimize(30)
+    np.testing.assert_allclose(opt.vertex(0).estimate, TRUE_ABC, atol=1e-8)
+    np.testing.assert_allclose(opt.vertex(0).estimate, ref.vertex(0).estimate, atol=1e-10)
+    assert any(seen) and not all(seen)  # the optimizer's calls had them, the perturbed ones not

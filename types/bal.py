@@ -10,8 +10,9 @@ the image by (Snavely's Bundler model)::
 The edge error is ``p' − measurement`` (Ceres' residual). The camera vertex updates the rotation
 on the LEFT, ``R ← exp([δω]×) R``, and ``t, f, k1, k2`` additively; the stored angle-axis stays a
 minimal 3-vector (``ω ← log(exp(δω) exp(ω))``). The derivation of the Jacobians is in
-``docs/bal.md``. Everything is elementwise over ``(m,)`` arrays: no per-edge 3×3 matrices are
-formed (Rodrigues' formula is applied as ``v cosθ + (k×v) sinθ + k (k·v)(1−cosθ)``).
+``docs/bal.md``. Everything is elementwise over ``(m,)`` arrays. The camera type hands its
+rotation matrices to the edge as *derived* values (computed once per camera and state, not once
+per observation); without them the edge builds ``R`` per edge from Rodrigues' formula.
 """
 
 from __future__ import annotations
@@ -69,6 +70,15 @@ class VertexCameraBAL(BaseVertex):
         out[:, :3] = so3_log(so3_exp(deltas[:, :3]) @ so3_exp(estimates[:, :3]))
         return out
 
+    @classmethod
+    def derived(cls, estimates: np.ndarray) -> np.ndarray:
+        """Row-major rotation matrices ``R(ω)``, ``(n, 9)``: shared by all of a camera's edges.
+
+        Args:
+            estimates: ``(n, 9)`` cameras.
+        """
+        return so3_exp(estimates[:, :3]).reshape(len(estimates), 9)
+
 
 def _rodrigues(
     w: np.ndarray,
@@ -102,6 +112,17 @@ def _rotate(
     )
 
 
+def _rotation_entries(w: np.ndarray) -> np.ndarray:
+    """Row-major entries of ``R = exp([w]×) = cosθ I + sinθ [k]× + (1−cosθ) k kᵀ``, ``(m, 9)``."""
+    c, s, omc, kx, ky, kz = _rodrigues(w)
+    ox, oy, oz = omc * kx, omc * ky, omc * kz
+    sx, sy, sz = s * kx, s * ky, s * kz
+    xy, xz, yz = ox * ky, ox * kz, oy * kz
+    return np.stack([c + ox * kx, xy - sz, xz + sy,
+                     xy + sz, c + oy * ky, yz - sx,
+                     xz - sy, yz + sx, c + oz * kz], axis=1)
+
+
 def angle_axis_rotate(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rotate many vectors: ``exp([w_i]×) v_i``.
 
@@ -115,25 +136,32 @@ def angle_axis_rotate(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack(_rotate(_rodrigues(w), v[:, 0], v[:, 1], v[:, 2]), axis=1)
 
 
-def bal_project(cameras: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def bal_project(
+    cameras: np.ndarray, points: np.ndarray, rot: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """BAL projection of ``points[i]`` by ``cameras[i]``.
 
     Args:
         cameras: ``(m, 9)`` camera parameters.
         points: ``(m, 3)`` world points.
+        rot: Optional ``(m, 9)`` row-major rotation matrices of the cameras (else computed).
 
     Returns:
         ``(uv, Pz)``: ``(m, 2)`` predicted pixels and ``(m,)`` camera-frame z (``Pz > 0`` means
         the point is behind the camera, which looks down −z).
     """
-    rod = _rodrigues(cameras[:, :3])
-    Px, Py, Pz = _rotate(rod, points[:, 0], points[:, 1], points[:, 2])
-    Px, Py, Pz = Px + cameras[:, 3], Py + cameras[:, 4], Pz + cameras[:, 5]
+    r = _rotation_entries(cameras[:, :3]) if rot is None else rot
+    X0, X1, X2 = points[:, 0], points[:, 1], points[:, 2]
+    # The same operations, in the same order, as the edge's linearisation.
+    Px = r[:, 0] * X0 + r[:, 1] * X1 + r[:, 2] * X2 + cameras[:, 3]
+    Py = r[:, 3] * X0 + r[:, 4] * X1 + r[:, 5] * X2 + cameras[:, 4]
+    Pz = r[:, 6] * X0 + r[:, 7] * X1 + r[:, 8] * X2 + cameras[:, 5]
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = -1.0 / Pz
-    px, py = Px * inv, Py * inv
+        iz = 1.0 / Pz
+    px, py = -Px * iz, -Py * iz
     r2 = px * px + py * py
-    fd = cameras[:, 6] * (1.0 + r2 * (cameras[:, 7] + cameras[:, 8] * r2))
+    f, k1, k2 = cameras[:, 6], cameras[:, 7], cameras[:, 8]
+    fd = f * (1.0 + r2 * (k1 + k2 * r2))
     return np.stack([fd * px, fd * py], axis=1), Pz
 
 
@@ -175,6 +203,8 @@ class EdgeBALProjection(BaseEdge):
     # The Jacobians share the projection with the error; linearising trial points lets an
     # accepted LM step skip the next linearisation (≈ 8 % per iteration on Dubrovnik-16).
     linearize_on_trial: ClassVar[bool] = True
+    # The camera's rotation matrix, once per camera (see VertexCameraBAL.derived).
+    uses_derived: ClassVar[bool] = True
 
     #: Edges processed per block: the ~150 elementwise temporaries of one block stay in the CPU
     #: cache, which makes the whole evaluation 2-3x faster than one pass over all edges.
@@ -189,14 +219,16 @@ class EdgeBALProjection(BaseEdge):
         Args:
             x: ``(cameras (m, 9), points (m, 3))``.
             measurement: ``(m, 2)`` observed pixels.
-            ctx: Unused.
+            ctx: ``ctx.derived[0]``, when given, holds each edge's camera rotation ``(m, 9)``.
         """
         cam, X = x
         m = len(cam)
+        rot = None if ctx is None or ctx.derived is None else ctx.derived[0]
         e = np.empty((m, 2))
         bs = cls.block_size
         for s in range(0, m, bs):  # blocks of edges, not a loop per edge
-            uv, _ = bal_project(cam[s : s + bs], X[s : s + bs])
+            r = None if rot is None else rot[s : s + bs]
+            uv, _ = bal_project(cam[s : s + bs], X[s : s + bs], r)
             np.subtract(uv, measurement[s : s + bs], out=e[s : s + bs])
         return e
 
@@ -209,36 +241,47 @@ class EdgeBALProjection(BaseEdge):
         Args:
             x: ``(cameras (m, 9), points (m, 3))``.
             measurement: ``(m, 2)`` observed pixels.
-            ctx: Unused.
+            ctx: ``ctx.derived[0]``, when given, holds each edge's camera rotation ``(m, 9)``.
 
         Returns:
             ``(e (m, 2), (J_camera (m, 2, 9), J_point (m, 2, 3)))``.
         """
         cam, X = x
         m = len(cam)
+        rot = None if ctx is None or ctx.derived is None else ctx.derived[0]
         e = np.empty((m, 2))
         Jc = np.empty((m, 2, 9))
         Jp = np.empty((m, 2, 3))
         bs = cls.block_size
         for s in range(0, m, bs):  # blocks of edges, not a loop per edge
             sl = slice(s, s + bs)
-            _linearize_block(cam[sl], X[sl], measurement[sl], e[sl], Jc[sl], Jp[sl])
+            r = _rotation_entries(cam[sl, :3]) if rot is None else rot[sl]
+            _linearize_block(cam[sl], r, X[sl], measurement[sl], e[sl], Jc[sl], Jp[sl])
         return e, (Jc, Jp)
 
 
 def _linearize_block(
     cam: np.ndarray,
+    rot: np.ndarray,
     X: np.ndarray,
     z: np.ndarray,
     e: np.ndarray,
     Jc: np.ndarray,
     Jp: np.ndarray,
 ) -> None:
-    """Fill ``e``, ``Jc``, ``Jp`` for one block of edges (see ``docs/bal.md``)."""
-    rod = _rodrigues(cam[:, :3])
-    Qx, Qy, Qz = _rotate(rod, X[:, 0], X[:, 1], X[:, 2])  # Q = R X
-    Px, Py, Pz = Qx + cam[:, 3], Qy + cam[:, 4], Qz + cam[:, 5]
-    f, k1, k2 = cam[:, 6], cam[:, 7], cam[:, 8]
+    """Fill ``e``, ``Jc``, ``Jp`` for one block of edges (see ``docs/bal.md``).
+
+    ``rot`` holds each edge's row-major ``R``. The inputs are transposed first: every column
+    used below is then a contiguous row (strided columns made each operation slower).
+    """
+    c = np.ascontiguousarray(cam.T)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = np.ascontiguousarray(rot.T)
+    X0, X1, X2 = np.ascontiguousarray(X.T)
+    Qx = r00 * X0 + r01 * X1 + r02 * X2  # Q = R X
+    Qy = r10 * X0 + r11 * X1 + r12 * X2
+    Qz = r20 * X0 + r21 * X1 + r22 * X2
+    Px, Py, Pz = Qx + c[3], Qy + c[4], Qz + c[5]
+    f, k1, k2 = c[6], c[7], c[8]
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1.0 / Pz
     px, py = -Px * iz, -Py * iz
@@ -279,6 +322,10 @@ def _linearize_block(
     Jc[:, 0, 7], Jc[:, 1, 7] = fr2 * px, fr2 * py
     Jc[:, 0, 8], Jc[:, 1, 8] = fr4 * px, fr4 * py
 
-    # Point: ∂P/∂X = R, so each row is Rᵀ a_row (rotate by the inverse).
-    Jp[:, 0, 0], Jp[:, 0, 1], Jp[:, 0, 2] = _rotate(rod, a00, a01, a02, sign=-1.0)
-    Jp[:, 1, 0], Jp[:, 1, 1], Jp[:, 1, 2] = _rotate(rod, a10, a11, a12, sign=-1.0)
+    # Point: ∂P/∂X = R, so each row is a_row R.
+    Jp[:, 0, 0] = a00 * r00 + a01 * r10 + a02 * r20
+    Jp[:, 0, 1] = a00 * r01 + a01 * r11 + a02 * r21
+    Jp[:, 0, 2] = a00 * r02 + a01 * r12 + a02 * r22
+    Jp[:, 1, 0] = a10 * r00 + a11 * r10 + a12 * r20
+    Jp[:, 1, 1] = a10 * r01 + a11 * r11 + a12 * r21
+    Jp[:, 1, 2] = a10 * r02 + a11 * r12 + a12 * r22
