@@ -127,8 +127,9 @@ class SparseOptimizer:
         self._timing = {"schur": 0.0, "solve": 0.0}
         self._positions: list[list[tuple[int, np.ndarray]]] = []
         self._lin_cache: dict[int, tuple[tuple[int, ...], tuple[Any, ...], Any]] = {}
-        # Per store: (estimate version, the vertex type's derived values) for edges that use them.
-        self._derived: dict[int, tuple[int, np.ndarray | None]] = {}
+        # Per (store, "estimates" | "derived"): (estimate version, array to gather edges from,
+        # whether it is stored transposed).
+        self._state_cache: dict[tuple[int, str], tuple[int, np.ndarray | None, bool]] = {}
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -524,7 +525,7 @@ class SparseOptimizer:
         self.solver.analyze(self._system.pattern, self._system.udims)
         self._build_update_maps()
         self._lin_cache = {}
-        self._derived = {}
+        self._state_cache = {}
         self._structure_key = self._key()
         self.algorithm.reset()
         return True
@@ -553,21 +554,35 @@ class SparseOptimizer:
     # --- evaluation --------------------------------------------------------------------------
 
     def _gather(self, gi: int) -> tuple[np.ndarray, ...]:
-        return tuple(self._store_list[si].estimates[slots] for si, slots in self._positions[gi])
+        out = tuple(self._gather_rows(si, "estimates", slots) for si, slots in self._positions[gi])
+        return out  # type: ignore[return-value]  # estimates are never None
+
+    def _gather_rows(self, si: int, what: str, slots: np.ndarray) -> np.ndarray | None:
+        """Rows ``slots`` of a store's estimates or derived values, cached per state.
+
+        2-D arrays ``(n, d)`` are gathered coordinate by coordinate from a transposed copy: the
+        result ``(m, d)`` is in Fortran order, so each coordinate over the edges is one
+        contiguous array — what batched edge code reads, and a cheaper gather.
+        """
+        st = self._store_list[si]
+        key = (si, what)
+        hit = self._state_cache.get(key)
+        if hit is None or hit[0] != st.version:
+            a = st.estimates if what == "estimates" else st.vtype.derived(st.estimates)
+            transposed = a is not None and a.ndim == 2
+            hit = (st.version, np.ascontiguousarray(a.T) if transposed else a, transposed)
+            self._state_cache[key] = hit
+        _, a, transposed = hit
+        if a is None:
+            return None
+        return np.take(a, slots, axis=1).T if transposed else a[slots]
 
     def _context(self, gi: int, g: EdgeGroup) -> EdgeContext:
         """The group's context, with the vertices' derived values if its type uses them."""
         ctx = g.context()
         if g.etype.uses_derived:
-            derived = []
-            for si, slots in self._positions[gi]:
-                st = self._store_list[si]
-                hit = self._derived.get(si)
-                if hit is None or hit[0] != st.version:
-                    hit = (st.version, st.vtype.derived(st.estimates))
-                    self._derived[si] = hit
-                derived.append(None if hit[1] is None else hit[1][slots])
-            ctx.derived = tuple(derived)
+            ctx.derived = tuple(self._gather_rows(si, "derived", slots)
+                                for si, slots in self._positions[gi])
         return ctx
 
     def _robustify(self, g: EdgeGroup, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

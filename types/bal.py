@@ -260,6 +260,12 @@ class EdgeBALProjection(BaseEdge):
         return e, (Jc, Jp)
 
 
+def _rows(a: np.ndarray) -> np.ndarray:
+    """``a.T`` with contiguous rows: a view of Fortran-ordered input (the optimizer gathers 2-D
+    estimates that way), a transposed copy otherwise."""
+    return a.T if a.strides[0] == a.itemsize else np.ascontiguousarray(a.T)
+
+
 def _linearize_block(
     cam: np.ndarray,
     rot: np.ndarray,
@@ -271,12 +277,12 @@ def _linearize_block(
 ) -> None:
     """Fill ``e``, ``Jc``, ``Jp`` for one block of edges (see ``docs/bal.md``).
 
-    ``rot`` holds each edge's row-major ``R``. The inputs are transposed first: every column
-    used below is then a contiguous row (strided columns made each operation slower).
+    ``rot`` holds each edge's row-major ``R``. Every column used below is read as a contiguous
+    array (strided columns make each operation slower).
     """
-    c = np.ascontiguousarray(cam.T)
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = np.ascontiguousarray(rot.T)
-    X0, X1, X2 = np.ascontiguousarray(X.T)
+    c = _rows(cam)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rows(rot)
+    X0, X1, X2 = _rows(X)
     Qx = r00 * X0 + r01 * X1 + r02 * X2  # Q = R X
     Qy = r10 * X0 + r11 * X1 + r12 * X2
     Qz = r20 * X0 + r21 * X1 + r22 * X2
