@@ -45,7 +45,7 @@ class _HTerm:
     dest_t: np.ndarray | None = None  # U off-diagonal: positions of the transposed entries
     cls: int = -1  # V class or W class index
     mirror: bool = False  # V term with a != b on the same vertex: add the transpose too
-    identity: bool = False  # W term whose targets are all W blocks of its class, in order
+    identity: bool = False  # V/W term whose targets are all blocks of its class, in order
 
 
 @dataclass
@@ -58,6 +58,7 @@ class _GTerm:
     dest: np.ndarray  # U: (t, d) vector positions; V: (t,) block index
     cls: int = -1
     shared: int = -1  # index of an H term with the same contraction
+    identity: bool = False  # V term whose targets are all V blocks of its class, in order
 
 
 @dataclass
@@ -128,8 +129,7 @@ class _Panel:
     indices: np.ndarray  # ... times rows (W block, i) of the panel's W array
     d0: int  # the panel's range in the term's gathered L⁻¹ entries
     d1: int
-    dest: np.ndarray  # positions in S data of the pattern entries the panel touches
-    src: np.ndarray  # flat (column-major) index into MᵀM's upper triangle of the same entries
+    r0: int  # offset of the panel's MᵀM (column-major) in the term's result buffer
     rhs_pos: np.ndarray  # positions in the reduced right-hand side of the panel's U columns
 
 
@@ -145,6 +145,10 @@ class _DenseSchurTerm:
     panels: list[_Panel]
     lidx: np.ndarray  # flat index into L⁻¹ of every CSR entry of every panel, in order
     scratch: np.ndarray  # room for the largest panel's M
+    results: np.ndarray  # every panel's MᵀM, one after the other
+    # Sums the upper-triangle entries of ``results`` into S's pattern: one sparse product
+    # instead of a fancy-indexed subtraction per panel.
+    to_s: sp.csr_matrix
 
 
 @dataclass
@@ -164,6 +168,18 @@ class Assembly:
     v: list[np.ndarray]
     bv: list[np.ndarray]
     wt: list[np.ndarray]
+
+
+def _add_blocks(acc: list[np.ndarray | None], k: int, dest: np.ndarray, blk: np.ndarray,
+                whole: bool, shape: tuple[int, ...]) -> None:
+    """``acc[k][dest] += blk``, allocating ``acc[k]`` on first use — or taking ``blk`` itself
+    when it is the first contribution and covers every block in order (``whole``)."""
+    if acc[k] is None:
+        if whole:
+            acc[k] = blk
+            return
+        acc[k] = np.zeros(shape)
+    acc[k][dest] += blk  # type: ignore[index]
 
 
 def _unique(x: np.ndarray, size: int, return_inverse: bool = False
@@ -360,7 +376,8 @@ class LinearSystem:
                         uniq, inv = _unique(vb[a][sel], nvc, True)
                         gt.hterms.append(_HTerm(
                             a, b, "V", self._contraction(g, a, b, sel, inv, len(uniq), dims[a]),
-                            uniq, cls=self.vclass_of_store[pos[a][0]], mirror=a != b))
+                            uniq, cls=self.vclass_of_store[pos[a][0]], mirror=a != b,
+                            identity=len(uniq) == nvc))
                     if a == b:
                         continue
                     for ui, vi in ((a, b), (b, a)):
@@ -390,7 +407,8 @@ class LinearSystem:
                                    if t.left == a and t.right == a and t.kind == kind), -1)
                     con = (gt.hterms[shared].contraction if shared >= 0 else
                            self._contraction(g, a, a, sel, inv, len(uniq), dims[a]))
-                    gt.gterms.append(_GTerm(a, kind, con, uniq, cls, shared))
+                    gt.gterms.append(_GTerm(a, kind, con, uniq, cls, shared,
+                                            kind == "V" and len(uniq) == size))
             self.terms.append(gt)
 
         # Unique W blocks per class, ordered by V block, then each W term's edges onto them.
@@ -644,7 +662,8 @@ class LinearSystem:
             di, dj = np.arange(du)[:, None], np.arange(du)[None, :]
             # L⁻¹ is lower triangular: row i of a V block's Z = L⁻¹Wᵀ takes entries j ≤ i.
             ti, tj = np.tril_indices(dv)
-            panels, lidx, d0, largest = [], [], 0, 0
+            panels, lidx, d0, largest, r0 = [], [], 0, 0, 0
+            to_rows, to_cols = [], []
             for v0, v1, w0, w1, cams in panel_specs:  # panels, not vertices
                 nc = len(cams)
                 n = nc * du  # columns of M
@@ -672,14 +691,21 @@ class LinearSystem:
                 idx_t = np.int32 if max(n_out, (w1 - w0) * dv) < 2**31 else np.int64
                 rhs_pos = (self.uoffset[uu[cams]][:, None] + np.arange(du)).reshape(-1)
                 panels.append(_Panel(v0, w0, w1, v1 - v0, nc, indptr.astype(idx_t),
-                                     indices.astype(idx_t), d0, d0 + len(indices),
-                                     dest.reshape(-1), src.reshape(-1), rhs_pos))
+                                     indices.astype(idx_t), d0, d0 + len(indices), r0,
+                                     rhs_pos))
+                to_rows.append(dest.reshape(-1))
+                to_cols.append(r0 + src.reshape(-1))
                 d0 += len(indices)
+                r0 += n * n
                 largest = max(largest, n_out * du)
             scratch = np.zeros(largest)
             scratch.fill(0.0)  # touch the pages here, not in the first iteration
+            rows = np.concatenate(to_rows) if to_rows else np.zeros(0, np.int64)
+            cols = np.concatenate(to_cols) if to_cols else np.zeros(0, np.int64)
+            to_s = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(self.nnz, r0))
             self.dense_terms.append(_DenseSchurTerm(
-                k, panels, np.concatenate(lidx) if lidx else np.zeros(0, np.int64), scratch))
+                k, panels, np.concatenate(lidx) if lidx else np.zeros(0, np.int64), scratch,
+                np.zeros(r0), to_s))
         del self._dense_pairs
 
     # --- numbers -----------------------------------------------------------------------------
@@ -699,9 +725,10 @@ class LinearSystem:
         """
         h = np.zeros(self.nnz)
         bu = np.zeros(self.n)
-        v = [np.zeros((len(c.slots), c.dim, c.dim)) for c in self.vclasses]
-        bv = [np.zeros((len(c.slots), c.dim)) for c in self.vclasses]
-        # W classes are allocated on first use: a one-to-one first term is used as it is.
+        # V and W classes are allocated on first use: a first term that covers every block of
+        # its class in order is used as it is (no zero fill, no scatter-add).
+        v: list[np.ndarray | None] = [None] * len(self.vclasses)
+        bv: list[np.ndarray | None] = [None] * len(self.vclasses)
         wt: list[np.ndarray | None] = [None] * len(self.wclasses)
         for gt, J, WJ, we in zip(self.terms, jacobians, weighted, weighted_errors, strict=True):
             mats = []
@@ -715,16 +742,13 @@ class LinearSystem:
                     if t.dest_t is not None:
                         h[t.dest_t] += flat
                 elif t.kind == "V":
-                    v[t.cls][t.dest] += blk
                     if t.mirror:
-                        v[t.cls][t.dest] += np.swapaxes(blk, 1, 2)
-                elif wt[t.cls] is None and t.identity:
-                    wt[t.cls] = blk  # one-to-one and first: no scatter needed
+                        blk = blk + np.swapaxes(blk, 1, 2)
+                    c = self.vclasses[t.cls]
+                    _add_blocks(v, t.cls, t.dest, blk, t.identity, (len(c.slots), c.dim, c.dim))
                 else:
-                    if wt[t.cls] is None:
-                        c = self.wclasses[t.cls]
-                        wt[t.cls] = np.zeros((len(c.ublock), c.dv, c.du))
-                    wt[t.cls][t.dest] += blk
+                    c = self.wclasses[t.cls]
+                    _add_blocks(wt, t.cls, t.dest, blk, t.identity, (len(c.ublock), c.dv, c.du))
             we3 = we[:, :, None]
             for g in gt.gterms:
                 M = mats[g.shared] if g.shared >= 0 else g.contraction.matrix(
@@ -733,10 +757,15 @@ class LinearSystem:
                 if g.kind == "U":
                     bu[g.dest] += gb
                 else:
-                    bv[g.cls][g.dest] += gb
+                    c = self.vclasses[g.cls]
+                    _add_blocks(bv, g.cls, g.dest, gb, g.identity, (len(c.slots), c.dim))
+        vfull = [x if x is not None else np.zeros((len(c.slots), c.dim, c.dim))
+                 for x, c in zip(v, self.vclasses, strict=True)]
+        bvfull = [x if x is not None else np.zeros((len(c.slots), c.dim))
+                  for x, c in zip(bv, self.vclasses, strict=True)]
         wfull = [w if w is not None else np.zeros((len(c.ublock), c.dv, c.du))
                  for w, c in zip(wt, self.wclasses, strict=True)]
-        return Assembly(h, bu, v, bv, wfull)
+        return Assembly(h, bu, vfull, bvfull, wfull)
 
     @staticmethod
     def is_finite(asm: Assembly) -> bool:
@@ -818,9 +847,10 @@ class LinearSystem:
                 csr_product_into(n_out, (p.w1 - p.w0) * dv, du, p.indptr, p.indices,
                                  lvals[p.d0:p.d1], wflat[p.w0 * dv * du:p.w1 * dv * du], m)
                 m2 = m.reshape(p.rows * dv, n)  # Z = L⁻¹Wᵀ, dense over the panel
-                c = blas.dsyrk(1.0, m2.T, trans=0)  # m2ᵀ m2, upper triangle, column-major
-                s[p.dest] -= c.ravel(order="F")[p.src]
+                c = dt.results[p.r0:p.r0 + n * n].reshape(n, n, order="F")
+                blas.dsyrk(1.0, m2.T, trans=0, c=c, overwrite_c=1)  # m2ᵀ m2, upper triangle
                 rhs[p.rhs_pos] -= m2.T @ x[p.v0:p.v0 + p.rows].reshape(-1)
+            s -= dt.to_s @ dt.results
         for pt in self.pair_terms:
             red = pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(len(pt.dest), -1)
             s[pt.dest] -= red
