@@ -104,9 +104,8 @@ class _PairTerm:
     k1: int
     k2: int
     contraction: BlockContraction | EdgeContraction
-    dest: np.ndarray  # (t, d1*d2) positions in S data
-    dest_t: np.ndarray | None  # transposed positions of the off-diagonal targets
-    offdiag: np.ndarray | None  # (t,) bool
+    # Sums the products into S's data (both triangles): one sparse product, no fancy indexing.
+    to_s: sp.csr_matrix
 
 
 @dataclass
@@ -649,8 +648,11 @@ class LinearSystem:
                 con = BlockContraction(inv, w1, w2, len(uniq), c1.dv, c1.du, len(c2.ublock))
             pos, post = self._dest(tu1, tu2)
             off = tu1 != tu2
-            self.pair_terms.append(_PairTerm(k1, k2, con, pos, post[off] if off.any() else None,
-                                             off if off.any() else None))
+            src = np.arange(pos.size).reshape(pos.shape)
+            rows = np.concatenate([pos.ravel(), post[off].ravel()])
+            cols = np.concatenate([src.ravel(), src[off].ravel()])
+            to_s = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(self.nnz, pos.size))
+            self.pair_terms.append(_PairTerm(k1, k2, con, to_s))
         del self._pairs
         self.dense_terms: list[_DenseSchurTerm] = []
         nb = max(self.n_ublocks, 1)
@@ -852,10 +854,7 @@ class LinearSystem:
                 rhs[p.rhs_pos] -= m2.T @ x[p.v0:p.v0 + p.rows].reshape(-1)
             s -= dt.to_s @ dt.results
         for pt in self.pair_terms:
-            red = pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(len(pt.dest), -1)
-            s[pt.dest] -= red
-            if pt.dest_t is not None:
-                s[pt.dest_t] -= red[pt.offdiag]
+            s -= pt.to_s @ pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(-1)
         return s, rhs, vinv, yt
 
     def y_transposed(self, asm: Assembly, vinv: list[np.ndarray],
