@@ -15,64 +15,6 @@ class NotPositiveDefiniteError(np.linalg.LinAlgError):
     """A block or the reduced system is not positive definite."""
 
 
-def batched_inverse_spd(A: np.ndarray) -> np.ndarray:
-    """Inverse of many small symmetric positive definite matrices.
-
-    Closed forms for sizes 1–3 (cofactors; Sylvester's criterion checks definiteness), batched
-    Cholesky otherwise.
-
-    Args:
-        A: ``(n, d, d)`` symmetric matrices.
-
-    Returns:
-        ``(n, d, d)`` inverses.
-
-    Raises:
-        NotPositiveDefiniteError: if any block is not positive definite.
-    """
-    n, d, _ = A.shape
-    if n == 0:
-        return A.copy()
-    if d == 1:
-        if np.any(~(A[:, 0, 0] > 0)):
-            raise NotPositiveDefiniteError("a 1x1 block is not positive")
-        return 1.0 / A
-    if d == 2:
-        a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 1, 1]
-        det = a * c - b * b
-        if np.any(~(a > 0)) or np.any(~(det > 0)):
-            raise NotPositiveDefiniteError("a 2x2 block is not positive definite")
-        inv = np.empty_like(A)
-        inv[:, 0, 0], inv[:, 1, 1] = c / det, a / det
-        inv[:, 0, 1] = inv[:, 1, 0] = -b / det
-        return inv
-    if d == 3:
-        a00, a01, a02 = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
-        a11, a12, a22 = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
-        c00 = a11 * a22 - a12 * a12
-        c01 = a02 * a12 - a01 * a22
-        c02 = a01 * a12 - a02 * a11
-        det = a00 * c00 + a01 * c01 + a02 * c02
-        m2 = a00 * a11 - a01 * a01
-        if np.any(~(a00 > 0)) or np.any(~(m2 > 0)) or np.any(~(det > 0)):
-            raise NotPositiveDefiniteError("a 3x3 block is not positive definite")
-        inv = np.empty_like(A)
-        r = 1.0 / det
-        inv[:, 0, 0] = c00 * r
-        inv[:, 0, 1] = inv[:, 1, 0] = c01 * r
-        inv[:, 0, 2] = inv[:, 2, 0] = c02 * r
-        inv[:, 1, 1] = (a00 * a22 - a02 * a02) * r
-        inv[:, 1, 2] = inv[:, 2, 1] = (a01 * a02 - a00 * a12) * r
-        inv[:, 2, 2] = m2 * r
-        return inv
-    try:
-        L = np.linalg.cholesky(A)
-    except np.linalg.LinAlgError as exc:
-        raise NotPositiveDefiniteError(f"a {d}x{d} block is not positive definite") from exc
-    Linv = np.linalg.inv(L)
-    return np.swapaxes(Linv, 1, 2) @ Linv
-
-
 def batched_cholesky_inverses(
     A: np.ndarray, diag: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:

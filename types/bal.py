@@ -77,7 +77,7 @@ class VertexCameraBAL(BaseVertex):
         Args:
             estimates: ``(n, 9)`` cameras.
         """
-        return so3_exp(estimates[:, :3]).reshape(len(estimates), 9)
+        return _rotation_entries(estimates[:, :3])  # the edge's own formula, once per camera
 
 
 def _rodrigues(
@@ -86,7 +86,7 @@ def _rodrigues(
     """Per-row ``(cosθ, sinθ, 1−cosθ, kx, ky, kz)`` of angle-axis vectors ``w`` (``(m, 3)``).
 
     For tiny θ the axis is returned as ``w`` itself with ``sinθ → 1`` and ``1−cosθ → 0`` so that
-    the rotation formula degenerates to ``v + w×v`` (first order).
+    the rotation formula degenerates to ``R ≈ I + [w]×`` (first order).
     """
     wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
     theta2 = wx * wx + wy * wy + wz * wz
@@ -96,20 +96,6 @@ def _rodrigues(
     c = np.where(small, 1.0, np.cos(theta))
     s = np.where(small, 1.0, np.sin(theta))
     return c, s, 1.0 - c, wx * inv, wy * inv, wz * inv
-
-
-def _rotate(
-    rod: tuple[np.ndarray, ...], vx: np.ndarray, vy: np.ndarray, vz: np.ndarray, sign: float = 1.0
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rotate ``v`` by ``R`` (``sign=+1``) or ``Rᵀ`` (``sign=−1``) with Rodrigues' formula."""
-    c, s, omc, kx, ky, kz = rod
-    s = sign * s
-    kv = (kx * vx + ky * vy + kz * vz) * omc
-    return (
-        vx * c + (ky * vz - kz * vy) * s + kx * kv,
-        vy * c + (kz * vx - kx * vz) * s + ky * kv,
-        vz * c + (kx * vy - ky * vx) * s + kz * kv,
-    )
 
 
 def _rotation_entries(w: np.ndarray) -> np.ndarray:
@@ -133,7 +119,7 @@ def angle_axis_rotate(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     Returns:
         ``(m, 3)`` rotated vectors.
     """
-    return np.stack(_rotate(_rodrigues(w), v[:, 0], v[:, 1], v[:, 2]), axis=1)
+    return np.einsum("nij,nj->ni", _rotation_entries(w).reshape(len(w), 3, 3), v)
 
 
 def bal_project(

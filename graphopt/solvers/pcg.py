@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from graphopt.block_ops import NotPositiveDefiniteError, batched_inverse_spd
+from graphopt.block_ops import NotPositiveDefiniteError, batched_cholesky_inverses
 from graphopt.solvers.base import LinearSolver
 
 
@@ -70,7 +70,7 @@ class LinearSolverPCG(LinearSolver):
         # A symmetric CSC matrix read as CSR is the same matrix; CSR matvec is the faster one.
         p = self.pattern
         A = sp.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
-        pre = [(batched_inverse_spd(data[pos]), idx) for _, pos, idx in self._groups]
+        pre = [(batched_cholesky_inverses(data[pos])[1], idx) for _, pos, idx in self._groups]
 
         def precondition(r: np.ndarray) -> np.ndarray:
             z = np.empty_like(r)
