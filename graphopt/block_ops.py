@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-try:  # SciPy's C kernel of ``csr @ dense``; it accumulates into a given output array.
+try:  # SciPy's C kernels of ``csr @ dense`` and ``csc @ dense``; they accumulate into a
+    # given output array.
+    from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs
     from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs
 except ImportError:  # pragma: no cover - private module: fall back to the public product
-    _csr_matvecs = None
+    _csr_matvecs = _csc_matvecs = None
 
 
 class NotPositiveDefiniteError(np.linalg.LinAlgError):
@@ -89,8 +91,9 @@ def csr_product_into(
     data: np.ndarray,
     b: np.ndarray,
     out: np.ndarray,
+    csc: bool = False,
 ) -> None:
-    """``out = A @ B`` for a CSR matrix ``A`` and a dense ``B``, written into ``out``.
+    """``out = A @ B`` for a CSR (or CSC) matrix ``A`` and a dense ``B``, written into ``out``.
 
     Writing into a preallocated (cache-resident) buffer instead of a new array saves an
     allocation and its page faults per product; SciPy's public product is the fallback.
@@ -99,18 +102,21 @@ def csr_product_into(
         n_rows: Rows of ``A``.
         n_cols: Columns of ``A`` (rows of ``B``).
         width: Columns of ``B``.
-        indptr: ``A``'s CSR row pointer (same integer type as ``indices``).
-        indices: ``A``'s column indices.
+        indptr: ``A``'s row (column, for CSC) pointer (same integer type as ``indices``).
+        indices: ``A``'s column (row) indices.
         data: ``A``'s values (float64).
-        b: ``B`` flattened, C order, ``n_cols · width`` values.
+        b: ``B`` flattened, C order, at least ``n_cols · width`` values (the first are used).
         out: Flat C-order output of ``n_rows · width`` values (overwritten).
+        csc: ``A`` is given in CSC form.
     """
-    if _csr_matvecs is None:
-        a = sp.csr_matrix((data, indices, indptr), shape=(n_rows, n_cols))
-        out[:] = (a @ b.reshape(n_cols, width)).reshape(-1)
+    kernel = _csc_matvecs if csc else _csr_matvecs
+    if kernel is None:
+        fmt = sp.csc_matrix if csc else sp.csr_matrix
+        a = fmt((data, indices, indptr), shape=(n_rows, n_cols))
+        out[:] = (a @ b[:n_cols * width].reshape(n_cols, width)).reshape(-1)
         return
     out.fill(0.0)
-    _csr_matvecs(n_rows, n_cols, width, indptr, indices, data, b, out)
+    kernel(n_rows, n_cols, width, indptr, indices, data, b, out)
 
 
 class _CscContraction:
@@ -248,3 +254,116 @@ class EdgeContraction(_CscContraction):
 
     def _values(self, A: np.ndarray) -> np.ndarray:
         return A.reshape(-1) if self.all else A[self.sel].reshape(-1)
+
+
+class GatheredGram:
+    """``out[j] = Σ_{q: piece[q]=j} Z[a_idx[q]]ᵀ · Z[b_idx[q]]`` by batched BLAS products.
+
+    For sums with many terms per output (the pairs of U blocks that share V blocks, in a
+    Schur complement with few U blocks), a product per output beats a sparse contraction:
+    the ``(r, d)`` blocks of an output's terms are gathered, whole rows at a time, into two
+    contiguous ``(n·r, d)`` matrices and multiplied by BLAS (about 0.15 ns per multiply-add
+    against SciPy's sparse loop's 0.4). Outputs with similar term counts share one
+    ``np.matmul`` call: each is padded to the largest count of its chunk with the zero block
+    ``Z[zero]``, and a chunk gathers at most ``max_blocks`` blocks a side, so that it stays in
+    cache. Outputs with more terms than that are split into pieces (the caller sums pieces of
+    one target). Where every term of a chunk has ``a == b`` (a block with itself), one gather
+    serves both sides. Everything but the numbers is fixed here.
+
+    Args:
+        target: ``(q,)`` target of every term.
+        a_idx: ``(q,)`` left block of every term.
+        b_idx: ``(q,)`` right block of every term.
+        n_targets: Number of targets.
+        zero: Index of a block of ``Z`` that is zero (the padding).
+        r: Rows of a block.
+        d: Columns of a block.
+        max_blocks: Most blocks a chunk gathers per side.
+        ratio: Largest ratio of term counts padded to one size.
+
+    Attributes:
+        targets: ``(n_out,)`` target of every output (a target's pieces are separate outputs).
+        n_out: Number of outputs.
+        padded: Blocks multiplied, padding included.
+        gathered: Blocks gathered, padding included.
+    """
+
+    def __init__(
+        self,
+        target: np.ndarray,
+        a_idx: np.ndarray,
+        b_idx: np.ndarray,
+        n_targets: int,
+        zero: int,
+        r: int,
+        d: int,
+        max_blocks: int = 1024,
+        ratio: float = 1.1,
+    ) -> None:
+        target = np.asarray(target, dtype=np.int64)
+        order = np.argsort(target, kind="stable")
+        target = target[order]
+        a_idx = np.asarray(a_idx, dtype=np.int64)[order]
+        b_idx = np.asarray(b_idx, dtype=np.int64)[order]
+        self.r, self.d, self.zero = r, d, zero
+        cnt = np.bincount(target, minlength=n_targets)
+        start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        rank = np.arange(len(target)) - start[target]
+        # Pieces of at most max_blocks terms; a piece is one output.
+        n_pieces = -(-cnt // max_blocks)
+        first = np.concatenate([[0], np.cumsum(n_pieces)[:-1]])
+        piece = first[target] + rank // max_blocks
+        pos = rank % max_blocks  # place of a term within its piece
+        n_out = int(n_pieces.sum())
+        piece_target = np.repeat(np.arange(n_targets), n_pieces)
+        pcnt = np.bincount(piece, minlength=n_out)
+        same = np.bincount(piece, weights=a_idx != b_idx, minlength=n_out) == 0
+        # Chunks: pieces of one kind (a == b or not) and one count level, padded to the
+        # level's largest count.
+        level = np.floor(np.log(np.maximum(pcnt, 1)) / np.log(ratio) + 1e-9).astype(np.int64)
+        porder = np.lexsort((pcnt, level, ~same))
+        key = (~same[porder]).astype(np.int64) * (int(level.max(initial=0)) + 1) + level[porder]
+        bounds = np.flatnonzero(np.diff(key)) + 1
+        self.chunks: list[tuple[int, int, int, int, bool]] = []  # p0, n, m, o0, same
+        slot = np.empty(n_out, dtype=np.int64)  # first padded slot of every output
+        p0 = 0
+        for b0, b1 in zip(np.r_[0, bounds].tolist(), np.r_[bounds, n_out].tolist(), strict=True):
+            m = int(pcnt[porder[b1 - 1]])
+            per = max(1, max_blocks // m)
+            for o0 in range(b0, b1, per):
+                n = min(per, b1 - o0)
+                slot[o0:o0 + n] = p0 + m * np.arange(n)
+                self.chunks.append((p0, n, m, o0, bool(same[porder[o0]])))
+                p0 += n * m
+        self.padded = p0
+        self.gathered = sum(n * m * (1 if s else 2) for _, n, m, _, s in self.chunks)
+        out_of = np.empty(n_out, dtype=np.int64)
+        out_of[porder] = np.arange(n_out)  # output row of every piece
+        dest = slot[out_of[piece]] + pos
+        self.ia = np.full(p0, zero, dtype=np.intp)
+        self.ib = np.full(p0, zero, dtype=np.intp)
+        self.ia[dest], self.ib[dest] = a_idx, b_idx
+        self.targets = piece_target[porder]
+        self.n_out = n_out
+        largest = max((n * m for _, n, m, _, _ in self.chunks), default=0)
+        self._bufa = np.zeros(largest * r * d)
+        self._bufb = np.zeros(largest * r * d)
+
+    def __call__(self, Z: np.ndarray, out: np.ndarray) -> None:
+        """Write every output into ``out``.
+
+        Args:
+            Z: ``(nZ, r·d)`` blocks as rows; ``Z[zero]`` must be zero.
+            out: ``(n_out, d, d)`` output (overwritten).
+        """
+        r, d = self.r, self.d
+        w = r * d
+        for p0, n, m, o0, same in self.chunks:
+            a = self._bufa[:n * m * w].reshape(n * m, w)
+            np.take(Z, self.ia[p0:p0 + n * m], axis=0, out=a, mode="clip")  # clip: unbuffered
+            b = a
+            if not same:
+                b = self._bufb[:n * m * w].reshape(n * m, w)
+                np.take(Z, self.ib[p0:p0 + n * m], axis=0, out=b, mode="clip")
+            np.matmul(a.reshape(n, m * r, d).transpose(0, 2, 1), b.reshape(n, m * r, d),
+                      out=out[o0:o0 + n])

@@ -23,6 +23,7 @@ import scipy.sparse as sp
 from graphopt.block_ops import (
     BlockContraction,
     EdgeContraction,
+    GatheredGram,
     batched_cholesky_inverses,
     csr_product_into,
 )
@@ -148,6 +149,33 @@ class _DenseSchurTerm:
     # Sums the upper-triangle entries of ``results`` into S's pattern: one sparse product
     # instead of a fancy-indexed subtraction per panel.
     to_s: sp.csr_matrix
+
+
+@dataclass
+class _GramSchurTerm:
+    """``W V⁻¹ Wᵀ`` and ``W V⁻¹ b_v`` of one W class through ``Z = L⁻¹Wᵀ`` (``V = LLᵀ``).
+
+    ``Z`` is formed for every W block by one constant-structure CSR product (the entries of
+    ``L⁻¹`` times the W array as it is) into a buffer whose last block stays zero. Then every
+    block of S is a sum of ``Z_aᵀ Z_b`` over the W blocks ``a``, ``b`` of its two U blocks that
+    share a V block (a U block with itself on the diagonal), computed per block of S by
+    :class:`GatheredGram`; the right-hand side takes ``Z_wᵀ L⁻¹b_v`` per W block.
+    """
+
+    k: int
+    indptr: np.ndarray  # CSR rows (W block, row i of Z) → entries j ≤ i of L⁻¹ ...
+    indices: np.ndarray  # ... times rows (W block, j) of the Wᵀ array
+    lidx: np.ndarray  # flat index into L⁻¹ of every CSR entry
+    z: np.ndarray  # ((nw + 1)·dv·du,) Z, one block after the other, then a zero block
+    gram: GatheredGram
+    results: np.ndarray  # (gram.n_out, du, du)
+    # Sums the results into S's pattern (both triangles): one sparse product.
+    to_s: sp.csr_matrix
+    # ``Σ_w Z_wᵀ (L⁻¹b_v)[v_w]`` per U block is one product of a CSC matrix (rows: U blocks of
+    # the class; column (w, i) holds entry i of L⁻¹b_v of w's V block) with Z as it is.
+    rhs_indptr: np.ndarray
+    rhs_indices: np.ndarray
+    rhs_lidx: np.ndarray  # flat index into L⁻¹b_v of every column (w, i)
 
 
 @dataclass
@@ -438,6 +466,7 @@ class LinearSystem:
         # Pairs of W blocks sharing a V block: the fill of the reduced system.
         self._pairs: list[tuple[int, int, np.ndarray, np.ndarray | None]] = []
         self._dense_pairs: list[tuple[int, list[tuple[int, int, int, int, np.ndarray]]]] = []
+        self._gram_pairs: list[tuple[int, GatheredGram, np.ndarray]] = []
         for k1, c1 in enumerate(self.wclasses):
             for k2 in range(k1, len(self.wclasses)):
                 c2 = self.wclasses[k2]
@@ -452,11 +481,14 @@ class LinearSystem:
                 u1, u2 = c1.ublock[w1], c2.ublock[w2]
                 ublock_pairs.append(np.stack([u1, u2], 1))
                 ublock_pairs.append(np.stack([u2, u1], 1))
-                panels = self._dense_panels(c1, len(w1)) if k1 == k2 else None
-                if panels is not None:
-                    self._dense_pairs.append((k1, panels))
-                    continue
                 if k1 == k2:
+                    path = self._schur_path(c1, w1, w2)
+                    if isinstance(path, list):
+                        self._dense_pairs.append((k1, path))
+                        continue
+                    if path is not None:
+                        self._gram_pairs.append((k1, *path))
+                        continue
                     self._pairs.append((k1, k1, np.arange(len(c1.ublock)), None))
                 if len(w1):
                     self._pairs.append((k1, k2, w1, w2))
@@ -465,13 +497,19 @@ class LinearSystem:
         bp = np.concatenate(ublock_pairs)
         self._block_pairs = _unique(bp[:, 1] * nb + bp[:, 0], nb * nb)
 
-    #: Costs (seconds per unit, fitted on this project's 2-core machine) behind the sparse/dense
-    #: choice for ``W V⁻¹ Wᵀ``: a value gathered (in whole rows) by ``np.take``, a multiply-add
-    #: in SciPy's sparse product, a multiply-add in BLAS ``syrk`` on wide panels, a value of
-    #: ``L⁻¹Wᵀ`` formed and placed in a panel, an element of a panel (zeroed, read again for the
-    #: right-hand side), an element of a panel's ``n × n`` product, one panel.
-    COST_GATHER, COST_SPARSE_MAC, COST_BLAS_MAC = 0.6e-9, 0.4e-9, 3.2e-11
+    #: Costs (seconds per unit, fitted on this project's 2-core machine) behind the choice
+    #: among the three ways to form ``W V⁻¹ Wᵀ`` (sparse pair contractions, dense panels,
+    #: gathered Gram products): a value gathered (in whole rows) by ``np.take``, a multiply-add
+    #: in SciPy's sparse product, in NumPy's loops for small matrices (``V⁻¹Wᵀ``), in BLAS
+    #: ``syrk`` on wide panels and in the batched ``(d, n) × (n, d)`` products of a Gram; a
+    #: value of ``L⁻¹Wᵀ`` formed and placed in a panel, an element of a panel (zeroed, read
+    #: again for the right-hand side), an element of a panel's ``n × n`` product, one panel;
+    #: a value of ``Z = L⁻¹Wᵀ`` formed for a Gram (and read again for the right-hand side), a
+    #: value gathered into a Gram's chunk, one output block and one chunk of a Gram.
+    COST_GATHER, COST_SPARSE_MAC, COST_SMALL_MAC, COST_BLAS_MAC = 0.6e-9, 0.4e-9, 0.7e-9, 3.2e-11
     COST_PLACE, COST_AREA, COST_DENSE_ELEMENT, COST_PANEL = 2.4e-9, 0.8e-9, 4.2e-9, 3e-5
+    COST_GEMM_MAC, COST_Z, COST_GRAM_GATHER = 1.35e-10, 3.0e-9, 0.8e-9
+    COST_GEMM_OUTPUT, COST_GEMM_CHUNK = 5e-7, 5e-6
     #: ``syrk`` on ``n`` columns runs at about ``n / (n + BLAS_HALF)`` of its peak rate.
     BLAS_HALF = 45
     #: Most rows of a panel's dense matrix (about 1.6 MB for 100 columns: it stays in cache).
@@ -485,10 +523,56 @@ class LinearSystem:
         return (self.COST_PANEL + syrk + self.COST_PLACE * placed + self.COST_AREA * rows * n
                 + self.COST_DENSE_ELEMENT * n * n)
 
-    def _dense_panels(self, c: WClass, n_cross: int
-                      ) -> list[tuple[int, int, int, int, np.ndarray]] | None:
-        """Panels ``(v0, v1, w0, w1, local U indices)`` if dense ``syrk`` products beat the
-        sparse pair contractions for this W class, else ``None``.
+    def _schur_path(self, c: WClass, w1: np.ndarray, w2: np.ndarray
+                    ) -> list[tuple[int, int, int, int, np.ndarray]] | tuple[
+                        GatheredGram, np.ndarray] | None:
+        """The cheapest way (by the cost model) to form ``W V⁻¹ Wᵀ`` of W class ``c``:
+        dense panels (their list), a gathered Gram (it and its targets' keys) or the sparse
+        pair contractions (``None``).
+
+        Args:
+            c: A W class.
+            w1: Its pairs of W blocks that share a V block, ``u(w1) < u(w2)``: first ...
+            w2: ... and second blocks.
+        """
+        nw, n_cross = len(c.ublock), len(w1)
+        dv, du = c.dv, c.du
+        sparse = (self.COST_GATHER * n_cross * dv * du
+                  + self.COST_SPARSE_MAC * (n_cross + nw) * dv * du * du
+                  + self.COST_SPARSE_MAC * nw * dv * du  # the right-hand side
+                  + self.COST_SMALL_MAC * nw * dv * dv * du)  # Yᵀ = V⁻¹Wᵀ
+        best: tuple[float, list[tuple[int, int, int, int, np.ndarray]] | tuple[
+            GatheredGram, np.ndarray] | None] = (sparse, None)
+        dense = self._dense_panels(c)
+        if dense is not None and dense[1] < best[0]:
+            best = (dense[1], dense[0])
+        # Without padding or overheads: a lower bound that spares building a hopeless Gram.
+        gram_bound = (self.COST_Z * nw * dv * du
+                      + self.COST_GRAM_GATHER * (nw + 2 * n_cross) * dv * du
+                      + self.COST_GEMM_MAC * (nw + n_cross) * dv * du * du)
+        if nw and self.GRAM_ENABLED and gram_bound < best[0]:
+            nb = max(self.n_ublocks, 1)
+            w = np.arange(nw)
+            keys = np.concatenate([c.ublock * (nb + 1), c.ublock[w1] * nb + c.ublock[w2]])
+            uniq, inv = _unique(keys, nb * nb, True)
+            gram = GatheredGram(inv, np.concatenate([w, w1]), np.concatenate([w, w2]),
+                                len(uniq), nw, dv, du)
+            cost = (self.COST_Z * nw * dv * du
+                    + self.COST_GRAM_GATHER * gram.gathered * dv * du
+                    + self.COST_GEMM_MAC * gram.padded * dv * du * du
+                    + self.COST_GEMM_OUTPUT * gram.n_out
+                    + self.COST_GEMM_CHUNK * len(gram.chunks))
+            if cost < best[0]:
+                best = (cost, (gram, uniq))
+        return best[1]
+
+    #: Whether the gathered Gram products are considered (tests switch paths off).
+    GRAM_ENABLED = True
+
+    def _dense_panels(self, c: WClass
+                      ) -> tuple[list[tuple[int, int, int, int, np.ndarray]], float] | None:
+        """Panels ``(v0, v1, w0, w1, local U indices)`` for dense ``syrk`` products of this W
+        class and their modelled cost, or ``None`` if there are none or they would be too large.
 
         V blocks come in runs with identical U sets (see :meth:`_order_v_blocks`). A greedy
         scan merges the next run into the current panel while that is cheaper than starting a
@@ -542,11 +626,9 @@ class LinearSystem:
             closed.append(cur)
         dense = sum(p[3] for p in closed)
         elements = sum((v1 - v0) * dv * m.bit_count() * du for v0, v1, m, _ in closed)
-        panels = [self._panel_spec(p, ws) for p in closed]
-        sparse = (self.COST_GATHER * n_cross * dv * du
-                  + self.COST_SPARSE_MAC * (n_cross + nw) * dv * du * du
-                  + self.COST_SPARSE_MAC * nw * dv * du)  # the rhs product, folded when dense
-        return panels if dense < sparse and elements <= self.DENSE_LIMIT else None
+        if elements > self.DENSE_LIMIT:
+            return None
+        return [self._panel_spec(p, ws) for p in closed], dense
 
     @staticmethod
     def _panel_spec(cur: tuple[int, int, int, float], ws: list[int]
@@ -586,6 +668,16 @@ class LinearSystem:
         pos = self._positions(r, c)
         post = self._positions(c.reshape(-1, d1, d2), r.reshape(-1, d1, d2))
         return pos, post.reshape(len(br), -1)
+
+    def _to_s(self, tu1: np.ndarray, tu2: np.ndarray) -> sp.csr_matrix:
+        """The constant sparse matrix that sums result blocks ``(tu1, tu2)`` (row-major, one
+        after the other) into S's data: both triangles for ``tu1 != tu2``."""
+        pos, post = self._dest(tu1, tu2)
+        off = tu1 != tu2
+        src = np.arange(pos.size).reshape(pos.shape)
+        rows = np.concatenate([pos.ravel(), post[off].ravel()])
+        cols = np.concatenate([src.ravel(), src[off].ravel()])
+        return sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(self.nnz, pos.size))
 
     #: Largest ``n²`` for which pattern positions are looked up in a dense table.
     POSMAP_MAX = 4_000_000
@@ -646,14 +738,26 @@ class LinearSystem:
                 tu1, tu2 = uniq // nb, uniq % nb
                 # S_t −= Σ Y_w1 W_w2ᵀ = Σ (Yᵀ_w1)ᵀ Wᵀ_w2: A = Yᵀ (dv, du1), B = Wᵀ (dv, du2).
                 con = BlockContraction(inv, w1, w2, len(uniq), c1.dv, c1.du, len(c2.ublock))
-            pos, post = self._dest(tu1, tu2)
-            off = tu1 != tu2
-            src = np.arange(pos.size).reshape(pos.shape)
-            rows = np.concatenate([pos.ravel(), post[off].ravel()])
-            cols = np.concatenate([src.ravel(), src[off].ravel()])
-            to_s = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(self.nnz, pos.size))
-            self.pair_terms.append(_PairTerm(k1, k2, con, to_s))
+            self.pair_terms.append(_PairTerm(k1, k2, con, self._to_s(tu1, tu2)))
         del self._pairs
+        self.gram_terms: list[_GramSchurTerm] = []
+        for k, gram, keys in self._gram_pairs:
+            c = self.wclasses[k]
+            dv, du, nw = c.dv, c.du, len(c.ublock)
+            ti, tj = np.tril_indices(dv)
+            out_row = (np.arange(nw)[:, None] * dv + ti).ravel()
+            idx_t = np.int32 if (nw + 1) * dv < 2**31 else np.int64
+            indptr = np.searchsorted(out_row, np.arange((nw + 1) * dv + 1)).astype(idx_t)
+            indices = (np.arange(nw)[:, None] * dv + tj).ravel().astype(idx_t)
+            lidx = (c.vblock[:, None] * dv * dv + ti * dv + tj).ravel()
+            tk = keys[gram.targets]
+            _, inv = _unique(c.ublock, nb, True)
+            self.gram_terms.append(_GramSchurTerm(
+                k, indptr, indices, lidx, np.zeros((nw + 1) * dv * du), gram,
+                np.zeros((gram.n_out, du, du)), self._to_s(tk // nb, tk % nb),
+                np.arange(nw * dv + 1, dtype=idx_t), np.repeat(inv, dv).astype(idx_t),
+                (c.vblock[:, None] * dv + np.arange(dv)).ravel()))
+        del self._gram_pairs
         self.dense_terms: list[_DenseSchurTerm] = []
         nb = max(self.n_ublocks, 1)
         for k, panel_specs in self._dense_pairs:
@@ -823,10 +927,11 @@ class LinearSystem:
             linv.append(li)
             vinv.append(vi)
         rhs = asm.bu.copy()
-        dense = {dt.k for dt in self.dense_terms}  # their rhs share is folded into the panels
+        # Dense and Gram terms compute their share of the right-hand side themselves.
+        own_rhs = {t.k for t in self.dense_terms} | {t.k for t in self.gram_terms}
         vb_rhs: dict[int, np.ndarray] = {}  # V⁻¹ b_v per V class, when a sparse class needs it
         for k, wc in enumerate(self.wclasses):
-            if k in dense:
+            if k in own_rhs:
                 continue
             if wc.vclass not in vb_rhs:
                 vb_rhs[wc.vclass] = np.einsum("nij,nj->ni", vinv[wc.vclass], asm.bv[wc.vclass])
@@ -834,13 +939,17 @@ class LinearSystem:
             y = vb_rhs[wc.vclass][wc.vblock]
             rhs[wc.rhs_dest] -= wc.rhs(asm.wt[k], y[:, :, None])[:, :, 0]
         yt = self.y_transposed(asm, vinv, only={pt.k1 for pt in self.pair_terms})
-        lb: dict[int, np.ndarray] = {}  # L⁻¹ b_v per V class
+        lb: dict[int, np.ndarray] = {}  # L⁻¹ b_v per V class, computed on first use
+
+        def l_inv_b(vc: int) -> np.ndarray:
+            if vc not in lb:
+                lb[vc] = np.einsum("nij,nj->ni", linv[vc], asm.bv[vc])
+            return lb[vc]
+
         for dt in self.dense_terms:
             wc = self.wclasses[dt.k]
             dv, du = wc.dv, wc.du
-            if wc.vclass not in lb:
-                lb[wc.vclass] = np.einsum("nij,nj->ni", linv[wc.vclass], asm.bv[wc.vclass])
-            x = lb[wc.vclass]
+            x = l_inv_b(wc.vclass)
             lvals = np.take(linv[wc.vclass].reshape(-1), dt.lidx)
             wflat = np.ascontiguousarray(asm.wt[dt.k]).reshape(-1)
             for p in dt.panels:  # cache-sized tiles of V blocks with similar U sets
@@ -853,6 +962,21 @@ class LinearSystem:
                 blas.dsyrk(1.0, m2.T, trans=0, c=c, overwrite_c=1)  # m2ᵀ m2, upper triangle
                 rhs[p.rhs_pos] -= m2.T @ x[p.v0:p.v0 + p.rows].reshape(-1)
             s -= dt.to_s @ dt.results
+        for gt in self.gram_terms:
+            wc = self.wclasses[gt.k]
+            dv, du, nw = wc.dv, wc.du, len(wc.ublock)
+            lvals = np.take(linv[wc.vclass].reshape(-1), gt.lidx)
+            wflat = np.ascontiguousarray(asm.wt[gt.k]).reshape(-1)
+            csr_product_into((nw + 1) * dv, nw * dv, du, gt.indptr, gt.indices, lvals, wflat,
+                             gt.z)  # Z = L⁻¹Wᵀ, then the zero block
+            z = gt.z.reshape(nw + 1, dv * du)
+            gt.gram(z, gt.results)
+            s -= gt.to_s @ gt.results.reshape(-1)
+            n_u = len(wc.rhs_dest)
+            zl = np.empty(n_u * du)
+            csr_product_into(n_u, nw * dv, du, gt.rhs_indptr, gt.rhs_indices,
+                             np.take(l_inv_b(wc.vclass), gt.rhs_lidx), gt.z, zl, csc=True)
+            rhs[wc.rhs_dest] -= zl.reshape(n_u, du)  # Σ_w Z_wᵀ L⁻¹b_v per U block
         for pt in self.pair_terms:
             s -= pt.to_s @ pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(-1)
         return s, rhs, vinv, yt

@@ -52,3 +52,45 @@ def test_csr_product_into_overwrites_the_output(kernel: str, monkeypatch) -> Non
     out = np.full(30 * 7, 5.0)  # stale values must not survive
     bo.csr_product_into(30, 20, 7, A.indptr, A.indices, A.data, B.reshape(-1), out)
     np.testing.assert_allclose(out.reshape(30, 7), A @ B, rtol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", ["scipy", "fallback"])
+def test_csc_product_into_matches_scipy(kernel: str, monkeypatch) -> None:
+    if kernel == "fallback":
+        monkeypatch.setattr(bo, "_csc_matvecs", None)
+    rng = np.random.default_rng(5)
+    A = sp.random(12, 25, density=0.3, format="csc", random_state=6)
+    A.indices, A.indptr = A.indices.astype(np.int32), A.indptr.astype(np.int32)
+    B = rng.normal(size=(26, 4))  # one row more than A has columns: only the first are read
+    out = np.full(12 * 4, -1.0)
+    bo.csr_product_into(12, 25, 4, A.indptr, A.indices, A.data, B.reshape(-1), out, csc=True)
+    np.testing.assert_allclose(out.reshape(12, 4), A @ B[:25], rtol=1e-12)
+
+
+def test_gathered_gram_sums_block_products_per_target() -> None:
+    rng = np.random.default_rng(7)
+    r, d, nz, n_targets = 3, 4, 60, 9
+    Z = rng.normal(size=(nz + 1, r, d))
+    Z[nz] = 0.0  # the padding block
+    # Targets with 0, 1, a few and many terms (more than max_blocks: split into pieces);
+    # target 3 only pairs blocks with themselves (one gather serves both sides).
+    counts = [0, 1, 2, 5, 7, 40, 3, 11, 90]
+    target = np.repeat(np.arange(n_targets), counts)
+    a = rng.integers(0, nz, len(target))
+    b = rng.integers(0, nz, len(target))
+    b[target == 3] = a[target == 3]
+    perm = rng.permutation(len(target))  # terms need not come sorted
+    target, a, b = target[perm], a[perm], b[perm]
+    gram = bo.GatheredGram(target, a, b, n_targets, nz, r, d, max_blocks=16, ratio=1.25)
+    ref = np.zeros((n_targets, d, d))
+    for t, i, j in zip(target, a, b, strict=True):
+        ref[t] += Z[i].T @ Z[j]
+    out = np.full((gram.n_out, d, d), np.nan)
+    gram(Z.reshape(nz + 1, r * d), out)
+    got = np.zeros((n_targets, d, d))
+    np.add.at(got, gram.targets, out)  # pieces of a target add up
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+    assert np.bincount(gram.targets, minlength=n_targets)[8] == 6  # 90 terms, 16 per piece
+    assert 0 not in gram.targets  # no terms, no output
+    assert any(same for *_, same in gram.chunks)  # target 3's chunk gathers once
+    assert gram.padded >= len(target) and all(m <= 16 for _, _, m, _, _ in gram.chunks)

@@ -51,13 +51,18 @@ def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1, per_point: i
 SOLVERS = ["dense", "pcg", "scipy"] + (["cholmod"] if CHOLMOD_AVAILABLE else [])
 
 
-@pytest.fixture(params=["sparse", "dense"])
+@pytest.fixture(params=["sparse", "dense", "gram"])
 def schur_path(request, monkeypatch):
-    """Run a test with W V⁻¹ Wᵀ formed by the sparse contractions or by the dense syrk."""
+    """Run a test with W V⁻¹ Wᵀ formed by the sparse contractions, by the dense syrk or by the
+    gathered Gram products."""
     from graphopt.linear_system import LinearSystem
 
+    monkeypatch.setattr(LinearSystem, "GRAM_ENABLED", request.param == "gram")
     if request.param == "sparse":
         monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
+    elif request.param == "gram":
+        monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
+        monkeypatch.setattr(LinearSystem, "COST_SPARSE_MAC", 1e9)
     else:
         # Only the per-panel cost counts: runs of points merge into panels of at most 10
         # points (30 rows), and the sparse path is never cheaper.
@@ -94,6 +99,8 @@ def test_schur_step_equals_full_step(solver: str, schur_path: str, per_point: in
             assert all(p.cols == schur._system.n_ublocks == 5 for p in panels)
     assert schur._system.schur and not full._system.schur
     assert bool(schur._system.dense_terms) == (schur_path == "dense")
+    assert bool(schur._system.gram_terms) == (schur_path == "gram")
+    assert bool(schur._system.pair_terms) == (schur_path == "sparse")
     asm, _ = schur.linearize()
     du, dv = schur.solve(asm, 1e-3)
     by_slot = np.zeros_like(dv[0])
