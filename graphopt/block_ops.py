@@ -257,25 +257,24 @@ class EdgeContraction(_CscContraction):
 
 
 class GatheredGram:
-    """``out[j] = Σ_{q: piece[q]=j} Z[a_idx[q]]ᵀ · Z[b_idx[q]]`` by batched BLAS products.
+    """``out[j] = Σ_{q: piece[q]=j} A[a_idx[q]]ᵀ · B[b_idx[q]]`` by batched BLAS products.
 
     For sums with many terms per output (the pairs of U blocks that share V blocks, in a
-    Schur complement with few U blocks), a product per output beats a sparse contraction:
-    the ``(r, d)`` blocks of an output's terms are gathered, whole rows at a time, into two
-    contiguous ``(n·r, d)`` matrices and multiplied by BLAS (about 0.15 ns per multiply-add
-    against SciPy's sparse loop's 0.4). Outputs with similar term counts share one
-    ``np.matmul`` call: each is padded to the largest count of its chunk with the zero block
-    ``Z[zero]``, and a chunk gathers at most ``max_blocks`` blocks a side, so that it stays in
-    cache. Outputs with more terms than that are split into pieces (the caller sums pieces of
-    one target). Where every term of a chunk has ``a == b`` (a block with itself), one gather
-    serves both sides. Everything but the numbers is fixed here.
+    Schur complement with few U blocks; a camera's ``JᵀJ`` over its observations), a product per
+    output beats a sparse contraction: the ``(r, d)`` blocks of an output's terms are gathered,
+    whole rows at a time, into two contiguous ``(n·r, d)`` matrices and multiplied by BLAS
+    (about 0.14 ns per multiply-add against SciPy's sparse loop's 0.4). Outputs with similar
+    term counts share one ``np.matmul`` call: each is padded to the largest count of its chunk
+    with zero blocks, and a chunk gathers at most ``max_blocks`` blocks a side, so that it stays
+    in cache. Outputs with more terms than that are split into pieces (the caller sums the
+    pieces of a target). Where every term of a chunk has ``a == b`` and ``B`` is ``A``, one
+    gather serves both sides. Everything but the numbers is fixed here.
 
     Args:
         target: ``(q,)`` target of every term.
         a_idx: ``(q,)`` left block of every term.
         b_idx: ``(q,)`` right block of every term.
         n_targets: Number of targets.
-        zero: Index of a block of ``Z`` that is zero (the padding).
         r: Rows of a block.
         d: Columns of a block.
         max_blocks: Most blocks a chunk gathers per side.
@@ -285,7 +284,7 @@ class GatheredGram:
         targets: ``(n_out,)`` target of every output (a target's pieces are separate outputs).
         n_out: Number of outputs.
         padded: Blocks multiplied, padding included.
-        gathered: Blocks gathered, padding included.
+        gathered: Blocks gathered when ``B`` is ``A``, padding included.
     """
 
     def __init__(
@@ -294,7 +293,6 @@ class GatheredGram:
         a_idx: np.ndarray,
         b_idx: np.ndarray,
         n_targets: int,
-        zero: int,
         r: int,
         d: int,
         max_blocks: int = 1024,
@@ -305,7 +303,7 @@ class GatheredGram:
         target = target[order]
         a_idx = np.asarray(a_idx, dtype=np.int64)[order]
         b_idx = np.asarray(b_idx, dtype=np.int64)[order]
-        self.r, self.d, self.zero = r, d, zero
+        self.r, self.d = r, d
         cnt = np.bincount(target, minlength=n_targets)
         start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
         rank = np.arange(len(target)) - start[target]
@@ -324,46 +322,61 @@ class GatheredGram:
         porder = np.lexsort((pcnt, level, ~same))
         key = (~same[porder]).astype(np.int64) * (int(level.max(initial=0)) + 1) + level[porder]
         bounds = np.flatnonzero(np.diff(key)) + 1
-        self.chunks: list[tuple[int, int, int, int, bool]] = []  # p0, n, m, o0, same
+        # Chunks as (first slot, outputs, padded count, first output, same, pad range).
+        self.chunks: list[tuple[int, int, int, int, bool, int, int]] = []
         slot = np.empty(n_out, dtype=np.int64)  # first padded slot of every output
         p0 = 0
+        spans = []
         for b0, b1 in zip(np.r_[0, bounds].tolist(), np.r_[bounds, n_out].tolist(), strict=True):
             m = int(pcnt[porder[b1 - 1]])
             per = max(1, max_blocks // m)
             for o0 in range(b0, b1, per):
                 n = min(per, b1 - o0)
                 slot[o0:o0 + n] = p0 + m * np.arange(n)
-                self.chunks.append((p0, n, m, o0, bool(same[porder[o0]])))
+                spans.append((p0, n, m, o0, bool(same[porder[o0]])))
                 p0 += n * m
         self.padded = p0
-        self.gathered = sum(n * m * (1 if s else 2) for _, n, m, _, s in self.chunks)
         out_of = np.empty(n_out, dtype=np.int64)
         out_of[porder] = np.arange(n_out)  # output row of every piece
         dest = slot[out_of[piece]] + pos
-        self.ia = np.full(p0, zero, dtype=np.intp)
-        self.ib = np.full(p0, zero, dtype=np.intp)
+        self.ia = np.zeros(p0, dtype=np.intp)  # padding slots gather block 0, then are zeroed
+        self.ib = np.zeros(p0, dtype=np.intp)
         self.ia[dest], self.ib[dest] = a_idx, b_idx
+        filled = np.zeros(p0, dtype=bool)
+        filled[dest] = True
+        pads, q0 = [], 0
+        for c0, n, m, o0, sm in spans:  # padding slots of every chunk, relative to its start
+            pad = np.flatnonzero(~filled[c0:c0 + n * m])
+            pads.append(pad)
+            self.chunks.append((c0, n, m, o0, sm, q0, q0 + len(pad)))
+            q0 += len(pad)
+        self.pads = np.concatenate(pads) if pads else np.zeros(0, dtype=np.intp)
+        self.gathered = sum(n * m * (1 if sm else 2) for _, n, m, _, sm, _, _ in self.chunks)
         self.targets = piece_target[porder]
         self.n_out = n_out
-        largest = max((n * m for _, n, m, _, _ in self.chunks), default=0)
+        largest = max((n * m for _, n, m, _, _, _, _ in self.chunks), default=0)
         self._bufa = np.zeros(largest * r * d)
         self._bufb = np.zeros(largest * r * d)
 
-    def __call__(self, Z: np.ndarray, out: np.ndarray) -> None:
+    def __call__(self, A: np.ndarray, out: np.ndarray, B: np.ndarray | None = None) -> None:
         """Write every output into ``out``.
 
         Args:
-            Z: ``(nZ, r·d)`` blocks as rows; ``Z[zero]`` must be zero.
+            A: ``(nA, r·d)`` left blocks as rows (C-contiguous).
             out: ``(n_out, d, d)`` output (overwritten).
+            B: ``(nB, r·d)`` right blocks as rows; ``None``: the same as ``A``.
         """
         r, d = self.r, self.d
         w = r * d
-        for p0, n, m, o0, same in self.chunks:
+        for p0, n, m, o0, same, q0, q1 in self.chunks:
             a = self._bufa[:n * m * w].reshape(n * m, w)
-            np.take(Z, self.ia[p0:p0 + n * m], axis=0, out=a, mode="clip")  # clip: unbuffered
+            np.take(A, self.ia[p0:p0 + n * m], axis=0, out=a, mode="clip")  # clip: unbuffered
+            if q1 > q0:
+                a[self.pads[q0:q1]] = 0.0
             b = a
-            if not same:
+            if not same or B is not None:
                 b = self._bufb[:n * m * w].reshape(n * m, w)
-                np.take(Z, self.ib[p0:p0 + n * m], axis=0, out=b, mode="clip")
+                np.take(A if B is None else B, self.ib[p0:p0 + n * m], axis=0, out=b,
+                        mode="clip")
             np.matmul(a.reshape(n, m * r, d).transpose(0, 2, 1), b.reshape(n, m * r, d),
                       out=out[o0:o0 + n])

@@ -47,6 +47,11 @@ class _HTerm:
     cls: int = -1  # V class or W class index
     mirror: bool = False  # V term with a != b on the same vertex: add the transpose too
     identity: bool = False  # V/W term whose targets are all blocks of its class, in order
+    # U term on diagonal blocks with many edges per block: summed by gathered Gram products
+    # (outputs in ``out``, added to S's data by ``to_h``) instead of the contraction.
+    gram: GatheredGram | None = None
+    out: np.ndarray | None = None
+    to_h: sp.csr_matrix | None = None
 
 
 @dataclass
@@ -156,7 +161,7 @@ class _GramSchurTerm:
     """``W V⁻¹ Wᵀ`` and ``W V⁻¹ b_v`` of one W class through ``Z = L⁻¹Wᵀ`` (``V = LLᵀ``).
 
     ``Z`` is formed for every W block by one constant-structure CSR product (the entries of
-    ``L⁻¹`` times the W array as it is) into a buffer whose last block stays zero. Then every
+    ``L⁻¹`` times the W array as it is) into a reused buffer. Then every
     block of S is a sum of ``Z_aᵀ Z_b`` over the W blocks ``a``, ``b`` of its two U blocks that
     share a V block (a U block with itself on the diagonal), computed per block of S by
     :class:`GatheredGram`; the right-hand side takes ``Z_wᵀ L⁻¹b_v`` per W block.
@@ -166,7 +171,7 @@ class _GramSchurTerm:
     indptr: np.ndarray  # CSR rows (W block, row i of Z) → entries j ≤ i of L⁻¹ ...
     indices: np.ndarray  # ... times rows (W block, j) of the Wᵀ array
     lidx: np.ndarray  # flat index into L⁻¹ of every CSR entry
-    z: np.ndarray  # ((nw + 1)·dv·du,) Z, one block after the other, then a zero block
+    z: np.ndarray  # (nw·dv·du,) Z, one block after the other
     gram: GatheredGram
     results: np.ndarray  # (gram.n_out, du, du)
     # Sums the results into S's pattern (both triangles): one sparse product.
@@ -358,6 +363,23 @@ class LinearSystem:
         """Σ over edges ``sel`` of ``J_leftᵀ · (ρ'ΩJ)_right`` into ``n_t`` targets."""
         return EdgeContraction(sel, target, n_t, g.size, g.etype.jacobian_rows(), d_out)
 
+    def _u_gram(self, g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int, d: int
+                ) -> GatheredGram | None:
+        """Gathered Gram products for a U term on diagonal blocks, if the cost model prefers
+        them to the sparse contraction (many edges per U block: a camera's observations)."""
+        if not self.GRAM_ENABLED or len(sel) == 0:
+            return None
+        r = g.etype.jacobian_rows()
+        sparse = self.COST_SPARSE_MAC * len(sel) * r * d * d
+        if self.COST_GEMM_MAC * len(sel) * r * d * d >= sparse:  # lower bound: not even close
+            return None
+        gram = GatheredGram(target, sel, sel, n_t, r, d)
+        cost = (self.COST_GRAM_GATHER * 2 * gram.padded * r * d  # J and ρ'ΩJ (once if equal)
+                + self.COST_GEMM_MAC * gram.padded * r * d * d
+                + self.COST_GEMM_OUTPUT * gram.n_out
+                + self.COST_GEMM_CHUNK * len(gram.chunks))
+        return gram if cost < sparse else None
+
     def _build_terms(self) -> None:
         self.wclasses: list[WClass] = []
         wkey: dict[tuple[int, int], int] = {}
@@ -388,7 +410,9 @@ class LinearSystem:
                         uniq, inv = _unique(pa * nb + pb, nb * nb, True)
                         gt.hterms.append(_HTerm(
                             a, b, "U", self._contraction(g, a, b, sel, inv, len(uniq), dims[a]),
-                            np.stack([uniq // nb, uniq % nb], 1)))
+                            np.stack([uniq // nb, uniq % nb], 1),
+                            gram=self._u_gram(g, sel, inv, len(uniq), dims[a]) if a == b
+                            else None))
                     mask = isv[a] & isv[b]
                     if mask.any():
                         if a != b and (pos[a][0] != pos[b][0]
@@ -556,7 +580,7 @@ class LinearSystem:
             keys = np.concatenate([c.ublock * (nb + 1), c.ublock[w1] * nb + c.ublock[w2]])
             uniq, inv = _unique(keys, nb * nb, True)
             gram = GatheredGram(inv, np.concatenate([w, w1]), np.concatenate([w, w2]),
-                                len(uniq), nw, dv, du)
+                                len(uniq), dv, du)
             cost = (self.COST_Z * nw * dv * du
                     + self.COST_GRAM_GATHER * gram.gathered * dv * du
                     + self.COST_GEMM_MAC * gram.padded * dv * du * du
@@ -721,6 +745,12 @@ class LinearSystem:
                 if t.kind == "U":
                     pos, post = self._dest(t.dest[:, 0], t.dest[:, 1])
                     t.dest, t.dest_t = pos, (post if t.left != t.right else None)
+                    if t.gram is not None:
+                        rows = t.dest[t.gram.targets].ravel()
+                        t.to_h = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))),
+                                               shape=(self.nnz, len(rows)))
+                        d = int(np.sqrt(t.dest.shape[1]))
+                        t.out = np.zeros((t.gram.n_out, d, d))
             for gterm in gt.gterms:
                 if gterm.kind == "U":
                     d = int(self.udims[gterm.dest[0]])
@@ -746,14 +776,14 @@ class LinearSystem:
             dv, du, nw = c.dv, c.du, len(c.ublock)
             ti, tj = np.tril_indices(dv)
             out_row = (np.arange(nw)[:, None] * dv + ti).ravel()
-            idx_t = np.int32 if (nw + 1) * dv < 2**31 else np.int64
-            indptr = np.searchsorted(out_row, np.arange((nw + 1) * dv + 1)).astype(idx_t)
+            idx_t = np.int32 if nw * dv < 2**31 else np.int64
+            indptr = np.searchsorted(out_row, np.arange(nw * dv + 1)).astype(idx_t)
             indices = (np.arange(nw)[:, None] * dv + tj).ravel().astype(idx_t)
             lidx = (c.vblock[:, None] * dv * dv + ti * dv + tj).ravel()
             tk = keys[gram.targets]
             _, inv = _unique(c.ublock, nb, True)
             self.gram_terms.append(_GramSchurTerm(
-                k, indptr, indices, lidx, np.zeros((nw + 1) * dv * du), gram,
+                k, indptr, indices, lidx, np.zeros(nw * dv * du), gram,
                 np.zeros((gram.n_out, du, du)), self._to_s(tk // nb, tk % nb),
                 np.arange(nw * dv + 1, dtype=idx_t), np.repeat(inv, dv).astype(idx_t),
                 (c.vblock[:, None] * dv + np.arange(dv)).ravel()))
@@ -837,8 +867,17 @@ class LinearSystem:
         bv: list[np.ndarray | None] = [None] * len(self.vclasses)
         wt: list[np.ndarray | None] = [None] * len(self.wclasses)
         for gt, J, WJ, we in zip(self.terms, jacobians, weighted, weighted_errors, strict=True):
-            mats = []
+            mats: list[sp.csc_matrix | None] = []
             for t in gt.hterms:
+                if t.gram is not None:  # diagonal U blocks by gathered Gram products
+                    assert t.out is not None and t.to_h is not None
+                    ja, wjb = J[t.left], WJ[t.right]
+                    m = len(ja)
+                    t.gram(np.ascontiguousarray(ja).reshape(m, -1), t.out,
+                           None if wjb is ja else np.ascontiguousarray(wjb).reshape(m, -1))
+                    h += t.to_h @ t.out.reshape(-1)
+                    mats.append(None)
+                    continue
                 M = t.contraction.matrix(np.ascontiguousarray(J[t.left]))
                 mats.append(M)
                 blk = t.contraction.apply(M, WJ[t.right])
@@ -857,8 +896,9 @@ class LinearSystem:
                     _add_blocks(wt, t.cls, t.dest, blk, t.identity, (len(c.ublock), c.dv, c.du))
             we3 = we[:, :, None]
             for g in gt.gterms:
-                M = mats[g.shared] if g.shared >= 0 else g.contraction.matrix(
-                    np.ascontiguousarray(J[g.a]))
+                M = mats[g.shared] if g.shared >= 0 else None
+                if M is None:
+                    M = g.contraction.matrix(np.ascontiguousarray(J[g.a]))
                 gb = -g.contraction.apply(M, we3)[:, :, 0]
                 if g.kind == "U":
                     bu[g.dest] += gb
@@ -967,10 +1007,9 @@ class LinearSystem:
             dv, du, nw = wc.dv, wc.du, len(wc.ublock)
             lvals = np.take(linv[wc.vclass].reshape(-1), gt.lidx)
             wflat = np.ascontiguousarray(asm.wt[gt.k]).reshape(-1)
-            csr_product_into((nw + 1) * dv, nw * dv, du, gt.indptr, gt.indices, lvals, wflat,
-                             gt.z)  # Z = L⁻¹Wᵀ, then the zero block
-            z = gt.z.reshape(nw + 1, dv * du)
-            gt.gram(z, gt.results)
+            csr_product_into(nw * dv, nw * dv, du, gt.indptr, gt.indices, lvals, wflat,
+                             gt.z)  # Z = L⁻¹Wᵀ
+            gt.gram(gt.z.reshape(nw, dv * du), gt.results)
             s -= gt.to_s @ gt.results.reshape(-1)
             n_u = len(wc.rhs_dest)
             zl = np.empty(n_u * du)

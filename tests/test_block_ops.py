@@ -70,8 +70,7 @@ def test_csc_product_into_matches_scipy(kernel: str, monkeypatch) -> None:
 def test_gathered_gram_sums_block_products_per_target() -> None:
     rng = np.random.default_rng(7)
     r, d, nz, n_targets = 3, 4, 60, 9
-    Z = rng.normal(size=(nz + 1, r, d))
-    Z[nz] = 0.0  # the padding block
+    Z = rng.normal(size=(nz, r, d))
     # Targets with 0, 1, a few and many terms (more than max_blocks: split into pieces);
     # target 3 only pairs blocks with themselves (one gather serves both sides).
     counts = [0, 1, 2, 5, 7, 40, 3, 11, 90]
@@ -81,16 +80,19 @@ def test_gathered_gram_sums_block_products_per_target() -> None:
     b[target == 3] = a[target == 3]
     perm = rng.permutation(len(target))  # terms need not come sorted
     target, a, b = target[perm], a[perm], b[perm]
-    gram = bo.GatheredGram(target, a, b, n_targets, nz, r, d, max_blocks=16, ratio=1.25)
-    ref = np.zeros((n_targets, d, d))
-    for t, i, j in zip(target, a, b, strict=True):
-        ref[t] += Z[i].T @ Z[j]
-    out = np.full((gram.n_out, d, d), np.nan)
-    gram(Z.reshape(nz + 1, r * d), out)
-    got = np.zeros((n_targets, d, d))
-    np.add.at(got, gram.targets, out)  # pieces of a target add up
-    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+    gram = bo.GatheredGram(target, a, b, n_targets, r, d, max_blocks=16, ratio=1.25)
+    Y = rng.normal(size=(nz, r, d))
+    for B in (None, Y):  # Σ Zᵀ Z and Σ Zᵀ Y
+        ref = np.zeros((n_targets, d, d))
+        for t, i, j in zip(target, a, b, strict=True):
+            ref[t] += Z[i].T @ (Z if B is None else B)[j]
+        out = np.full((gram.n_out, d, d), np.nan)
+        gram(Z.reshape(nz, r * d), out, None if B is None else B.reshape(nz, r * d))
+        got = np.zeros((n_targets, d, d))
+        np.add.at(got, gram.targets, out)  # pieces of a target add up
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+    assert gram.padded > len(target)  # padded blocks were zeroed, or the sums would differ
     assert np.bincount(gram.targets, minlength=n_targets)[8] == 6  # 90 terms, 16 per piece
     assert 0 not in gram.targets  # no terms, no output
-    assert any(same for *_, same in gram.chunks)  # target 3's chunk gathers once
-    assert gram.padded >= len(target) and all(m <= 16 for _, _, m, _, _ in gram.chunks)
+    assert any(c[4] for c in gram.chunks)  # target 3's chunk gathers once
+    assert all(m <= 16 for _, _, m, *_ in gram.chunks)

@@ -232,3 +232,30 @@ def test_hessian_product_matches_the_full_hessian(schur_path: str) -> None:
     hv_slot[slots] = hv[0]
     np.testing.assert_allclose(np.concatenate([hu, hv_slot.ravel()]), ref, rtol=1e-10,
                                atol=1e-10)
+
+
+@pytest.mark.parametrize("kernel", [None, "huber"])
+def test_gram_products_equal_the_sparse_contractions(kernel, monkeypatch) -> None:
+    """The gathered Gram products (camera blocks of U, and every block of W V⁻¹ Wᵀ) give the
+    sparse contractions' numbers: with and without a robust kernel (then ρ'ΩJ is not J)."""
+    from graphopt import RobustKernelHuber
+    from graphopt.linear_system import LinearSystem
+
+    def reduced(gram: bool):
+        monkeypatch.setattr(LinearSystem, "GRAM_ENABLED", gram)
+        monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
+        monkeypatch.setattr(LinearSystem, "COST_SPARSE_MAC", 1e9 if gram else 0.4e-9)
+        opt = ba_toy(True, per_point=4)
+        if kernel:
+            for g in opt.edge_groups():
+                g.set_kernel(slice(None), RobustKernelHuber(0.02))
+        opt.initialize_optimization()
+        system = opt._system
+        assert bool(system.gram_terms) == gram
+        assert any(t.gram is not None for gt in system.terms for t in gt.hterms) == gram
+        asm, _ = opt.linearize()
+        s, rhs, _, _ = system.reduce(asm, 1e-3, diagonal=True)
+        return asm.h_data, s, rhs
+
+    for ref, got in zip(reduced(False), reduced(True), strict=True):
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
