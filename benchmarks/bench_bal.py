@@ -2,7 +2,10 @@
 
 Measures, on each problem and for each solver, in the same run and on one thread:
 
-* seconds per iteration (median over the iterations of a run);
+* seconds per iteration (median over the iterations of a run), and the same median over the
+  working iterations only — those up to the first that reaches the target below, without the
+  converged tail, whose iterations differ in kind between solvers (Ceres' unsuccessful steps skip
+  the Jacobian; a g2o-style iteration repeats rejected trials);
 * seconds to reach a cost within 1e-4 (relative) of the best final cost that any solver reached
   in this run, from the start of the solver's own setup (symbolic analysis / preprocessing
   included, problem construction excluded).
@@ -75,6 +78,18 @@ class Trace:
     def final_cost(self) -> float:
         """Cost after the last iteration."""
         return self.costs[-1]
+
+    def working_iterations(self, target: float) -> list[float]:
+        """Durations of the iterations up to the first that reaches ``target`` (all if none
+        does): the iterations that do the work, without the converged tail.
+
+        Args:
+            target: Cost threshold.
+        """
+        for k, c in enumerate(self.costs[1:], start=1):
+            if c <= target:
+                return self.iter_seconds[:k]
+        return self.iter_seconds
 
     def time_to(self, target: float) -> float:
         """Seconds until the cost first reached ``target`` (inf if never).
@@ -418,6 +433,8 @@ def bench_file(path: Path, args: argparse.Namespace) -> dict[str, Any]:
         out["solvers"][name] = {
             "seconds_per_iteration": statistics.median(
                 statistics.median(t.iter_seconds) for t in trs),
+            "seconds_per_working_iteration": statistics.median(
+                statistics.median(t.working_iterations(target)) for t in trs),
             "seconds_to_target": statistics.median(t.time_to(target) for t in trs),
             "final_cost": statistics.median(t.final_cost for t in trs),
             "iterations": len(trs[0].iter_seconds),
@@ -432,6 +449,8 @@ def bench_file(path: Path, args: argparse.Namespace) -> dict[str, Any]:
             a, b = p["seconds_to_target"], g["seconds_to_target"]
             out[f"ratio_{peer}_over_graphopt"] = {
                 "seconds_per_iteration": p["seconds_per_iteration"] / g["seconds_per_iteration"],
+                "seconds_per_working_iteration": (p["seconds_per_working_iteration"]
+                                                  / g["seconds_per_working_iteration"]),
                 # inf: only graphopt reached the target; 0: only the peer; None: neither.
                 "seconds_to_target": None if a == b == float("inf") else (
                     float("inf") if b == 0 else a / b),
@@ -445,11 +464,12 @@ def print_table(results: list[dict[str, Any]]) -> None:
     Args:
         results: Outputs of :func:`bench_file`.
     """
-    print(f"\n{'file':<32} {'solver':<12} {'s/iter':>8} {'s to 1e-4':>10} {'final cost':>13} "
-          f"{'iters':>5}")
+    print(f"\n{'file':<32} {'solver':<12} {'s/iter':>8} {'s/work it':>9} {'s to 1e-4':>10} "
+          f"{'final cost':>13} {'iters':>5}")
     for r in results:
         for name, s in r["solvers"].items():
             print(f"{r['file']:<32} {name:<12} {s['seconds_per_iteration']:8.4f} "
+                  f"{s['seconds_per_working_iteration']:9.4f} "
                   f"{s['seconds_to_target']:10.3f} {s['final_cost']:13.6e} {s['iterations']:5d}")
         for peer in ("ceres", "scipy"):
             key = f"ratio_{peer}_over_graphopt"
@@ -458,6 +478,7 @@ def print_table(results: list[dict[str, Any]]) -> None:
                 tt = q["seconds_to_target"]
                 tt_s = "n/a (neither reached it)" if tt is None else f"x{tt:.2f}"
                 print(f"{'':<32} {peer}/graphopt: s/iter x{q['seconds_per_iteration']:.2f}, "
+                      f"s/working iter x{q['seconds_per_working_iteration']:.2f}, "
                       f"time to target {tt_s} (>1: graphopt faster)")
 
 
