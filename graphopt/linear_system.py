@@ -371,7 +371,8 @@ class LinearSystem:
             return None
         r = g.etype.jacobian_rows()
         sparse = self.COST_SPARSE_MAC * len(sel) * r * d * d
-        if self.COST_GEMM_MAC * len(sel) * r * d * d >= sparse:  # lower bound: not even close
+        # Lower bound (one gather, no padding or overheads): spares building a hopeless Gram.
+        if (self.COST_GRAM_GATHER * r * d + self.COST_GEMM_MAC * r * d * d) * len(sel) >= sparse:
             return None
         gram = GatheredGram(target, sel, sel, n_t, r, d)
         cost = (self.COST_GRAM_GATHER * 2 * gram.padded * r * d  # J and ρ'ΩJ (once if equal)
@@ -749,8 +750,7 @@ class LinearSystem:
                         rows = t.dest[t.gram.targets].ravel()
                         t.to_h = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))),
                                                shape=(self.nnz, len(rows)))
-                        d = int(np.sqrt(t.dest.shape[1]))
-                        t.out = np.zeros((t.gram.n_out, d, d))
+                        t.out = np.zeros((t.gram.n_out, t.gram.d, t.gram.d))
             for gterm in gt.gterms:
                 if gterm.kind == "U":
                     d = int(self.udims[gterm.dest[0]])
