@@ -375,11 +375,16 @@ class LinearSystem:
         if (self.COST_GRAM_GATHER * r * d + self.COST_GEMM_MAC * r * d * d) * len(sel) >= sparse:
             return None
         gram = GatheredGram(target, sel, sel, n_t, r, d)
-        cost = (self.COST_GRAM_GATHER * 2 * gram.padded * r * d  # J and ρ'ΩJ (once if equal)
+        cost = self._gram_cost(gram, 2 * gram.padded)  # J and ρ'ΩJ (once if equal)
+        return gram if cost < sparse else None
+
+    def _gram_cost(self, gram: GatheredGram, gathered: int) -> float:
+        """Modelled seconds of one call of ``gram`` that gathers ``gathered`` blocks."""
+        r, d = gram.r, gram.d
+        return (self.COST_GRAM_GATHER * gathered * r * d
                 + self.COST_GEMM_MAC * gram.padded * r * d * d
                 + self.COST_GEMM_OUTPUT * gram.n_out
                 + self.COST_GEMM_CHUNK * len(gram.chunks))
-        return gram if cost < sparse else None
 
     def _build_terms(self) -> None:
         self.wclasses: list[WClass] = []
@@ -582,11 +587,7 @@ class LinearSystem:
             uniq, inv = _unique(keys, nb * nb, True)
             gram = GatheredGram(inv, np.concatenate([w, w1]), np.concatenate([w, w2]),
                                 len(uniq), dv, du)
-            cost = (self.COST_Z * nw * dv * du
-                    + self.COST_GRAM_GATHER * gram.gathered * dv * du
-                    + self.COST_GEMM_MAC * gram.padded * dv * du * du
-                    + self.COST_GEMM_OUTPUT * gram.n_out
-                    + self.COST_GEMM_CHUNK * len(gram.chunks))
+            cost = self.COST_Z * nw * dv * du + self._gram_cost(gram, gram.gathered)
             if cost < best[0]:
                 best = (cost, (gram, uniq))
         return best[1]
@@ -744,13 +745,12 @@ class LinearSystem:
         for gt in self.terms:
             for t in gt.hterms:
                 if t.kind == "U":
+                    if t.gram is not None:  # diagonal blocks: (u, u) per output
+                        ub_out = t.dest[t.gram.targets, 0]
+                        t.to_h = self._to_s(ub_out, ub_out)
+                        t.out = np.zeros((t.gram.n_out, t.gram.d, t.gram.d))
                     pos, post = self._dest(t.dest[:, 0], t.dest[:, 1])
                     t.dest, t.dest_t = pos, (post if t.left != t.right else None)
-                    if t.gram is not None:
-                        rows = t.dest[t.gram.targets].ravel()
-                        t.to_h = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))),
-                                               shape=(self.nnz, len(rows)))
-                        t.out = np.zeros((t.gram.n_out, t.gram.d, t.gram.d))
             for gterm in gt.gterms:
                 if gterm.kind == "U":
                     d = int(self.udims[gterm.dest[0]])
