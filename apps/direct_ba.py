@@ -106,10 +106,10 @@ def _initial_errors(data: DirectBAData, params: PhotometricParams) -> tuple[np.n
     img = np.repeat(np.arange(n), N)
     pid = np.tile(np.arange(N), n)
     etype = photometric_edge_types(params.patch)[0]
-    ctx = EdgeContext(params, {"image": img})
-    e = etype.error((data.poses[img], data.points[pid]), data.patches[pid], ctx)
-    assert ctx.active is not None
-    return np.einsum("me,me->m", e, e).reshape(n, N), ctx.active.reshape(n, N)
+    ev = etype.evaluate((data.poses[img], data.points[pid]), data.patches[pid],
+                        EdgeContext(params, {"image": img}))
+    assert ev.active is not None
+    return np.einsum("me,me->m", ev.error, ev.error).reshape(n, N), ev.active.reshape(n, N)
 
 
 def choose_anchors(data: DirectBAData, params: PhotometricParams) -> np.ndarray:

@@ -54,9 +54,8 @@ def residual_sigma(problem) -> float:
     opt = problem.optimizer
     errs = []
     for gi, g in enumerate(opt._group_list):
-        ctx = g.context()
-        e = g.etype.error(opt._gather(gi), g.measurements, ctx)
-        errs.append(e[ctx.active].ravel())
+        ev = g.etype.evaluate(opt._gather(gi), g.measurements, g.context())
+        errs.append(ev.error[ev.active].ravel())
     e = np.concatenate(errs)
     return float(1.4826 * np.median(np.abs(e - np.median(e))))
 

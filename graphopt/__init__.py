@@ -6,9 +6,8 @@ from graphopt.algorithms import (
     IterationInfo,
     LevenbergConfig,
 )
-from graphopt.block_ops import NotPositiveDefiniteError
-from graphopt.edge import BaseEdge, EdgeContext
-from graphopt.graph import GraphError
+from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.numeric import numeric_jacobians
 from graphopt.optimizer import OptimizationResult, SparseOptimizer
 from graphopt.robust_kernel import (
@@ -45,6 +44,7 @@ __all__ = [
     "GraphError",
     "IterationInfo",
     "LevenbergConfig",
+    "Linearization",
     "LinearSolver",
     "LinearSolverCholmod",
     "LinearSolverDense",

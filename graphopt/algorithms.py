@@ -12,7 +12,7 @@ from typing import Protocol
 
 import numpy as np
 
-from graphopt.block_ops import NotPositiveDefiniteError
+from graphopt.errors import NotPositiveDefiniteError
 from graphopt.linear_system import Assembly
 
 

@@ -5,16 +5,14 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from graphopt.errors import NotPositiveDefiniteError
+
 try:  # SciPy's C kernels of ``csr @ dense`` and ``csc @ dense``; they accumulate into a
     # given output array.
     from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs
     from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs
 except ImportError:  # pragma: no cover - private module: fall back to the public product
     _csr_matvecs = _csc_matvecs = None
-
-
-class NotPositiveDefiniteError(np.linalg.LinAlgError):
-    """A block or the reduced system is not positive definite."""
 
 
 def batched_cholesky_inverses(

@@ -12,14 +12,35 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from graphopt.numeric import numeric_jacobians
+from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
 
-if TYPE_CHECKING:
-    from graphopt.robust_kernel import RobustKernel
+
+class Linearization(NamedTuple):
+    """What :meth:`BaseEdge.linearize` returns — and :meth:`BaseEdge.evaluate`, without
+    Jacobians. All arrays run over the ``m`` edges of the call.
+
+    Args:
+        error: ``(m, dimension)`` errors; rows of inactive edges are zero.
+        jacobians: One ``(m, rows, d_i)`` array per vertex position, ``rows`` being
+            ``dimension`` (or ``linearization_rows`` for a reduced linearisation); ``()`` from
+            :meth:`BaseEdge.evaluate`.
+        reduced_error: For a reduced linearisation (``linearization_rows = r``), ``e_lin``
+            ``(m, r)`` with ``J̃ᵀJ̃ = JᵀJ`` and ``J̃ᵀe_lin = Jᵀe``; else ``None``.
+        active: ``(m,)`` boolean mask of the edges active in this evaluation (e.g. a projection
+            inside the image), or ``None`` when all are. Inactive edges have zero error and
+            zero Jacobians; the optimizer counts the active ones.
+    """
+
+    error: np.ndarray
+    jacobians: tuple[np.ndarray, ...] = ()
+    reduced_error: np.ndarray | None = None
+    active: np.ndarray | None = None
 
 
 @dataclass
@@ -31,9 +52,6 @@ class EdgeContext:
             ``add_edges(..., params=...)``; ``None`` by default.
         data: Per-edge auxiliary arrays (first axis over the edges of the call), as given to
             ``add_edges(..., data={...})``.
-        active: An edge may set this to a boolean mask ``(m,)`` of edges that are active in this
-            evaluation (e.g. a projection inside the image). Inactive edges must return zero
-            error and zero Jacobians; the optimizer counts them.
         derived: For edge types with ``uses_derived``: per vertex position, the vertex type's
             :meth:`~graphopt.vertex.BaseVertex.derived` values of each edge's vertex
             (``(m, k)``), or ``None``. A cache of functions of the estimates in ``x``: numeric
@@ -42,7 +60,6 @@ class EdgeContext:
 
     params: Any = None
     data: dict[str, np.ndarray] = field(default_factory=dict)
-    active: np.ndarray | None = None
     derived: tuple[np.ndarray | None, ...] | None = None
 
     def subset(self, index: np.ndarray | slice) -> EdgeContext:
@@ -127,7 +144,7 @@ class BaseEdge:
         """
         own_linearize = cls.linearize.__func__ is not BaseEdge.linearize.__func__  # type: ignore[attr-defined]
         if own_linearize and cls.linearization_rows is None:
-            return cls.linearize(x, measurement, ctx)[1]
+            return cls.linearize(x, measurement, ctx).jacobians
         raise NotImplementedError
 
     @classmethod
@@ -139,10 +156,13 @@ class BaseEdge:
         )
 
     @classmethod
-    def linearize(
+    def evaluate(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """Error and Jacobians together (override to share intermediate results).
+    ) -> Linearization:
+        """Errors and the activity mask, without Jacobians (what a trial step needs).
+
+        The default wraps :meth:`error` (every edge active). A type whose edges can be
+        inactive (a projection outside the image) overrides this and returns the mask.
 
         Args:
             x: As in :meth:`error`.
@@ -150,25 +170,39 @@ class BaseEdge:
             ctx: As in :meth:`error`.
 
         Returns:
-            ``(error, jacobians)`` as returned by :meth:`error` and :meth:`jacobians`.
-
-            A type that sets ``linearization_rows = r`` returns ``(error, jacobians, e_lin)``
-            instead: a *reduced linearisation* with ``r``-row Jacobians ``J̃`` and ``e_lin``
-            ``(m, r)`` such that ``J̃ᵀJ̃ = JᵀJ`` and ``J̃ᵀe_lin = Jᵀe`` for the full ``J`` and
-            ``e``. The normal equations are the same, built from fewer rows (a 16-pixel patch
-            whose Jacobian factors through a 2-D image gradient needs 2). ``error`` still gives
-            the chi2; the information matrix must be the identity.
+            A :class:`Linearization` with ``jacobians=()``.
         """
-        from graphopt.numeric import numeric_jacobians
+        return Linearization(cls.error(x, measurement, ctx))
 
-        e = cls.error(x, measurement, ctx)
-        active = ctx.active
+    @classmethod
+    def linearize(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> Linearization:
+        """Errors and Jacobians together (override to share intermediate results).
+
+        The default takes :meth:`evaluate` and :meth:`jacobians`, or numeric Jacobians
+        (:func:`graphopt.numeric.numeric_jacobians`) when the type has no analytic ones.
+
+        A type that sets ``linearization_rows = r`` returns a *reduced linearisation*: ``r``-row
+        Jacobians ``J̃`` and ``reduced_error`` ``e_lin`` ``(m, r)`` such that ``J̃ᵀJ̃ = JᵀJ`` and
+        ``J̃ᵀe_lin = Jᵀe`` for the full ``J`` and ``e``. The normal equations are the same, built
+        from fewer rows (a 16-pixel patch whose Jacobian factors through a 2-D image gradient
+        needs 2). ``error`` still gives the chi2; the information matrix must be the identity.
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Returns:
+            A :class:`Linearization`.
+        """
+        ev = cls.evaluate(x, measurement, ctx)
         try:
             jac = cls.jacobians(x, measurement, ctx)
         except NotImplementedError:
             jac = numeric_jacobians(cls, x, measurement, ctx)
-        ctx.active = active
-        return e, jac
+        return Linearization(ev.error, tuple(jac), active=ev.active)
 
     @classmethod
     def jacobian_rows(cls) -> int:

@@ -12,12 +12,9 @@ from typing import Any
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.errors import GraphError
 from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
-
-
-class GraphError(ValueError):
-    """Invalid graph input (ids, shapes, values); the message names the id and type."""
 
 
 class VertexStore:

@@ -27,7 +27,8 @@ from graphopt.block_ops import (
     batched_cholesky_inverses,
     csr_product_into,
 )
-from graphopt.graph import EdgeGroup, GraphError, VertexStore
+from graphopt.errors import GraphError
+from graphopt.graph import EdgeGroup, VertexStore
 
 
 @dataclass

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from graphopt.graph import GraphError
+from graphopt.errors import GraphError
 
 if TYPE_CHECKING:
     from graphopt.optimizer import SparseOptimizer

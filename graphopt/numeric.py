@@ -4,19 +4,34 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from graphopt.edge import BaseEdge, EdgeContext
+
+class _VertexType(Protocol):
+    dimension: int
+
+    @staticmethod
+    def oplus(estimates: np.ndarray, deltas: np.ndarray) -> np.ndarray: ...
+
+
+class _EdgeType(Protocol):
+    """What the differences need of an edge type (a :class:`~graphopt.edge.BaseEdge`)."""
+
+    dimension: int
+    numeric_step: float
+    vertex_types: Sequence[type[_VertexType]]
+
+    @classmethod
+    def error(cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: Any) -> np.ndarray: ...
 
 
 def numeric_jacobians(
-    edge_type: type[BaseEdge],
+    edge_type: type[_EdgeType],
     x: Sequence[np.ndarray],
     measurement: np.ndarray,
-    ctx: EdgeContext,
+    ctx: Any,
     step: float | None = None,
 ) -> tuple[np.ndarray, ...]:
     """Central differences ``(e(x ⊞ hδ) − e(x ⊞ −hδ)) / 2h`` for every edge at once.
@@ -28,7 +43,7 @@ def numeric_jacobians(
         edge_type: The edge class (provides ``error``, ``vertex_types``, ``dimension``).
         x: Per-position estimates ``(m, *estimate_shape)``.
         measurement: ``(m, *measurement_shape)``.
-        ctx: The edge context passed to ``error``.
+        ctx: The :class:`~graphopt.edge.EdgeContext` passed to ``error``.
         step: Difference step; defaults to ``edge_type.numeric_step``.
 
     Returns:

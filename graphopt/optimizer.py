@@ -24,9 +24,9 @@ from graphopt.algorithms import (
     LevenbergMarquardt,
     make_algorithm,
 )
-from graphopt.block_ops import NotPositiveDefiniteError
-from graphopt.edge import BaseEdge, EdgeContext
-from graphopt.graph import EdgeGroup, GraphError, VertexStore
+from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.errors import GraphError, NotPositiveDefiniteError
+from graphopt.graph import EdgeGroup, VertexStore
 from graphopt.linear_system import Assembly, LinearSystem
 from graphopt.robust_kernel import RobustKernel
 from graphopt.solvers import LinearSolver, make_solver
@@ -611,14 +611,14 @@ class SparseOptimizer:
         return oe, np.einsum("me,me->m", e, oe)
 
     @staticmethod
-    def _reduced(g: EdgeGroup, out: tuple[Any, ...], J: tuple[np.ndarray, ...]) -> np.ndarray:
+    def _reduced(g: EdgeGroup, out: Linearization, J: tuple[np.ndarray, ...]) -> np.ndarray:
         """Check and return ``e_lin`` of a reduced linearisation."""
         r = g.etype.linearization_rows
         name = g.etype.__name__
-        if len(out) != 3:
-            raise GraphError(f"{name}: linearization_rows is set, so linearize must return "
-                             "(error, jacobians, e_lin)")
-        e_lin = out[2]
+        if out.reduced_error is None:
+            raise GraphError(f"{name}: linearization_rows is set, so linearize must return a "
+                             "Linearization with reduced_error (e_lin)")
+        e_lin = out.reduced_error
         if e_lin.shape != (g.size, r) or any(j.shape[:2] != (g.size, r) for j in J):
             raise GraphError(f"{name}: a reduced linearisation needs e_lin ({g.size}, {r}) and "
                              f"Jacobians ({g.size}, {r}, d)")
@@ -633,33 +633,33 @@ class SparseOptimizer:
         """Versions of every store's estimates: the key of cached linearisations."""
         return tuple(st.version for st in self._store_list)
 
-    def _group_linearization(self, gi: int, g: EdgeGroup) -> tuple[tuple[Any, ...], Any]:
-        """``(linearize output, active mask)`` of a group, reusing a trial's if still valid."""
+    def _group_linearization(self, gi: int, g: EdgeGroup) -> Linearization:
+        """The group's linearisation, reusing a trial's if still valid."""
         key = self._state()
         hit = self._lin_cache.get(gi)
         if hit is not None and hit[0] == key:
-            return hit[1], hit[2]
+            return hit[1]
         ctx = self._context(gi, g)
         out = g.etype.linearize(self._gather(gi), g.measurements, ctx)
+        if not isinstance(out, Linearization):
+            out = Linearization(*out)
         if g.etype.linearize_on_trial:
-            self._lin_cache[gi] = (key, out, ctx.active)
-        return out, ctx.active
+            self._lin_cache[gi] = (key, out)
+        return out
 
     def _evaluate(self) -> _Evaluation:
         chi2 = rchi2 = 0.0
         active = 0
         for gi, g in enumerate(self._group_list):
             if g.etype.linearize_on_trial:
-                ctx = g.context()
-                out, ctx.active = self._group_linearization(gi, g)
-                e = out[0]
+                out = self._group_linearization(gi, g)
             else:
-                ctx = self._context(gi, g)
-                e = g.etype.error(self._gather(gi), g.measurements, ctx)
+                out = g.etype.evaluate(self._gather(gi), g.measurements, self._context(gi, g))
+            e = out.error
             _, s = self._sq(g, e)
             rho, _ = self._robustify(g, s)
             g.last_chi2 = s
-            g.active_count = g.size if ctx.active is None else int(np.count_nonzero(ctx.active))
+            g.active_count = g.size if out.active is None else int(np.count_nonzero(out.active))
             active += g.active_count
             chi2 += float(s.sum())
             rchi2 += float(rho.sum())
@@ -682,8 +682,8 @@ class SparseOptimizer:
         chi2 = rchi2 = 0.0
         active = 0
         for gi, g in enumerate(self._group_list):
-            out, active_mask = self._group_linearization(gi, g)
-            e, J = out[0], out[1]
+            out = self._group_linearization(gi, g)
+            e, J, active_mask = out.error, out.jacobians, out.active
             oe, s = self._sq(g, e)
             if g.etype.linearization_rows is not None:
                 oe = self._reduced(g, out, J)

@@ -56,7 +56,7 @@ def _rel_err(a: np.ndarray, b: np.ndarray) -> float:
 def test_bal_edge_jacobians_match_numeric() -> None:
     cams, X, z = _bal_inputs()
     ctx = EdgeContext()
-    e, (Jc, Jp) = EdgeBALProjection.linearize((cams, X), z, ctx)
+    e, (Jc, Jp), *_ = EdgeBALProjection.linearize((cams, X), z, ctx)
     Nc, Np = numeric_jacobians(EdgeBALProjection, (cams, X), z, ctx)
     assert Jc.shape == (len(cams), 2, 9) and Jp.shape == (len(cams), 2, 3)
     np.testing.assert_allclose(e, EdgeBALProjection.error((cams, X), z, ctx))
@@ -72,7 +72,7 @@ def test_bal_edge_jacobians_with_points_behind_camera() -> None:
     cams, X, z = _bal_inputs(seed=3)
     X = angle_axis_rotate(-cams[:, :3], -(angle_axis_rotate(cams[:, :3], X)))  # mirror
     ctx = EdgeContext()
-    _, (Jc, Jp) = EdgeBALProjection.linearize((cams, X), z, ctx)
+    _, (Jc, Jp), *_ = EdgeBALProjection.linearize((cams, X), z, ctx)
     Nc, Np = numeric_jacobians(EdgeBALProjection, (cams, X), z, ctx)
     assert _rel_err(Jc, Nc) < 1e-5 and _rel_err(Jp, Np) < 1e-5
 
@@ -156,7 +156,7 @@ def _pinhole_inputs(m: int = 200, seed: int = 7):
 def test_pinhole_edge_jacobians_match_numeric(edge, params) -> None:
     T, _, X, _, z = _pinhole_inputs()
     ctx = EdgeContext(params=params)
-    e, J = edge.linearize((T, X), z, ctx)
+    e, J, *_ = edge.linearize((T, X), z, ctx)
     N = numeric_jacobians(edge, (T, X), z, ctx)
     np.testing.assert_allclose(e, edge.error((T, X), z, ctx))
     assert [j.shape[1:] for j in J] == [(2, 6), (2, 3)]
@@ -171,7 +171,7 @@ def test_inverse_depth_edge_jacobians_match_numeric() -> None:
     T, Ta, _, ip, z = _pinhole_inputs()
     ctx = EdgeContext(params=CameraParameters(450, 450, 320, 240))
     x = (Ta, T, ip)
-    e, J = EdgeInverseDepthProjection.linearize(x, z, ctx)
+    e, J, *_ = EdgeInverseDepthProjection.linearize(x, z, ctx)
     N = numeric_jacobians(EdgeInverseDepthProjection, x, z, ctx)
     np.testing.assert_allclose(e, EdgeInverseDepthProjection.error(x, z, ctx))
     for a, b in zip(J, N, strict=True):
@@ -187,7 +187,7 @@ def test_inverse_depth_edge_jacobians_match_numeric() -> None:
 def test_inverse_depth_anchor_observing_itself() -> None:
     T, _, _, ip, z = _pinhole_inputs(m=20)
     ctx = EdgeContext(params=CameraParameters(450, 450, 320, 240))
-    _, (Ja, Jo, _) = EdgeInverseDepthProjection.linearize((T, T, ip), z, ctx)
+    _, (Ja, Jo, _), *_ = EdgeInverseDepthProjection.linearize((T, T, ip), z, ctx)
     np.testing.assert_allclose(Ja + Jo, 0.0, atol=1e-9)
 
 
@@ -200,10 +200,10 @@ def test_projection_params_missing_is_clear() -> None:
 def test_bal_edge_blocks_match_single_pass(monkeypatch: pytest.MonkeyPatch) -> None:
     cams, X, z = _bal_inputs(m=1000, seed=8)
     ctx = EdgeContext()
-    e1, (Jc1, Jp1) = EdgeBALProjection.linearize((cams, X), z, ctx)
+    e1, (Jc1, Jp1), *_ = EdgeBALProjection.linearize((cams, X), z, ctx)
     err1 = EdgeBALProjection.error((cams, X), z, ctx)
     monkeypatch.setattr(EdgeBALProjection, "block_size", 97)  # several blocks, ragged last
-    e2, (Jc2, Jp2) = EdgeBALProjection.linearize((cams, X), z, ctx)
+    e2, (Jc2, Jp2), *_ = EdgeBALProjection.linearize((cams, X), z, ctx)
     err2 = EdgeBALProjection.error((cams, X), z, ctx)
     for a, b in ((e1, e2), (Jc1, Jc2), (Jp1, Jp2), (err1, err2), (e1, err1)):
         np.testing.assert_array_equal(a, b)

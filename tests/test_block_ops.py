@@ -7,7 +7,8 @@ import pytest
 import scipy.sparse as sp
 
 import graphopt.block_ops as bo
-from graphopt.block_ops import NotPositiveDefiniteError, batched_cholesky_inverses
+from graphopt.block_ops import batched_cholesky_inverses
+from graphopt.errors import NotPositiveDefiniteError
 
 
 @pytest.mark.parametrize("d", [1, 2, 3, 4, 6])

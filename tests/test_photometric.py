@@ -47,9 +47,10 @@ def problem(patch: int, m: int = 60, seed: int = 0):
 
 
 def full(cls, x, meas, ctx):
-    """Error and the full ``(m, P², d)`` Jacobians (``linearize`` hands over the reduced ones)."""
-    e, g, factors = cls.linearize_factored(x, meas, ctx)
-    return e, tuple(np.matmul(g, f) for f in factors)
+    """Error, the full ``(m, P², d)`` Jacobians (``linearize`` hands over the reduced ones) and
+    the activity mask."""
+    e, g, factors, active = cls.linearize_factored(x, meas, ctx)
+    return e, tuple(np.matmul(g, f) for f in factors), active
 
 
 def rel_err(a: np.ndarray, b: np.ndarray) -> float:
@@ -61,11 +62,11 @@ def check_all(prm: PhotometricParams, tol: float, seed: int = 0) -> None:
     Tj, Ta, p, q, img, meas = problem(prm.patch, seed=seed)
     for cls, x in ((E, (Tj, p)), (EI, (Ta, Tj, q)), (EH, (Ta, q))):
         ctx = EdgeContext(prm, {"image": img})
-        e, jac = full(cls, x, meas, ctx)
-        active = ctx.active
-        assert active is not None and active.sum() > 0.6 * len(img)
+        e, jac, active = full(cls, x, meas, ctx)
+        assert active.sum() > 0.6 * len(img)
         assert e.shape == (len(img), prm.patch**2)
         np.testing.assert_array_equal(e, cls.error(x, meas, ctx))
+        np.testing.assert_array_equal(active, cls.evaluate(x, meas, ctx).active)
         num = numeric_jacobians(cls, x, meas, ctx)
         for a, b in zip(jac, num, strict=True):
             assert a.shape == b.shape
@@ -116,7 +117,7 @@ def test_sampling_order_and_central_gradient_images() -> None:
     pt = np.array([[(u - CAM[2]) / CAM[0] * z, (v - CAM[3]) / CAM[1] * z, z]])
     T = np.eye(4)[None]
     ctx = EdgeContext(prm, {"image": np.array([0])})
-    e, (jp, _) = full(EdgePhotometricPatch, (T, pt), np.zeros((1, 16)), ctx)
+    e, (jp, _), _ = full(EdgePhotometricPatch, (T, pt), np.zeros((1, 16)), ctx)
 
     def bil(img: np.ndarray, x: float, y: float) -> float:
         x0, y0 = int(np.floor(x)), int(np.floor(y))
@@ -162,8 +163,8 @@ def test_inactive_edges_zero_and_finite() -> None:
     T = np.repeat(np.eye(4)[None], m, axis=0)
     ctx = EdgeContext(prm, {"image": np.zeros(m, dtype=int)})
     with np.errstate(divide="raise", over="raise", invalid="raise"):
-        e, (jp, jx) = full(EdgePhotometricPatch, (T, pts), np.full((m, 16), 7.0), ctx)
-    np.testing.assert_array_equal(ctx.active, [True, True] + [False] * (m - 2))
+        e, (jp, jx), active = full(EdgePhotometricPatch, (T, pts), np.full((m, 16), 7.0), ctx)
+    np.testing.assert_array_equal(active, [True, True] + [False] * (m - 2))
     for arr in (e, jp, jx):
         assert np.isfinite(arr).all()
         assert not arr[2:].any()
@@ -177,8 +178,8 @@ def test_inactive_edges_zero_and_finite() -> None:
                    (EdgePhotometricPatchInverseDepthHost, (Ts, q))):
         ctx = EdgeContext(prm, {"image": img})
         with np.errstate(all="raise"):
-            e, jac = full(cls, x, np.zeros((4, 16)), ctx)
-        np.testing.assert_array_equal(ctx.active, [True, False, False, False])
+            e, jac, active = full(cls, x, np.zeros((4, 16)), ctx)
+        np.testing.assert_array_equal(active, [True, False, False, False])
         for arr in (e, *jac):
             assert np.isfinite(arr).all() and not arr[1:].any()
 
@@ -190,10 +191,11 @@ def test_inverse_depth_matches_xyz() -> None:
     pa = np.c_[q[:, :2], np.ones(len(q))] / q[:, 2:3]
     Twa = np.linalg.inv(Ta)
     pw = np.einsum("mij,mj->mi", Twa[:, :3, :3], pa) + Twa[:, :3, 3]
-    c1, c2 = EdgeContext(prm, {"image": img}), EdgeContext(prm, {"image": img})
-    e1 = EdgePhotometricPatch.error((Tj, pw), meas, c1)
-    e2 = EdgePhotometricPatchInverseDepth.error((Ta, Tj, q), meas, c2)
-    np.testing.assert_array_equal(c1.active, c2.active)
+    ctx = EdgeContext(prm, {"image": img})
+    e1, _, _, a1 = EdgePhotometricPatch.evaluate((Tj, pw), meas, ctx)
+    e2, _, _, a2 = EdgePhotometricPatchInverseDepth.evaluate((Ta, Tj, q), meas, ctx)
+    np.testing.assert_array_equal(a1, a2)
+    assert a1.sum() > 0.6 * len(img)
     np.testing.assert_allclose(e1, e2, atol=1e-8)
 
 
@@ -225,8 +227,8 @@ def test_factored_jacobians() -> None:
                    (EdgePhotometricPatchInverseDepth, (Ta, Tj, q)),
                    (EdgePhotometricPatchInverseDepthHost, (Ta, q))):
         ctx = EdgeContext(prm, {"image": img})
-        e, jac = full(cls, x, meas, ctx)
-        e2, G, factors = cls.linearize_factored(x, meas, ctx)
+        e, jac, _ = full(cls, x, meas, ctx)
+        e2, G, factors, _ = cls.linearize_factored(x, meas, ctx)
         np.testing.assert_array_equal(e, e2)
         assert G.shape == (len(img), 16, 2) and len(factors) == len(jac)
         for J, F in zip(jac, factors, strict=True):
@@ -245,8 +247,9 @@ def test_reduced_linearisation_preserves_normal_equations() -> None:
                    (EdgePhotometricPatchInverseDepth, (Ta, Tj, q)),
                    (EdgePhotometricPatchInverseDepthHost, (Ta, q))):
         assert cls.linearization_rows == 2
-        e, jac = full(cls, x, meas, EdgeContext(prm, {"image": img}))
-        e2, red, e_lin = cls.linearize(x, meas, EdgeContext(prm, {"image": img}))
+        e, jac, active = full(cls, x, meas, EdgeContext(prm, {"image": img}))
+        e2, red, e_lin, active2 = cls.linearize(x, meas, EdgeContext(prm, {"image": img}))
+        np.testing.assert_array_equal(active, active2)
         np.testing.assert_array_equal(e, e2)
         assert e_lin.shape == (len(img), 2)
         for a in range(len(jac)):

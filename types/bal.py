@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.types.lie import so3_exp, so3_log
 from graphopt.types.vertices import VertexPointXYZ
 from graphopt.vertex import BaseVertex
@@ -221,7 +221,7 @@ class EdgeBALProjection(BaseEdge):
     @classmethod
     def linearize(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    ) -> Linearization:
         """Error and analytic Jacobians sharing the rotation and projection terms.
 
         Args:
@@ -243,7 +243,7 @@ class EdgeBALProjection(BaseEdge):
             sl = slice(s, s + bs)
             r = _rotation_entries(cam[sl, :3]) if rot is None else rot[sl]
             _linearize_block(cam[sl], r, X[sl], measurement[sl], e[sl], Jc[sl], Jp[sl])
-        return e, (Jc, Jp)
+        return Linearization(e, (Jc, Jp))
 
 
 def _rows(a: np.ndarray) -> np.ndarray:

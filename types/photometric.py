@@ -33,7 +33,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.reduction import factored_to_reduced
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
@@ -277,14 +277,11 @@ def _gradients(gu: np.ndarray, gv: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return g
 
 
-def _finish(
-    meas: np.ndarray, val: np.ndarray, ok: np.ndarray, ctx: EdgeContext
-) -> np.ndarray:
-    """``C − I`` (``val`` pixel-major) with inactive rows zeroed; records the mask."""
+def _finish(meas: np.ndarray, val: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``C − I`` (``val`` pixel-major) with inactive rows zeroed."""
     e = np.subtract(meas, val.T, order="C")
     if not ok.all():
         e[~ok] = 0.0
-    ctx.active = ok
     return e
 
 
@@ -380,10 +377,11 @@ class _PatchEdge(BaseEdge):
         raise NotImplementedError
 
     @classmethod
-    def error(
+    def evaluate(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """Patch errors ``C − I(π(P_c) + offsets)``, zero for inactive edges.
+    ) -> Linearization:
+        """Patch errors ``C − I(π(P_c) + offsets)``, zero for inactive edges, and the mask of
+        active edges (in front of the camera, patch inside the image margin).
 
         Args:
             x: Per-position estimates (see the edge type).
@@ -394,13 +392,27 @@ class _PatchEdge(BaseEdge):
         pc, extra_ok, _ = cls._geometry(x)
         u, v, _, ok = _project(pc, prm, extra_ok)
         val, _, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
-        return _finish(measurement, val, ok, ctx)
+        return Linearization(_finish(measurement, val, ok), active=ok)
+
+    @classmethod
+    def error(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """The errors of :meth:`evaluate`.
+
+        Args:
+            x: As in :meth:`evaluate`.
+            measurement: As in :meth:`evaluate`.
+            ctx: As in :meth:`evaluate`.
+        """
+        return cls.evaluate(x, measurement, ctx).error
 
     @classmethod
     def linearize_factored(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Errors, image gradients ``G (m, P², 2)`` and projection factors ``F_i (m, 2, d_i)``.
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """Errors, image gradients ``G (m, P², 2)``, projection factors ``F_i (m, 2, d_i)`` and
+        the activity mask.
 
         Args:
             x: As in :meth:`error`.
@@ -408,7 +420,8 @@ class _PatchEdge(BaseEdge):
             ctx: As in :meth:`error`.
 
         Returns:
-            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …))``; rows of inactive edges are zero
+            ``(e (m, P²), G (m, P², 2), (F_0 (m, 2, d_0), …), active (m,))``; rows of inactive
+            edges are zero
             in ``e`` and ``G`` (inactive edges have ``iz = 0``, which zeroes only part of
             ``∂(u,v)/∂ξ``, so their gradients are zeroed instead).
         """
@@ -416,15 +429,15 @@ class _PatchEdge(BaseEdge):
         pc, extra_ok, geo = cls._geometry(x)
         u, v, iz, ok = _project(pc, prm, extra_ok)
         val, gu, gv = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
-        e = _finish(measurement, val, ok, ctx)
+        e = _finish(measurement, val, ok)
         g = _gradients(gu, gv, ok)
         factors = cls._projection_jacobians(x, _safe_points(pc, ok), iz, ok, geo, prm)
-        return e, g, tuple(-f for f in factors)
+        return e, g, tuple(-f for f in factors), ok
 
     @classmethod
     def linearize(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+    ) -> Linearization:
         """Errors and the reduced linearisation (2 rows, see ``linearization_rows``).
 
         The ``(m, P², d_i)`` Jacobians factor as image gradients times a ``(2, d_i)``
@@ -436,7 +449,9 @@ class _PatchEdge(BaseEdge):
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        return factored_to_reduced(*cls.linearize_factored(x, measurement, ctx))
+        e, g, factors, ok = cls.linearize_factored(x, measurement, ctx)
+        e, jac, e_lin = factored_to_reduced(e, g, factors)
+        return Linearization(e, jac, e_lin, ok)
 
     @classmethod
     def jacobians(
@@ -449,7 +464,7 @@ class _PatchEdge(BaseEdge):
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        _, g, factors = cls.linearize_factored(x, measurement, ctx)
+        _, g, factors, _ = cls.linearize_factored(x, measurement, ctx)
         return tuple(np.matmul(g, f) for f in factors)
 
 

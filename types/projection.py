@@ -21,7 +21,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 from graphopt.vertex import BaseVertex
 
@@ -137,7 +137,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
     @classmethod
     def linearize(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    ) -> Linearization:
         """Error and analytic Jacobians.
 
         Args:
@@ -153,7 +153,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
         e, D = _pinhole_ctx(P, measurement, ctx)
         J_pose = np.concatenate([_cross_matrix_rows(D, P), D], axis=2)
         J_point = D @ T[:, :3, :3]
-        return e, (J_pose, J_point)
+        return Linearization(e, (J_pose, J_point))
 
 
 class EdgeProjectXYZ2UV(EdgeSE3ProjectXYZ):
@@ -235,7 +235,7 @@ class EdgeInverseDepthProjection(BaseEdge):
     @classmethod
     def linearize(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    ) -> Linearization:
         """Error and analytic Jacobians.
 
         Args:
@@ -255,5 +255,5 @@ class EdgeInverseDepthProjection(BaseEdge):
         J_anchor = np.concatenate([-_cross_matrix_rows(DR, q), -rho[:, None, None] * DR], axis=2)
         Dt = np.einsum("nij,nj->ni", D, t_ca)[:, :, None]
         J_point = np.concatenate([DR[:, :, :2], Dt], axis=2)
-        return e, (J_anchor, J_obs, J_point)
+        return Linearization(e, (J_anchor, J_obs, J_point))
 

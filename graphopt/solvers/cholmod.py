@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from graphopt.block_ops import NotPositiveDefiniteError
+from graphopt.errors import NotPositiveDefiniteError
 from graphopt.solvers.base import LinearSolver
 
 try:  # scikit-sparse is optional: it needs SuiteSparse headers to build.

@@ -6,7 +6,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from graphopt.block_ops import NotPositiveDefiniteError
+from graphopt.errors import NotPositiveDefiniteError
 from graphopt.solvers.base import LinearSolver
 
 

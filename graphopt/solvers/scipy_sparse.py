@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from graphopt.block_ops import NotPositiveDefiniteError
+from graphopt.errors import NotPositiveDefiniteError
 from graphopt.solvers.base import LinearSolver
 
 
