@@ -1,15 +1,13 @@
 """graphopt: g2o-style graph optimisation with batched (struct-of-arrays) edges."""
 
-from graphopt.algorithms import (
-    DoglegConfig,
-    GaussNewtonConfig,
-    IterationInfo,
-    LevenbergConfig,
-)
+from graphopt.algorithms import DoglegConfig, GaussNewtonConfig, LevenbergConfig
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError, NotPositiveDefiniteError
+from graphopt.linear import SchurConfig
 from graphopt.numeric import numeric_jacobians
-from graphopt.optimizer import OptimizationResult, SparseOptimizer
+from graphopt.optimizer import SparseOptimizer
+from graphopt.problem import Problem
+from graphopt.result import IterationInfo, OptimizationResult, StopReason
 from graphopt.robust_kernel import (
     RobustKernel,
     RobustKernelCauchy,
@@ -53,6 +51,7 @@ __all__ = [
     "NotPositiveDefiniteError",
     "OptimizationResult",
     "PCGConfig",
+    "Problem",
     "RobustKernel",
     "RobustKernelCauchy",
     "RobustKernelDCS",
@@ -63,7 +62,9 @@ __all__ = [
     "RobustKernelSaturated",
     "RobustKernelTukey",
     "RobustKernelWelsch",
+    "SchurConfig",
     "SparseOptimizer",
+    "StopReason",
     "VertexVector",
     "make_kernel",
     "numeric_jacobians",

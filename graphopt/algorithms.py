@@ -1,19 +1,20 @@
 """Optimisation algorithms: Gauss–Newton, Levenberg–Marquardt (g2o's rules) and Powell's Dogleg.
 
-Each algorithm performs one iteration on a :class:`Problem` — the optimizer's numeric core —
-and reports what it did in an :class:`IterationInfo`.
+Each algorithm performs one iteration on a :class:`~graphopt.problem.Problem` — linearise, solve
+damped systems, apply, evaluate, accept or restore — and reports what it did in an
+:class:`~graphopt.result.IterationInfo`. It talks to the problem alone.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 
 from graphopt.errors import NotPositiveDefiniteError
-from graphopt.linear_system import Assembly
+from graphopt.problem import Problem, Step
+from graphopt.result import IterationInfo
 
 
 @dataclass(frozen=True)
@@ -70,82 +71,6 @@ class DoglegConfig:
 AlgorithmConfig = GaussNewtonConfig | LevenbergConfig | DoglegConfig
 
 
-@dataclass
-class IterationInfo:
-    """What one iteration did.
-
-    Args:
-        iteration: Index, from 0.
-        chi2: Robust chi2 after the iteration.
-        accepted: Whether the state changed.
-        lam: λ used for the accepted step (LM/Dogleg), 0 for GN.
-        trials: Damped solves tried (g2o's ``levenbergIter``).
-        radius: Trust-region radius (Dogleg), else 0.
-        not_pd: How many solves met a non-positive-definite system.
-        failed: True when no acceptable step was found (the optimisation stops).
-        linearize_seconds: Time for errors, Jacobians and assembly.
-        schur_seconds: Time for damping and the Schur complement.
-        solve_seconds: Time in the linear solver.
-    """
-
-    iteration: int
-    chi2: float
-    accepted: bool = True
-    lam: float = 0.0
-    trials: int = 1
-    radius: float = 0.0
-    not_pd: int = 0
-    failed: bool = False
-    linearize_seconds: float = 0.0
-    schur_seconds: float = 0.0
-    solve_seconds: float = 0.0
-
-
-class Problem(Protocol):
-    """The operations an algorithm needs from the optimizer."""
-
-    def linearize(self) -> tuple[Assembly, float]:
-        """Assemble at the current state; returns the assembly and the robust chi2."""
-        ...
-
-    def solve(self, asm: Assembly, lam: float, diagonal: bool = False
-              ) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Solve the damped system; raises NotPositiveDefiniteError."""
-        ...
-
-    def damping(self, asm: Assembly, diagonal: bool) -> tuple[np.ndarray, list[np.ndarray]]:
-        """The damping diagonal."""
-        ...
-
-    def hessian_product(self, asm: Assembly, step: tuple[np.ndarray, list[np.ndarray]]
-                        ) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Undamped ``H · step``."""
-        ...
-
-    def max_diagonal(self, asm: Assembly) -> float:
-        """Largest diagonal entry of ``H``."""
-        ...
-
-    def push(self) -> None:
-        """Save the state."""
-        ...
-
-    def pop(self) -> None:
-        """Restore the saved state."""
-        ...
-
-    def apply(self, step: tuple[np.ndarray, list[np.ndarray]]) -> None:
-        """``x ← x ⊞ step``."""
-        ...
-
-    def robust_chi2(self) -> float:
-        """Robust chi2 at the current state (inf if not finite)."""
-        ...
-
-
-Step = tuple[np.ndarray, list[np.ndarray]]
-
-
 def _dot(a: Step, b: Step) -> float:
     return float(a[0] @ b[0] + sum(float(np.vdot(x, y)) for x, y in zip(a[1], b[1], strict=True)))
 
@@ -179,6 +104,14 @@ class Algorithm:
         """
         raise NotImplementedError
 
+    def line_fields(self, info: IterationInfo) -> str:
+        """The algorithm's fields of g2o's iteration line (after ``schur=``).
+
+        Args:
+            info: The iteration.
+        """
+        return ""
+
 
 class GaussNewton(Algorithm):
     """Gauss–Newton.
@@ -198,7 +131,7 @@ class GaussNewton(Algorithm):
         try:
             step = p.solve(asm, 0.0)
         except NotPositiveDefiniteError:
-            return IterationInfo(iteration, chi, accepted=False, not_pd=1, failed=True)
+            return IterationInfo(iteration, chi, not_pd=1, failed=True)
         p.apply(step)
         return IterationInfo(iteration, p.robust_chi2())
 
@@ -212,14 +145,22 @@ class LevenbergMarquardt(Algorithm):
 
     config: LevenbergConfig
 
+    def __init__(self, config: LevenbergConfig) -> None:
+        super().__init__(config)
+        self.reset()
+
     def reset(self) -> None:
         """Start again from the τ rule."""
         self.lam = 0.0
         self.nu = 2.0
 
-    def __init__(self, config: LevenbergConfig) -> None:
-        super().__init__(config)
-        self.reset()
+    def line_fields(self, info: IterationInfo) -> str:
+        """g2o's ``lambda`` and ``levenbergIter`` fields.
+
+        Args:
+            info: The iteration.
+        """
+        return f"\t lambda= {info.lam:.6g}\t levenbergIter= {info.trials}"
 
     def iterate(self, p: Problem, iteration: int) -> IterationInfo:
         """See :meth:`Algorithm.iterate`.
@@ -239,11 +180,11 @@ class LevenbergMarquardt(Algorithm):
                 self.lam = cfg.tau * max(p.max_diagonal(asm), 1e-12)
             self.nu = 2.0
         b = (asm.bu, asm.bv)
-        damp = p.damping(asm, cfg.diagonal_damping)
+        damp = p.damping(asm, cfg.diagonal_damping)  # once per linearisation
         not_pd = 0
         for trial in range(1, cfg.max_trials + 1):
             try:
-                step = p.solve(asm, self.lam, cfg.diagonal_damping)
+                step = p.solve(asm, self.lam, damp)
             except NotPositiveDefiniteError:
                 not_pd += 1
                 self.lam *= self.nu
@@ -265,8 +206,8 @@ class LevenbergMarquardt(Algorithm):
             p.pop()
             self.lam *= self.nu
             self.nu *= 2.0
-        return IterationInfo(iteration, chi, accepted=False, lam=self.lam, trials=cfg.max_trials,
-                             not_pd=not_pd, failed=True)
+        return IterationInfo(iteration, chi, lam=self.lam, trials=cfg.max_trials, not_pd=not_pd,
+                             failed=True)
 
 
 class Dogleg(Algorithm):
@@ -287,6 +228,14 @@ class Dogleg(Algorithm):
         self.radius = self.config.initial_radius
         self.lam = self.config.initial_lambda
 
+    def line_fields(self, info: IterationInfo) -> str:
+        """g2o's ``delta`` (trust radius) and ``lambda`` fields.
+
+        Args:
+            info: The iteration.
+        """
+        return f"\t delta= {info.radius:.6f}\t lambda= {info.lam:.6g}"
+
     def iterate(self, p: Problem, iteration: int) -> IterationInfo:
         """See :meth:`Algorithm.iterate`.
 
@@ -305,7 +254,8 @@ class Dogleg(Algorithm):
         sd_norm = math.sqrt(_dot(sd, sd))
         gn: Step | None = None
         not_pd = 0
-        for trial in range(1, cfg.max_trials + 1):
+        trial = 0
+        for trial in range(1, cfg.max_trials + 1):  # noqa: B007 - reported below
             if gn is None:
                 try:
                     gn = p.solve(asm, self.lam)
@@ -343,8 +293,20 @@ class Dogleg(Algorithm):
             p.pop()
             if self.radius < 1e-30:
                 break
-        return IterationInfo(iteration, chi, accepted=False, lam=self.lam, trials=cfg.max_trials,
-                             radius=self.radius, not_pd=not_pd, failed=True)
+        return IterationInfo(iteration, chi, lam=self.lam, trials=trial, radius=self.radius,
+                             not_pd=not_pd, failed=True)
+
+
+#: The algorithm class of every configuration type.
+ALGORITHMS: dict[type, type[Algorithm]] = {
+    GaussNewtonConfig: GaussNewton, LevenbergConfig: LevenbergMarquardt, DoglegConfig: Dogleg,
+}
+#: Names accepted by :func:`make_algorithm`.
+NAMES: dict[str, type] = {
+    "gn": GaussNewtonConfig, "gauss-newton": GaussNewtonConfig,
+    "lm": LevenbergConfig, "levenberg": LevenbergConfig,
+    "dogleg": DoglegConfig, "dl": DoglegConfig,
+}
 
 
 def make_algorithm(spec: str | AlgorithmConfig) -> Algorithm:
@@ -354,19 +316,10 @@ def make_algorithm(spec: str | AlgorithmConfig) -> Algorithm:
         spec: Name or configuration dataclass.
     """
     if isinstance(spec, str):
-        key = spec.lower()
-        table: dict[str, AlgorithmConfig] = {
-            "gn": GaussNewtonConfig(), "gauss-newton": GaussNewtonConfig(),
-            "lm": LevenbergConfig(), "levenberg": LevenbergConfig(),
-            "dogleg": DoglegConfig(), "dl": DoglegConfig(),
-        }
-        if key not in table:
+        if spec.lower() not in NAMES:
             raise ValueError(f"unknown algorithm {spec!r}; choose gn, lm or dogleg")
-        spec = table[key]
-    if isinstance(spec, GaussNewtonConfig):
-        return GaussNewton(spec)
-    if isinstance(spec, LevenbergConfig):
-        return LevenbergMarquardt(spec)
-    if isinstance(spec, DoglegConfig):
-        return Dogleg(spec)
-    raise TypeError(f"not an algorithm configuration: {spec!r}")
+        spec = NAMES[spec.lower()]()
+    cls = ALGORITHMS.get(type(spec))
+    if cls is None:
+        raise TypeError(f"not an algorithm configuration: {spec!r}")
+    return cls(spec)  # type: ignore[arg-type]

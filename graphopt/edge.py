@@ -238,7 +238,6 @@ class BaseEdge:
         self._robust_kernel = robust_kernel
         self.params = params
         self.data = dict(data or {})
-        self._optimizer: Any = None
         self._group: Any = None
         self._index = -1
 

@@ -1,8 +1,9 @@
-"""Struct-of-arrays storage behind the per-object API: one store per vertex type, one group per
-edge type (and parameter object).
+"""The graph: vertices and edges by id, checked on the way in, stored as arrays.
 
-Objects added one at a time and arrays added in bulk end up in the same arrays; chunks are
-concatenated lazily, so adding many single objects stays linear in time.
+:class:`Graph` owns the stores (one per vertex type) and groups (one per edge type and parameter
+object) of :mod:`graphopt.storage`, the id → (store, slot) map and the per-object fronts. Every
+input is validated here, once, with messages that name the type and the ids;
+:meth:`Graph.resolve` then turns the edges' vertex ids into store slots for the numeric layers.
 """
 
 from __future__ import annotations
@@ -11,284 +12,305 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.edge import BaseEdge
 from graphopt.errors import GraphError
 from graphopt.robust_kernel import RobustKernel
+from graphopt.storage import EdgeGroup, VertexStore
 from graphopt.vertex import BaseVertex
 
+#: Per edge group, per vertex position: ``(store index, slots (m,))``.
+Positions = list[list[tuple[int, np.ndarray]]]
 
-class VertexStore:
-    """All vertices of one type: ids, estimates, fixed and marginalised flags.
 
-    Args:
-        vtype: The vertex class.
+class Graph:
+    """Vertices and edges of one optimisation problem.
+
+    The g2o-style facade (:class:`~graphopt.optimizer.SparseOptimizer`) forwards its
+    ``add_*`` calls here.
     """
 
-    def __init__(self, vtype: type[BaseVertex]) -> None:
-        self.vtype = vtype
+    def __init__(self) -> None:
+        self.stores: dict[type[BaseVertex], VertexStore] = {}
+        self.groups: dict[tuple[type[BaseEdge], int], EdgeGroup] = {}
+        self.ids: dict[int, tuple[VertexStore, int]] = {}
+        self._objects: dict[int, BaseVertex] = {}
+        self._edge_objects: list[BaseEdge] = []
+
+    # --- vertices ----------------------------------------------------------------------------
+
+    def _store(self, vtype: type[BaseVertex]) -> VertexStore:
+        if not (isinstance(vtype, type) and issubclass(vtype, BaseVertex)):
+            raise GraphError(f"not a vertex type: {vtype!r}")
+        if vtype.dimension <= 0:
+            raise GraphError(f"{vtype.__name__}: dimension must be a positive integer")
+        if vtype not in self.stores:
+            self.stores[vtype] = VertexStore(vtype)
+        return self.stores[vtype]
+
+    def add_vertex(self, vertex: BaseVertex) -> None:
+        """Add one vertex object (g2o's ``addVertex``).
+
+        Args:
+            vertex: The vertex, with id and estimate set.
+
+        Raises:
+            GraphError: duplicate id, missing or malformed estimate.
+        """
+        if vertex._store is not None:
+            raise GraphError(f"vertex {vertex._id} ({type(vertex).__name__}) is already added")
+        vid = vertex.id
+        est = vertex._estimate
+        if est is None:
+            raise GraphError(f"vertex {vid} ({type(vertex).__name__}) has no estimate")
+        self._add(type(vertex), np.array([vid]), est[None], vertex._fixed, vertex._marginalized)
+        store, slot = self.ids[vid]
+        vertex._store, vertex._slot, vertex._estimate = store, slot, None
+        self._objects[vid] = vertex
+
+    def add_vertices(self, vtype: type[BaseVertex], ids: Any, estimates: Any, fixed: Any = False,
+                     marginalized: Any = False) -> None:
+        """Add many vertices of one type (see :meth:`SparseOptimizer.add_vertices`).
+
+        Args:
+            vtype: The vertex class.
+            ids: ``(n,)`` unique integer ids.
+            estimates: ``(n, *estimate_shape)``.
+            fixed: One flag for all or ``(n,)`` flags.
+            marginalized: One flag for all or ``(n,)`` flags.
+        """
+        ids_arr = np.asarray(ids)
+        if ids_arr.ndim != 1 or not np.issubdtype(ids_arr.dtype, np.integer):
+            raise GraphError(f"{vtype.__name__}: ids must be a 1-D integer array")
+        self._add(vtype, ids_arr.astype(np.int64), estimates, fixed, marginalized)
+
+    def _add(self, vtype: type[BaseVertex], ids: np.ndarray, estimates: Any, fixed: Any,
+             marg: Any) -> None:
+        store = self._store(vtype)
+        n = len(ids)
         shape = tuple(vtype.estimate_shape)
-        self._ids = np.zeros(0, dtype=np.int64)
-        self._est = np.zeros((0, *shape))
-        self._fixed = np.zeros(0, dtype=bool)
-        self._marg = np.zeros(0, dtype=bool)
-        self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        #: Incremented whenever fixed/marginalized flags change (the structure is then stale).
-        self.flags_version = 0
-        #: Incremented whenever estimates are replaced or written (cached evaluations are stale).
-        self.version = 0
-
-    def _consolidate(self) -> None:
-        if self._pending:
-            self.version += 1
-            ids, est, fixed, marg = zip(*self._pending, strict=True)
-            self._ids = np.concatenate([self._ids, *ids])
-            self._est = np.concatenate([self._est, *est])
-            self._fixed = np.concatenate([self._fixed, *fixed])
-            self._marg = np.concatenate([self._marg, *marg])
-            self._pending = []
-
-    def __len__(self) -> int:
-        return len(self._ids) + sum(len(p[0]) for p in self._pending)
-
-    @property
-    def ids(self) -> np.ndarray:
-        """``(n,)`` vertex ids by slot."""
-        self._consolidate()
-        return self._ids
-
-    @property
-    def estimates(self) -> np.ndarray:
-        """``(n, *estimate_shape)`` estimates by slot (the live array)."""
-        self._consolidate()
-        return self._est
-
-    @estimates.setter
-    def estimates(self, value: np.ndarray) -> None:
-        self._consolidate()
-        self._est = value
-        self.version += 1
-
-    @property
-    def fixed(self) -> np.ndarray:
-        """``(n,)`` fixed flags."""
-        self._consolidate()
-        return self._fixed
-
-    @property
-    def marginalized(self) -> np.ndarray:
-        """``(n,)`` marginalised flags."""
-        self._consolidate()
-        return self._marg
-
-    def append(
-        self, ids: np.ndarray, estimates: np.ndarray, fixed: np.ndarray, marg: np.ndarray
-    ) -> int:
-        """Append validated vertices; returns the first new slot.
-
-        Args:
-            ids: ``(n,)`` ids.
-            estimates: ``(n, *estimate_shape)``.
-            fixed: ``(n,)`` bool.
-            marg: ``(n,)`` bool.
-        """
-        start = len(self)
-        self._pending.append((ids, estimates, fixed, marg))
-        return start
-
-    def check_estimates(self, estimates: np.ndarray, ids: np.ndarray) -> None:
-        """Raise :class:`GraphError` naming the first invalid estimate.
-
-        Args:
-            estimates: ``(n, *estimate_shape)``.
-            ids: Their ids.
-        """
-        ok = self.vtype.validate(estimates)
-        if not np.all(ok):
-            i = int(np.flatnonzero(~ok)[0])
+        try:
+            est = np.array(estimates, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise GraphError(f"{vtype.__name__}: estimates are not numeric: {exc}") from None
+        if est.shape != (n, *shape):
             raise GraphError(
-                f"vertex {int(ids[i])} ({self.vtype.__name__}): invalid estimate "
-                f"(non-finite or off the manifold): {np.array2string(estimates[i], threshold=20)}"
+                f"{vtype.__name__}: estimates have shape {est.shape}, expected {(n, *shape)} "
+                f"(first vertex id {int(ids[0]) if n else '-'})"
             )
+        uniq, counts = np.unique(ids, return_counts=True)
+        if np.any(counts > 1):
+            raise GraphError(f"duplicate vertex id {int(uniq[counts > 1][0])} ({vtype.__name__})")
+        dup = next((v for v in ids.tolist() if v in self.ids), None)
+        if dup is not None:
+            raise GraphError(f"duplicate vertex id {dup} ({vtype.__name__})")
+        store.check_estimates(est, ids)
+        fixed_arr = np.broadcast_to(np.asarray(fixed, dtype=bool), (n,)).copy()
+        marg_arr = np.broadcast_to(np.asarray(marg, dtype=bool), (n,)).copy()
+        start = store.append(ids, est, fixed_arr, marg_arr)
+        self.ids.update(zip(ids.tolist(), ((store, s) for s in range(start, start + n)),
+                            strict=True))
 
-    def set_estimate(self, slot: int, value: np.ndarray, vid: int) -> None:
-        """Set one estimate, with shape and validity checks.
+    def vertex(self, vid: int) -> BaseVertex | None:
+        """The vertex object with this id (created on demand for bulk vertices), or ``None``.
 
         Args:
-            slot: Slot in the store.
-            value: New estimate.
-            vid: The vertex id (for messages).
+            vid: The id.
         """
-        shape = tuple(self.vtype.estimate_shape)
-        if value.shape != shape:
+        vid = int(vid)
+        if vid in self._objects:
+            return self._objects[vid]
+        if vid not in self.ids:
+            return None
+        store, slot = self.ids[vid]
+        v = store.vtype._bound(store, slot, vid)
+        self._objects[vid] = v
+        return v
+
+    # --- edges -------------------------------------------------------------------------------
+
+    def _group(self, etype: type[BaseEdge], params: Any) -> EdgeGroup:
+        """The group of ``(etype, params)``, new (not yet registered) if there is none."""
+        if not (isinstance(etype, type) and issubclass(etype, BaseEdge)):
+            raise GraphError(f"not an edge type: {etype!r}")
+        if etype.dimension <= 0 or not etype.vertex_types:
+            raise GraphError(f"{etype.__name__}: set dimension and vertex_types")
+        group = self.groups.get((etype, id(params)))
+        return group if group is not None else EdgeGroup(etype, params)
+
+    def add_edge(self, edge: BaseEdge) -> None:
+        """Add one edge object (g2o's ``addEdge``).
+
+        Args:
+            edge: The edge with its vertices, measurement and (optionally) information/kernel.
+        """
+        et = type(edge)
+        if edge._group is not None:
+            raise GraphError(f"{edge!r} is already added")
+        ids = []
+        for i, v in enumerate(edge._vertices):
+            if v is None:
+                raise GraphError(f"{et.__name__}: vertex {i} is not set")
+            ids.append(v.id if isinstance(v, BaseVertex) else int(v))
+        if edge._measurement is None:
+            raise GraphError(f"{et.__name__} on vertices {ids}: no measurement set")
+        info = edge._information if edge._information is not None else np.eye(et.dimension)
+        data = {k: np.asarray(v)[None] for k, v in edge.data.items()}
+        group = self._group(et, edge.params)
+        idx = self._add_edges(group, np.array([ids]), edge._measurement[None], info[None],
+                              edge._robust_kernel, data, single=True)
+        edge._group, edge._index = group, idx
+        self._edge_objects.append(edge)
+
+    def add_edges(self, etype: type[BaseEdge], vertex_ids: Any, measurements: Any,
+                  information: Any = None, robust_kernel: RobustKernel | None = None,
+                  params: Any = None, data: dict[str, Any] | None = None) -> None:
+        """Add many edges of one type (see :meth:`SparseOptimizer.add_edges`).
+
+        Args:
+            etype: The edge class.
+            vertex_ids: ``(m, k)`` vertex ids.
+            measurements: ``(m, *measurement_shape)``.
+            information: ``None``, ``(e, e)`` or ``(m, e, e)``.
+            robust_kernel: One kernel for these edges, or ``None``.
+            params: Shared parameters.
+            data: Per-edge auxiliary arrays.
+        """
+        group = self._group(etype, params)
+        vids = np.asarray(vertex_ids)
+        k = len(etype.vertex_types)
+        if vids.ndim != 2 or vids.shape[1] != k or not np.issubdtype(vids.dtype, np.integer):
             raise GraphError(
-                f"vertex {vid} ({self.vtype.__name__}): estimate has shape {value.shape}, "
-                f"expected {shape}"
+                f"{etype.__name__}: vertex_ids must be an integer array of shape (m, {k}), "
+                f"got {vids.shape}"
             )
-        self.check_estimates(value[None], np.array([vid]))
-        self.estimates[slot] = value
-        self.version += 1
-
-    def set_flag(self, name: str, slot: int, value: bool) -> None:
-        """Set ``fixed`` or ``marginalized`` of one vertex.
-
-        Args:
-            name: ``"fixed"`` or ``"marginalized"``.
-            slot: Slot in the store.
-            value: The flag.
-        """
-        arr = self.fixed if name == "fixed" else self.marginalized
-        if bool(arr[slot]) != bool(value):
-            arr[slot] = bool(value)
-            self.flags_version += 1
-
-
-class EdgeGroup:
-    """All edges of one type sharing one parameter object, as arrays.
-
-    Args:
-        etype: The edge class.
-        params: The shared parameter object (see :class:`~graphopt.edge.EdgeContext`).
-    """
-
-    def __init__(self, etype: type[BaseEdge], params: Any) -> None:
-        self.etype = etype
-        self.params = params
-        self.k = len(etype.vertex_types)
-        self.mshape = tuple(etype.get_measurement_shape())
+        m = len(vids)
         e = etype.dimension
-        self._vids: list[np.ndarray] = []
-        self._meas: list[np.ndarray] = []
-        self._info: list[np.ndarray] = []  # per chunk: (e, e) shared or (n, e, e)
-        self._kern: list[np.ndarray] = []
-        self._data: list[dict[str, np.ndarray]] = []
-        self.kernels: list[RobustKernel] = []
-        self.size = 0
-        self.dim = e
-        # Filled by finalize():
-        self.vertex_ids = np.zeros((0, self.k), dtype=np.int64)
-        self.slots = np.zeros((0, self.k), dtype=np.int64)
-        self.measurements = np.zeros((0, *self.mshape))
-        self.information: np.ndarray | None = None  # (e, e) shared, or (m, e, e)
-        self.info_is_identity = True
-        self.kernel_index = np.zeros(0, dtype=np.int64)
-        self.data: dict[str, np.ndarray] = {}
-        self.last_chi2 = np.zeros(0)
-        self.active_count = 0
-        self._finalized_size = -1
+        if information is None:
+            info = np.eye(e)
+        else:
+            info = np.asarray(information, dtype=float)
+            if info.shape not in ((e, e), (m, e, e)):
+                raise GraphError(
+                    f"{etype.__name__}: information has shape {info.shape}, expected {(e, e)} "
+                    f"or {(m, e, e)}"
+                )
+        try:
+            meas = np.asarray(measurements, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise GraphError(f"{etype.__name__}: measurements are not numeric: {exc}") from None
+        arrays = {}
+        for key, val in (data or {}).items():
+            arr = np.asarray(val)
+            if arr.shape[:1] != (m,):
+                raise GraphError(f"{etype.__name__}: data[{key!r}] must have first dimension {m}")
+            arrays[key] = arr
+        self._add_edges(group, vids.astype(np.int64), meas, info, robust_kernel, arrays)
 
-    # --- adding ----------------------------------------------------------------------------
-
-    def kernel_slot(self, kernel: RobustKernel | None) -> int:
-        """Index of ``kernel`` in this group's kernel list (-1 for none).
-
-        Args:
-            kernel: A kernel or ``None``.
-        """
-        if kernel is None:
-            return -1
-        if not isinstance(kernel, RobustKernel):
-            raise GraphError(
-                f"{self.etype.__name__}: robust_kernel must be a RobustKernel, got {kernel!r}"
-            )
-        for i, k in enumerate(self.kernels):
-            if k is kernel:
-                return i
-        self.kernels.append(kernel)
-        return len(self.kernels) - 1
-
-    def append(
-        self,
-        vids: np.ndarray,
-        meas: np.ndarray,
-        info: np.ndarray,
-        kernel: int | np.ndarray,
-        data: dict[str, np.ndarray],
-    ) -> int:
-        """Append validated edges; returns the index of the first one.
-
-        Args:
-            vids: ``(n, k)`` vertex ids.
-            meas: ``(n, *measurement_shape)``.
-            info: ``(e, e)`` shared or ``(n, e, e)``.
-            kernel: Kernel slot for all, or per edge.
-            data: Per-edge arrays.
-        """
-        n = len(vids)
-        start = self.size
-        if self._data and set(data) != set(self._data[0]):
-            raise GraphError(
-                f"{self.etype.__name__}: every add_edges call of a group must give the same data "
-                f"keys ({sorted(self._data[0])}), got {sorted(data)}"
-            )
-        self._vids.append(vids)
-        self._meas.append(meas)
-        self._info.append(info)
-        self._kern.append(np.broadcast_to(np.asarray(kernel, dtype=np.int64), (n,)).copy())
-        self._data.append(data)
-        self.size += n
+    def _add_edges(self, group: EdgeGroup, vids: np.ndarray, meas: np.ndarray, info: np.ndarray,
+                   kernel: RobustKernel | None, data: dict[str, np.ndarray],
+                   single: bool = False) -> int:
+        """Validate and append; the group is registered only once something was added."""
+        et = group.etype
+        m, e = len(vids), et.dimension
+        mshape = group.mshape
+        if meas.shape != (m, *mshape):
+            what = f"on vertices {vids[0].tolist()}" if single else ""
+            got = meas.shape[1:] if single else meas.shape
+            want = mshape if single else (m, *mshape)
+            raise GraphError(f"{et.__name__} {what}: measurement has shape {got}, expected {want}"
+                             .replace("  ", " "))
+        if m == 0:
+            return group.size  # nothing to add (and no empty group to register)
+        bad = ~np.isfinite(meas.reshape(m, -1)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise GraphError(f"{et.__name__} on vertices {vids[i].tolist()}: non-finite "
+                             "measurement")
+        if single:
+            info = info[0]
+            if info.shape != (e, e):
+                raise GraphError(f"{et.__name__} on vertices {vids[0].tolist()}: information "
+                                 f"has shape {info.shape}, expected {(e, e)}")
+        infos = info.reshape(-1, e, e)
+        if not np.all(np.isfinite(infos)):
+            raise GraphError(f"{et.__name__}: non-finite information matrix")
+        if not np.allclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12):
+            raise GraphError(f"{et.__name__}: information matrix is not symmetric")
+        uniq_info = infos if len(infos) <= 1 else np.unique(infos, axis=0)
+        low = np.linalg.eigvalsh(uniq_info)
+        if np.any(low[:, 0] < -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)):
+            raise GraphError(f"{et.__name__}: information matrix is not positive semi-definite")
+        for pos, vt in enumerate(et.vertex_types):
+            # Check each distinct id once; report the first edge that names a bad one.
+            col = vids[:, pos]
+            distinct = np.unique(col).tolist()
+            bad_ids = [v for v in distinct
+                       if v not in self.ids or not issubclass(self.ids[v][0].vtype, vt)]
+            if bad_ids:
+                i = int(np.flatnonzero(np.isin(col, bad_ids))[0])
+                self._check_vertex(et, vids[i], pos, int(col[i]), vt)
+        kslot = group.kernel_slot(kernel)
+        start = group.append(vids, meas, info, kslot, data)
+        self.groups.setdefault((et, id(group.params)), group)
         return start
 
-    # --- finalising --------------------------------------------------------------------------
+    def _check_vertex(self, et: type[BaseEdge], ids: np.ndarray, pos: int, vid: int,
+                      vt: type[BaseVertex]) -> None:
+        if vid not in self.ids:
+            raise GraphError(f"{et.__name__} on vertices {ids.tolist()}: vertex {vid} "
+                             f"(position {pos}) does not exist")
+        st = self.ids[vid][0]
+        if not issubclass(st.vtype, vt):
+            raise GraphError(f"{et.__name__} on vertices {ids.tolist()}: vertex {vid} is a "
+                             f"{st.vtype.__name__}, position {pos} needs a {vt.__name__}")
 
-    def finalize(self) -> None:
-        """Concatenate chunks into the group's arrays (idempotent)."""
-        if self._finalized_size == self.size:
-            return
-        self.vertex_ids = np.concatenate(self._vids) if self._vids else self.vertex_ids
-        self.measurements = np.concatenate(self._meas) if self._meas else self.measurements
-        self.kernel_index = np.concatenate(self._kern) if self._kern else self.kernel_index
-        shared = [i for i in self._info if i.ndim == 2]
-        if len(shared) == len(self._info) and all(np.array_equal(shared[0], i) for i in shared):
-            self.information = shared[0] if shared else np.eye(self.dim)
-        else:
-            self.information = np.concatenate(
-                [np.broadcast_to(i, (len(v), self.dim, self.dim)) for i, v in
-                 zip(self._info, self._vids, strict=True)]
-            )
-        self.info_is_identity = self.information.ndim == 2 and np.array_equal(
-            self.information, np.eye(self.dim)
-        )
-        if self._data:
-            self.data = {key: np.concatenate([d[key] for d in self._data]) for key in self._data[0]}
-        # Keep one chunk so further appends concatenate onto the consolidated arrays.
-        self._vids, self._meas, self._kern = [self.vertex_ids], [self.measurements], [
-            self.kernel_index
-        ]
-        self._info = [self.information]
-        self._data = [self.data] if self._data else []
-        self.last_chi2 = np.zeros(self.size)
-        self._finalized_size = self.size
+    def edges(self) -> list[BaseEdge]:
+        """The edges added one at a time (bulk edges live only as arrays)."""
+        return list(self._edge_objects)
 
-    def context(self) -> EdgeContext:
-        """A fresh :class:`EdgeContext` over all edges of the group."""
-        return EdgeContext(self.params, self.data)
+    # --- structure ---------------------------------------------------------------------------
 
-    def information_of(self, i: int) -> np.ndarray:
-        """Information matrix of edge ``i``.
+    def structure_key(self) -> tuple[Any, ...]:
+        """Changes whenever vertices, edges or fixed/marginalised flags change."""
+        return (tuple((id(s), len(s), s.flags_version) for s in self.stores.values()),
+                tuple((id(g), g.size) for g in self.groups.values()))
 
-        Args:
-            i: Edge index in the group.
+    def resolve(self) -> tuple[list[VertexStore], list[EdgeGroup], Positions]:
+        """Finalise the groups and map every edge's vertex ids to store slots.
+
+        Returns:
+            ``(stores, groups, positions)``: the stores and groups in a fixed order, and per
+            group, per vertex position, ``(store index, slots (m,))``.
+
+        Raises:
+            GraphError: a position of an edge type that mixes vertex types.
         """
-        self.finalize()
-        assert self.information is not None
-        return self.information.copy() if self.information.ndim == 2 else self.information[i].copy()
-
-    def kernel_of(self, i: int) -> RobustKernel | None:
-        """Robust kernel of edge ``i``.
-
-        Args:
-            i: Edge index in the group.
-        """
-        self.finalize()
-        k = int(self.kernel_index[i])
-        return None if k < 0 else self.kernels[k]
-
-    def set_kernel(self, i: int | slice | np.ndarray, kernel: RobustKernel | None) -> None:
-        """Set the robust kernel of some edges.
-
-        Args:
-            i: Edge index (or indices) in the group.
-            kernel: The kernel or ``None``.
-        """
-        self.finalize()
-        self.kernel_index[i] = self.kernel_slot(kernel)
+        stores = list(self.stores.values())
+        index = {id(s): i for i, s in enumerate(stores)}
+        lookup: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for i, s in enumerate(stores):
+            order = np.argsort(s.ids)
+            lookup[i] = (s.ids[order], order)
+        positions: Positions = []
+        groups = list(self.groups.values())
+        for g in groups:
+            g.finalize()
+            pos = []
+            for a in range(g.k):
+                col = g.vertex_ids[:, a]
+                first = self.ids[int(col[0])][0]
+                si = index[id(first)]
+                sids, order = lookup[si]
+                loc = np.searchsorted(sids, col).clip(0, max(len(sids) - 1, 0))
+                ok = sids[loc] == col
+                if not ok.all():
+                    bad = int(col[np.flatnonzero(~ok)[0]])
+                    other = self.ids[bad][0].vtype.__name__
+                    raise GraphError(
+                        f"{g.etype.__name__}: position {a} mixes vertex types "
+                        f"({first.vtype.__name__} and {other}, vertex {bad}); use one type per "
+                        "position within an edge type"
+                    )
+                pos.append((si, order[loc]))
+            positions.append(pos)
+        return stores, groups, positions

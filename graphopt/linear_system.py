@@ -28,7 +28,7 @@ from graphopt.block_ops import (
     csr_product_into,
 )
 from graphopt.errors import GraphError
-from graphopt.graph import EdgeGroup, VertexStore
+from graphopt.storage import EdgeGroup, VertexStore
 
 
 @dataclass
@@ -245,7 +245,9 @@ class LinearSystem:
         stores: list[VertexStore],
         groups: list[EdgeGroup],
         positions: list[list[tuple[int, np.ndarray]]],
+        config: object = None,
     ) -> None:
+        self.index = self
         self.stores = stores
         self.groups = groups
         self.positions = positions
@@ -939,8 +941,8 @@ class LinearSystem:
         return du, [np.clip(np.einsum("nii->ni", v), 1e-6, 1e32) for v in asm.v]
 
     def reduce(
-        self, asm: Assembly, lam: float, diagonal: bool = False
-    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+        self, asm: Assembly, lam: float, damp: tuple[np.ndarray, list[np.ndarray]] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
         """Damp by ``λ D`` and eliminate the V blocks.
 
         Args:
@@ -959,7 +961,7 @@ class LinearSystem:
         s = asm.h_data.copy()
         vdamp: list[np.ndarray | None] = [None] * len(asm.v)
         if lam:
-            du, dv = self.damping(asm, diagonal)
+            du, dv = damp if damp is not None else self.damping(asm, False)
             s[self.diag_pos] += lam * du
             vdamp = [lam * d for d in dv]
         linv, vinv = [], []  # L⁻¹ and V⁻¹ of the damped V blocks (V + λD = LLᵀ)
@@ -1019,7 +1021,7 @@ class LinearSystem:
             rhs[wc.rhs_dest] -= zl.reshape(n_u, du)  # Σ_w Z_wᵀ L⁻¹b_v per U block
         for pt in self.pair_terms:
             s -= pt.to_s @ pt.contraction(yt[pt.k1], asm.wt[pt.k2]).reshape(-1)
-        return s, rhs, vinv, yt
+        return s, rhs, vinv
 
     def y_transposed(self, asm: Assembly, vinv: list[np.ndarray],
                      only: set[int] | None = None) -> list[np.ndarray | None]:

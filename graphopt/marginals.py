@@ -8,49 +8,45 @@ Only the columns of ``S⁻¹`` that these formulas touch are solved for.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from graphopt.errors import GraphError
-
-if TYPE_CHECKING:
-    from graphopt.optimizer import SparseOptimizer
+from graphopt.problem import Problem
 
 
-def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.ndarray]:
-    """Covariance blocks for the given vertex ids.
+def marginal_covariances(problem: Problem, vertices: list[tuple[int, int, int]]
+                         ) -> dict[int, np.ndarray]:
+    """Covariance blocks of the given vertices at the current estimates.
 
     Args:
-        opt: An initialised optimizer.
-        ids: Vertex ids (neither fixed nor unknown).
+        problem: The initialised numeric problem.
+        vertices: ``(id, store index, slot)`` of each vertex (not fixed).
 
     Returns:
         ``{id: (d, d) covariance}``.
+
+    Raises:
+        GraphError: a fixed vertex.
+        NotPositiveDefiniteError: if ``H`` is singular (e.g. no gauge fixed).
     """
-    sysm, solver = opt._system, opt.solver
-    assert sysm is not None and solver is not None
-    asm, _ = opt.linearize()
-    s, _, vinv, _ = sysm.reduce(asm, 0.0)
-    yt = sysm.y_transposed(asm, vinv)
-    store_index = {id(st): i for i, st in enumerate(opt._store_list)}
+    system, solver = problem.system, problem.solver
+    index = system.index
+    asm, _ = problem.linearize()
+    s, _, vinv = system.reduce(asm, 0.0)
+    yt = system.y_transposed(asm, vinv)
     wanted: list[tuple[int, str, int, int, np.ndarray]] = []
     cols: list[np.ndarray] = []
-    for vid in ids:
-        if vid not in opt._ids:
-            raise GraphError(f"compute_marginals: vertex {vid} does not exist")
-        st, slot = opt._ids[vid]
-        si = store_index[id(st)]
-        if sysm.ublock[si][slot] >= 0:
-            ub = int(sysm.ublock[si][slot])
-            idx = sysm.uoffset[ub] + np.arange(sysm.udims[ub])
+    for vid, si, slot in vertices:
+        if index.ublock[si][slot] >= 0:
+            ub = int(index.ublock[si][slot])
+            idx = index.uoffset[ub] + np.arange(index.udims[ub])
             wanted.append((vid, "u", ub, -1, idx))
             cols.append(idx)
-        elif sysm.vblock[si][slot] >= 0:
-            vc = sysm.vclass_of_store[si]
-            vb = int(sysm.vblock[si][slot])
+        elif index.vblock[si][slot] >= 0:
+            vc = index.vclass_of_store[si]
+            vb = int(index.vblock[si][slot])
             wanted.append((vid, "v", vc, vb, np.zeros(0, dtype=np.int64)))
-            for wc in sysm.wclasses:
+            for wc in index.wclasses:
                 if wc.vclass == vc:
                     for w in np.flatnonzero(wc.vblock == vb):
                         cols.append(wc.upos[w])
@@ -58,12 +54,12 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
             raise GraphError(f"compute_marginals: vertex {vid} is fixed")
     need = np.unique(np.concatenate(cols)) if cols else np.zeros(0, dtype=np.int64)
     col_of = {int(c): i for i, c in enumerate(need)}
-    X = np.zeros((sysm.n, 0))
+    X = np.zeros((index.n, 0))
     if len(need):
-        E = np.zeros((sysm.n, len(need)))
+        E = np.zeros((index.n, len(need)))
         E[need, np.arange(len(need))] = 1.0
         X = solver.solve(s, E)
-        X = X.reshape(sysm.n, len(need))
+        X = X.reshape(index.n, len(need))
     out: dict[int, np.ndarray] = {}
     for vid, kind, a, b, idx in wanted:
         if kind == "u":
@@ -71,7 +67,7 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
             continue
         cov = vinv[a][b].copy()
         parts = []  # (Yᵀ block (dv, du), scalar rows of u)
-        for k, wc in enumerate(sysm.wclasses):
+        for k, wc in enumerate(index.wclasses):
             if wc.vclass == a:
                 for w in np.flatnonzero(wc.vblock == b):
                     parts.append((yt[k][w], wc.upos[w]))

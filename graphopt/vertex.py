@@ -7,12 +7,21 @@ are a thin per-object front (g2o's API) over the optimizer's struct-of-arrays st
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from graphopt.graph import VertexStore
+
+class _Store(Protocol):
+    """What a bound vertex needs of its store (a :class:`~graphopt.storage._Store`)."""
+
+    estimates: np.ndarray
+    fixed: np.ndarray
+    marginalized: np.ndarray
+
+    def set_estimate(self, slot: int, value: np.ndarray, vid: int) -> None: ...
+
+    def set_flag(self, name: str, slot: int, value: bool) -> None: ...
 
 
 class BaseVertex:
@@ -86,11 +95,11 @@ class BaseVertex:
         self._estimate = None if estimate is None else np.asarray(estimate, dtype=float)
         self._fixed = bool(fixed)
         self._marginalized = bool(marginalized)
-        self._store: VertexStore | None = None
+        self._store: _Store | None = None
         self._slot = -1
 
     @classmethod
-    def _bound(cls, store: VertexStore, slot: int, vid: int) -> BaseVertex:
+    def _bound(cls, store: _Store, slot: int, vid: int) -> BaseVertex:
         v = cls.__new__(cls)
         v._id, v._estimate, v._store, v._slot = vid, None, store, slot
         v._fixed = v._marginalized = False

@@ -190,8 +190,8 @@ def test_solvers_give_the_same_step(solver: str) -> None:
     for name in ("dense", solver):
         opt, _, _ = build_pose_graph("lm", name)
         opt.initialize_optimization()
-        asm, _ = opt.linearize()
-        steps[name] = opt.solve(asm, 1e-2)[0]
+        asm, _ = opt.problem.linearize()
+        steps[name] = opt.problem.solve(asm, 1e-2)[0]
     np.testing.assert_allclose(steps[solver], steps["dense"], rtol=1e-7, atol=1e-9)
     assert np.abs(steps["dense"]).max() > 1e-3  # a real step, not zeros
 
@@ -220,9 +220,9 @@ def test_structure_is_built_once() -> None:
     opt.add_vertices(VertexSE2, np.arange(20), init, fixed=np.arange(20) == 0)
     opt.add_edges(EdgeSE2, edges, meas)
     opt.optimize(5)
-    system = opt._system
+    problem = opt.problem
     opt.optimize(5)
-    assert CountingDense.analyses == 1 and opt._system is system
+    assert CountingDense.analyses == 1 and opt.problem is problem
     opt.vertex(3).set_fixed(True)  # a structural change triggers one new analysis
     opt.optimize(1)
     assert CountingDense.analyses == 2
@@ -356,12 +356,13 @@ def test_pcg_tolerance_and_iteration_cap() -> None:
 
     opt, _, _ = build_pose_graph("lm", "dense")
     opt.initialize_optimization()
-    asm, _ = opt.linearize()
-    ref = opt.solve(asm, 1e-2)[0]
-    s, rhs, _, _ = opt._system.reduce(asm, 1e-2)
+    asm, _ = opt.problem.linearize()
+    ref = opt.problem.solve(asm, 1e-2)[0]
+    system = opt.linear_system
+    s, rhs, _ = system.reduce(asm, 1e-2)
     for cfg, close in ((PCGConfig(tolerance=1e-12), True), (PCGConfig(max_iterations=2), False)):
         pcg = LinearSolverPCG(cfg)
-        pcg.analyze(opt._system.pattern, opt._system.udims)
+        pcg.analyze(system.pattern, system.udims)
         x = pcg.solve(s, rhs)
         assert np.allclose(x, ref, rtol=1e-7, atol=1e-9) == close
         if not close:
@@ -460,8 +461,8 @@ def test_reduced_linearisation_gives_the_same_steps(kernel) -> None:
         opt.add_vertices(VertexP3, np.arange(5), np.zeros((5, 3)))
         opt.add_edges(et, ids, z, robust_kernel=kernel, data={"g": g})
         opt.initialize_optimization()
-        asm, chi = opt.linearize()
-        step = opt.solve(asm, 1e-3)[0]
+        asm, chi = opt.problem.linearize()
+        step = opt.problem.solve(asm, 1e-3)[0]
         res = opt.optimize(15)
         results.append((chi, step, res.chi2_history))
     (c1, s1, h1), (c2, s2, h2) = results

@@ -1,0 +1,278 @@
+"""Errors, Jacobians and robust weights of every edge group at the current estimates.
+
+:class:`Linearizer` is the per-linearisation tier on the edge side: it gathers each group's
+vertex estimates by slot (cached per state), calls the edge type's batched ``evaluate`` or
+``linearize``, applies the information matrix and the robust kernel, and hands the linear system
+``J``, ``ρ'ΩJ`` and ``ρ'Ωe`` per group. Where those are scattered into the normal equations is
+the linear system's business (:mod:`graphopt.linear`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from graphopt.edge import EdgeContext, Linearization
+from graphopt.errors import GraphError
+from graphopt.storage import EdgeGroup, VertexStore
+
+Positions = list[list[tuple[int, np.ndarray]]]
+
+
+@dataclass
+class Evaluation:
+    """Totals of one evaluation of every edge.
+
+    Args:
+        chi2: ``Σ e'Ωe`` without robust kernels.
+        robust_chi2: ``Σ ρ(e'Ωe)`` (g2o's chi2); ``inf`` if any error is not finite.
+        active: Edges active in this evaluation.
+    """
+
+    chi2: float
+    robust_chi2: float
+    active: int
+
+
+@dataclass
+class WeightedLinearization:
+    """Per edge group, what the normal equations are built from.
+
+    Args:
+        jacobians: Per group, per vertex position, ``J`` ``(m, rows, d)`` (C-contiguous).
+        weighted: Per group, per position, ``ρ'ΩJ`` ``(m, rows, d)`` (C-contiguous).
+        weighted_errors: Per group ``ρ'Ωe`` ``(m, rows)`` (``rows``: the error dimension, or
+            ``linearization_rows`` for a reduced linearisation).
+    """
+
+    jacobians: list[tuple[np.ndarray, ...]]
+    weighted: list[tuple[np.ndarray, ...]]
+    weighted_errors: list[np.ndarray]
+
+
+class Linearizer:
+    """Evaluates and linearises every edge group.
+
+    Args:
+        stores: The vertex stores, in the order of ``positions``' store indices.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+    """
+
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
+                 positions: Positions) -> None:
+        self.stores = stores
+        self.groups = groups
+        self.positions = positions
+        # A trial's linearisation per group (linearize_on_trial types), keyed by the state.
+        self._lin_cache: dict[int, tuple[tuple[int, ...], Linearization]] = {}
+        # Per (store, "estimates" | "derived"): (estimate version, array to gather edges from,
+        # whether it is stored transposed).
+        self._state_cache: dict[tuple[int, str], tuple[int, np.ndarray | None, bool]] = {}
+        self.last: Evaluation | None = None
+
+    # --- gathering ---------------------------------------------------------------------------
+
+    def gather(self, gi: int) -> tuple[np.ndarray, ...]:
+        """Estimates of group ``gi``'s vertices, one ``(m, *estimate_shape)`` array per position.
+
+        Args:
+            gi: Group index.
+        """
+        return tuple(self._gather_rows(si, "estimates", slots)  # type: ignore[misc]
+                     for si, slots in self.positions[gi])
+
+    def _gather_rows(self, si: int, what: str, slots: np.ndarray) -> np.ndarray | None:
+        """Rows ``slots`` of a store's estimates or derived values, cached per state.
+
+        2-D arrays ``(n, d)`` are gathered coordinate by coordinate from a transposed copy: the
+        result ``(m, d)`` is in Fortran order, so each coordinate over the edges is one
+        contiguous array — what batched edge code reads, and a cheaper gather.
+        """
+        st = self.stores[si]
+        key = (si, what)
+        hit = self._state_cache.get(key)
+        if hit is None or hit[0] != st.version:
+            a = st.estimates if what == "estimates" else st.vtype.derived(st.estimates)
+            transposed = a is not None and a.ndim == 2
+            hit = (st.version, np.ascontiguousarray(a.T) if transposed else a, transposed)
+            self._state_cache[key] = hit
+        _, a, transposed = hit
+        if a is None:
+            return None
+        return np.take(a, slots, axis=1).T if transposed else a[slots]
+
+    def context(self, gi: int) -> EdgeContext:
+        """Group ``gi``'s context, with the vertices' derived values if its type uses them.
+
+        Args:
+            gi: Group index.
+        """
+        g = self.groups[gi]
+        ctx = g.context()
+        if g.etype.uses_derived:
+            ctx.derived = tuple(self._gather_rows(si, "derived", slots)
+                                for si, slots in self.positions[gi])
+        return ctx
+
+    def _state(self) -> tuple[int, ...]:
+        """Versions of every store's estimates: the key of cached linearisations."""
+        return tuple(st.version for st in self.stores)
+
+    def _linearization(self, gi: int) -> Linearization:
+        """Group ``gi``'s linearisation, reusing a trial's if the state is the same."""
+        key = self._state()
+        hit = self._lin_cache.get(gi)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        g = self.groups[gi]
+        out = g.etype.linearize(self.gather(gi), g.measurements, self.context(gi))
+        if not isinstance(out, Linearization):  # a plain (error, jacobians[, ...]) tuple
+            out = Linearization(*out)
+        if g.etype.linearize_on_trial:
+            self._lin_cache[gi] = (key, out)
+        return out
+
+    # --- weighting ---------------------------------------------------------------------------
+
+    @staticmethod
+    def _robustify(g: EdgeGroup, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-edge ρ(s) and the weight ρ'(s) (clipped at 0)."""
+        if not g.kernels:
+            return s, np.ones_like(s)
+        rho = s.copy()
+        w = np.ones_like(s)
+        if len(g.kernels) == 1 and np.all(g.kernel_index == 0):
+            r0, r1, _ = g.kernels[0].robustify(s)
+            return r0, np.maximum(r1, 0.0)
+        for ki, kern in enumerate(g.kernels):
+            sel = g.kernel_index == ki
+            if sel.any():
+                r0, r1, _ = kern.robustify(s[sel])
+                rho[sel], w[sel] = r0, np.maximum(r1, 0.0)
+        return rho, w
+
+    @staticmethod
+    def _sq(g: EdgeGroup, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``Ω e`` and ``e'Ω e`` per edge."""
+        if g.info_is_identity:
+            return e, np.einsum("me,me->m", e, e)
+        assert g.information is not None
+        oe = e @ g.information if g.information.ndim == 2 else np.einsum("mij,mj->mi",
+                                                                          g.information, e)
+        return oe, np.einsum("me,me->m", e, oe)
+
+    @staticmethod
+    def _reduced(g: EdgeGroup, out: Linearization) -> np.ndarray:
+        """Check and return ``e_lin`` of a reduced linearisation."""
+        r = g.etype.linearization_rows
+        name = g.etype.__name__
+        if out.reduced_error is None:
+            raise GraphError(f"{name}: linearization_rows is set, so linearize must return a "
+                             "Linearization with reduced_error (e_lin)")
+        e_lin = out.reduced_error
+        if e_lin.shape != (g.size, r) or any(j.shape[:2] != (g.size, r) for j in out.jacobians):
+            raise GraphError(f"{name}: a reduced linearisation needs e_lin ({g.size}, {r}) and "
+                             f"Jacobians ({g.size}, {r}, d)")
+        if not g.info_is_identity:
+            raise GraphError(f"{name}: a reduced linearisation needs an identity information "
+                             "matrix")
+        if not np.isfinite(e_lin.sum()):
+            raise FloatingPointError(f"{name}: non-finite reduced error at linearisation")
+        return e_lin
+
+    def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
+                active: np.ndarray | None, totals: list[float]) -> None:
+        """Keep a group's per-edge chi2 and active count; add its sums to ``totals``."""
+        g.last_chi2 = s
+        g.active_count = g.size if active is None else int(np.count_nonzero(active))
+        totals[0] += float(s.sum())
+        totals[1] += float(rho.sum())
+        totals[2] += g.active_count
+
+    def _finish(self, totals: list[float]) -> Evaluation:
+        rchi2 = totals[1] if np.isfinite(totals[1]) else float("inf")
+        self.last = Evaluation(totals[0], rchi2, int(totals[2]))
+        return self.last
+
+    # --- the two entry points ----------------------------------------------------------------
+
+    def evaluate(self) -> Evaluation:
+        """Errors only (a trial step): chi2, robust chi2 and active edges at the current state.
+
+        Types with ``linearize_on_trial`` linearise instead, and keep the result for the next
+        :meth:`linearize` at the same state.
+        """
+        totals = [0.0, 0.0, 0.0]
+        for gi, g in enumerate(self.groups):
+            if g.etype.linearize_on_trial:
+                out = self._linearization(gi)
+            else:
+                out = g.etype.evaluate(self.gather(gi), g.measurements, self.context(gi))
+            _, s = self._sq(g, out.error)
+            rho, _ = self._robustify(g, s)
+            self._record(g, s, rho, out.active, totals)
+        return self._finish(totals)
+
+    def linearize(self) -> tuple[WeightedLinearization, Evaluation]:
+        """Errors, Jacobians and robust weights of every group at the current state.
+
+        Returns:
+            ``J``, ``ρ'ΩJ`` and ``ρ'Ωe`` per group, and the evaluation totals.
+
+        Raises:
+            FloatingPointError: a non-finite error or Jacobian (naming the edge).
+            GraphError: a malformed reduced linearisation.
+        """
+        jac, wjac, wes = [], [], []
+        totals = [0.0, 0.0, 0.0]
+        for gi, g in enumerate(self.groups):
+            out = self._linearization(gi)
+            e, J = out.error, out.jacobians
+            oe, s = self._sq(g, e)
+            if g.etype.linearization_rows is not None:
+                oe = self._reduced(g, out)
+            rho, w = self._robustify(g, s)
+            if not np.isfinite(s.sum()):  # one sum is cheaper than isfinite().all()
+                self._raise_non_finite(g, e, J)
+            self._record(g, s, rho, out.active, totals)
+            J = tuple(np.ascontiguousarray(j) for j in J)
+            weighted = bool(g.kernels)
+            if g.info_is_identity:
+                wj = tuple(j * w[:, None, None] for j in J) if weighted else J
+            else:
+                assert g.information is not None
+                wj = tuple(np.matmul(g.information, j) for j in J)
+                if weighted:
+                    wj = tuple(j * w[:, None, None] for j in wj)
+            jac.append(J)
+            wjac.append(wj)
+            wes.append(oe * w[:, None] if weighted else oe)
+        return WeightedLinearization(jac, wjac, wes), self._finish(totals)
+
+    def raise_non_finite(self, lin: WeightedLinearization) -> None:
+        """Raise naming the first edge with a non-finite error or Jacobian.
+
+        Args:
+            lin: The linearisation whose assembly turned out not finite.
+
+        Raises:
+            FloatingPointError: always (naming the edge where one is found).
+        """
+        for g, J, e in zip(self.groups, lin.jacobians, lin.weighted_errors, strict=True):
+            self._raise_non_finite(g, e, J)
+        raise FloatingPointError("the normal equations are not finite (overflow)")
+
+    @staticmethod
+    def _raise_non_finite(g: EdgeGroup, e: np.ndarray, J: tuple[np.ndarray, ...]) -> None:
+        """Raise naming the first edge of ``g`` with a non-finite error or Jacobian, if any."""
+        ok = np.isfinite(e.reshape(len(e), -1)).all(axis=1)
+        for j in J:
+            ok &= np.isfinite(j.reshape(len(j), -1)).all(axis=1)
+        if ok.all():
+            return
+        ids = g.vertex_ids[int(np.flatnonzero(~ok)[0])].tolist()
+        raise FloatingPointError(
+            f"{g.etype.__name__} on vertices {ids}: non-finite error or Jacobian at linearisation"
+        )

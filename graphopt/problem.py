@@ -1,0 +1,198 @@
+"""The numeric problem the algorithms talk to: linearise, solve, step, evaluate.
+
+:class:`Problem` ties together what :meth:`SparseOptimizer.initialize_optimization
+<graphopt.optimizer.SparseOptimizer.initialize_optimization>` builds once — the
+:class:`~graphopt.linearizer.Linearizer` (edges), the :class:`~graphopt.linear.LinearSystem`
+(normal equations and Schur complement) and the linear solver with its symbolic analysis — with
+the state stack and the step layout. A step is ``(u part, [v part per V class])``: the unknowns
+of the reduced system and, per class of marginalised vertices, their ``(n, d)`` increments.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from graphopt.errors import NotPositiveDefiniteError
+from graphopt.linear import Assembly, LinearSystem, SchurConfig
+from graphopt.linearizer import Evaluation, Linearizer, Positions
+from graphopt.solvers import LinearSolver
+from graphopt.storage import EdgeGroup, VertexStore
+
+#: ``(u part (n,), [v part (n_c, d_c) per V class])``.
+Step = tuple[np.ndarray, list[np.ndarray]]
+
+
+@dataclass
+class Timing:
+    """Seconds spent since the last :meth:`Problem.reset_timing`.
+
+    Args:
+        linearize: Errors, Jacobians and assembly.
+        schur: Damping, Schur complement and back-substitution.
+        solve: The linear solver.
+    """
+
+    linearize: float = 0.0
+    schur: float = 0.0
+    solve: float = 0.0
+
+
+@dataclass
+class _StoreUpdate:
+    """Where a store's increments are in a step: U slots and their columns, V slots."""
+
+    uslots: np.ndarray  # (k,) store slots with a U block
+    upos: np.ndarray  # (k, d) their columns in the u part
+    vclass: int  # V class of the store's marginalised vertices, or -1
+    vslots: np.ndarray  # (n_c,) store slots of the V class, by V block
+
+
+class Problem:
+    """Linearisation, damped solves and state updates of one initialised graph.
+
+    Args:
+        stores: The vertex stores.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+        solver: The linear solver (analysed here, once).
+        schur: How to form the Schur complement (``None``: the cost model chooses).
+    """
+
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
+                 positions: Positions, solver: LinearSolver,
+                 schur: SchurConfig | None = None) -> None:
+        self.stores = stores
+        self.linearizer = Linearizer(stores, groups, positions)
+        self.system = LinearSystem(stores, groups, positions, schur)
+        self.solver = solver
+        solver.analyze(self.system.pattern, self.system.udims)
+        self.timing = Timing()
+        self._saved: list[np.ndarray] = []
+        index = self.system.index
+        self._updates = []
+        for si, st in enumerate(stores):
+            ub = index.ublock[si]
+            uslots = np.flatnonzero(ub >= 0)
+            upos = index.uoffset[ub[uslots]][:, None] + np.arange(st.vtype.dimension)
+            vc = index.vclass_of_store[si]
+            vslots = index.vclasses[vc].slots if vc >= 0 else np.zeros(0, dtype=np.int64)
+            self._updates.append(_StoreUpdate(uslots, upos, vc, vslots))
+
+    def reset_timing(self) -> None:
+        """Start a new :class:`Timing` (one per iteration)."""
+        self.timing = Timing()
+
+    # --- linearisation -----------------------------------------------------------------------
+
+    def linearize(self) -> tuple[Assembly, float]:
+        """Errors, Jacobians and the assembled normal equations at the current state.
+
+        Returns:
+            The assembly and the robust chi2.
+
+        Raises:
+            FloatingPointError: a non-finite error or Jacobian (naming the edge).
+        """
+        t0 = time.perf_counter()
+        lin, ev = self.linearizer.linearize()
+        asm = self.system.assemble(lin.jacobians, lin.weighted, lin.weighted_errors)
+        # A non-finite Jacobian of a free vertex reaches its U or V block (every block holds
+        # Σ J'ΩJ): checking the small assembled arrays spares a pass over the Jacobians.
+        if not self.system.is_finite(asm):
+            self.linearizer.raise_non_finite(lin)
+        self.timing.linearize += time.perf_counter() - t0
+        return asm, ev.robust_chi2
+
+    def evaluate(self) -> Evaluation:
+        """Chi2 totals at the current state (errors only)."""
+        return self.linearizer.evaluate()
+
+    def robust_chi2(self) -> float:
+        """Robust chi2 at the current state (``inf`` if any error is not finite)."""
+        return self.linearizer.evaluate().robust_chi2
+
+    # --- the linear algebra ------------------------------------------------------------------
+
+    def damping(self, asm: Assembly, diagonal: bool) -> Step:
+        """The damping diagonal ``D``: the identity, or ``diag(H)`` clipped (Marquardt).
+
+        Args:
+            asm: The assembly.
+            diagonal: Marquardt's scaling instead of the identity.
+        """
+        return self.system.damping(asm, diagonal)
+
+    def solve(self, asm: Assembly, lam: float, damping: Step | None = None) -> Step:
+        """Solve ``(H + λD) Δ = b`` through the Schur complement.
+
+        Args:
+            asm: The assembly.
+            lam: Damping λ (0 for none).
+            damping: ``D`` from :meth:`damping`; ``None`` for the identity.
+
+        Raises:
+            NotPositiveDefiniteError: if the damped system is not positive definite.
+        """
+        t0 = time.perf_counter()
+        try:
+            s, rhs, vinv = self.system.reduce(asm, lam, damping)
+        finally:
+            t1 = time.perf_counter()
+            self.timing.schur += t1 - t0
+        try:
+            du = self.solver.solve(s, rhs)
+        finally:
+            t2 = time.perf_counter()
+            self.timing.solve += t2 - t1
+        dv = self.system.back_substitute(asm, du, vinv)
+        self.timing.schur += time.perf_counter() - t2
+        if not (np.all(np.isfinite(du)) and all(np.all(np.isfinite(x)) for x in dv)):
+            raise NotPositiveDefiniteError("the step is not finite")
+        return du, dv
+
+    def hessian_product(self, asm: Assembly, step: Step) -> Step:
+        """Undamped ``H · step``.
+
+        Args:
+            asm: The assembly.
+            step: A vector in the step layout.
+        """
+        return self.system.hessian_product(asm, step[0], step[1])
+
+    def max_diagonal(self, asm: Assembly) -> float:
+        """Largest diagonal entry of the undamped Hessian.
+
+        Args:
+            asm: The assembly.
+        """
+        return self.system.max_diagonal(asm)
+
+    # --- the state ---------------------------------------------------------------------------
+
+    def push(self) -> None:
+        """Save the estimates of every store (g2o's ``push``)."""
+        self._saved = [st.estimates.copy() for st in self.stores]
+
+    def pop(self) -> None:
+        """Restore the estimates saved by :meth:`push` (g2o's ``pop``)."""
+        for st, est in zip(self.stores, self._saved, strict=True):
+            st.estimates = est
+        self._saved = []
+
+    def apply(self, step: Step) -> None:
+        """``x ← x ⊞ Δ`` with every vertex type's vectorised ``oplus``.
+
+        Args:
+            step: ``(u part, [v parts])`` as returned by :meth:`solve`.
+        """
+        du, dv = step
+        for st, up in zip(self.stores, self._updates, strict=True):
+            est = st.estimates.copy()
+            if len(up.uslots):
+                est[up.uslots] = st.vtype.oplus(est[up.uslots], du[up.upos])
+            if up.vclass >= 0:
+                est[up.vslots] = st.vtype.oplus(est[up.vslots], dv[up.vclass])
+            st.estimates = est

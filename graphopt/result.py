@@ -1,0 +1,127 @@
+"""What an optimisation did: one record per iteration, and the result derived from them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+
+class StopReason(StrEnum):
+    """Why :meth:`~graphopt.optimizer.SparseOptimizer.optimize` stopped.
+
+    A ``StrEnum``: each member equals its value (``StopReason.GAIN == "gain"``), so it prints
+    and serialises as the plain word.
+    """
+
+    #: The iteration count was reached.
+    ITERATIONS = "iterations"
+    #: The relative chi2 decrease of an iteration fell below the gain threshold.
+    GAIN = "gain"
+    #: :meth:`~graphopt.optimizer.SparseOptimizer.force_stop` was called.
+    STOPPED = "stopped"
+    #: Zero chi2, or no trial step reduced chi2 although the solves worked.
+    CONVERGED = "converged"
+    #: Every solve of the last iteration met a system that is not positive definite.
+    FAILED = "failed"
+
+
+@dataclass
+class IterationInfo:
+    """What one iteration did.
+
+    Args:
+        iteration: Index, from 0.
+        chi2: Robust chi2 after the iteration (before it, when it failed).
+        lam: λ used for the accepted step (LM/Dogleg), 0 for GN.
+        trials: Damped solves tried (g2o's ``levenbergIter``).
+        radius: Trust-region radius (Dogleg), else 0.
+        not_pd: How many solves met a non-positive-definite system.
+        failed: True when no acceptable step was found (the optimisation stops).
+        linearize_seconds: Time for errors, Jacobians and assembly.
+        schur_seconds: Time for damping and the Schur complement.
+        solve_seconds: Time in the linear solver.
+        seconds: Wall time of the whole iteration.
+    """
+
+    iteration: int
+    chi2: float
+    lam: float = 0.0
+    trials: int = 1
+    radius: float = 0.0
+    not_pd: int = 0
+    failed: bool = False
+    linearize_seconds: float = 0.0
+    schur_seconds: float = 0.0
+    solve_seconds: float = 0.0
+    seconds: float = 0.0
+
+
+@dataclass
+class OptimizationResult:
+    """What :meth:`~graphopt.optimizer.SparseOptimizer.optimize` did.
+
+    The histories are views of ``info``, over the iterations that changed the state (a failed
+    last iteration is in ``info`` but not in the histories).
+
+    Args:
+        initial_chi2: Robust chi2 before the first iteration.
+        final_chi2: Robust chi2 at the end.
+        seconds: Wall time of the whole call.
+        stop_reason: Why the run stopped.
+        info: The :class:`IterationInfo` of every iteration, failed ones included.
+    """
+
+    initial_chi2: float
+    final_chi2: float = float("nan")
+    seconds: float = 0.0
+    stop_reason: StopReason = StopReason.ITERATIONS
+    info: list[IterationInfo] = field(default_factory=list)
+
+    @property
+    def _done(self) -> list[IterationInfo]:
+        return [r for r in self.info if not r.failed]
+
+    @property
+    def iterations(self) -> int:
+        """Iterations that changed the state."""
+        return len(self._done)
+
+    @property
+    def chi2_history(self) -> list[float]:
+        """Robust chi2 after each iteration."""
+        return [r.chi2 for r in self._done]
+
+    @property
+    def lambda_history(self) -> list[float]:
+        """λ of each iteration (LM/Dogleg)."""
+        return [r.lam for r in self._done]
+
+    @property
+    def linearize_seconds(self) -> list[float]:
+        """Per iteration: errors, Jacobians, assembly."""
+        return [r.linearize_seconds for r in self._done]
+
+    @property
+    def schur_seconds(self) -> list[float]:
+        """Per iteration: damping and Schur complement (all trials)."""
+        return [r.schur_seconds for r in self._done]
+
+    @property
+    def solve_seconds(self) -> list[float]:
+        """Per iteration: linear solver (all trials)."""
+        return [r.solve_seconds for r in self._done]
+
+    @property
+    def trials(self) -> list[int]:
+        """Per iteration: damped solves (g2o's ``levenbergIter``)."""
+        return [r.trials for r in self._done]
+
+    @property
+    def not_positive_definite(self) -> int:
+        """Solves that met a non-positive-definite system, over all iterations."""
+        return sum(r.not_pd for r in self.info)
+
+    @property
+    def seconds_per_iteration(self) -> float:
+        """Mean wall time of one iteration (over the iterations that changed the state)."""
+        return self.seconds / self.iterations if self.iterations else 0.0
