@@ -319,7 +319,7 @@ def make_algorithm(spec: str | AlgorithmConfig) -> Algorithm:
         if spec.lower() not in NAMES:
             raise ValueError(f"unknown algorithm {spec!r}; choose gn, lm or dogleg")
         spec = NAMES[spec.lower()]()
-    cls = ALGORITHMS.get(type(spec))
-    if cls is None:
-        raise TypeError(f"not an algorithm configuration: {spec!r}")
-    return cls(spec)  # type: ignore[arg-type]
+    for base in type(spec).__mro__:  # a subclass of a config runs its base's algorithm
+        if base in ALGORITHMS:
+            return ALGORITHMS[base](spec)  # type: ignore[arg-type]
+    raise TypeError(f"not an algorithm configuration: {spec!r}")
