@@ -33,14 +33,16 @@ DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / 
 def _edge_times(problem, repeats: int = 15) -> tuple[float, float]:
     """Median seconds of one batched ``linearize`` and one ``error`` over all edge groups."""
     opt = problem.optimizer
+    opt.initialize_optimization()
+    lz = opt.problem.linearizer
     lin, err = [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        for gi, g in enumerate(opt._group_list):
-            g.etype.linearize(opt._gather(gi), g.measurements, g.context())
+        for gi, g in enumerate(lz.groups):
+            g.etype.linearize(lz.gather(gi), g.measurements, lz.context(gi))
         t1 = time.perf_counter()
-        for gi, g in enumerate(opt._group_list):
-            g.etype.error(opt._gather(gi), g.measurements, g.context())
+        for gi, g in enumerate(lz.groups):
+            g.etype.error(lz.gather(gi), g.measurements, lz.context(gi))
         t2 = time.perf_counter()
         lin.append(t1 - t0)
         err.append(t2 - t1)

@@ -52,9 +52,11 @@ def run(data, parametrization="xyz", robust="huber", delta=0.5, iterations=40) -
 def residual_sigma(problem) -> float:
     """Robust per-pixel noise estimate (1.4826 · MAD) of the active residuals."""
     opt = problem.optimizer
+    opt.initialize_optimization()
+    lz = opt.problem.linearizer
     errs = []
-    for gi, g in enumerate(opt._group_list):
-        ev = g.etype.evaluate(opt._gather(gi), g.measurements, g.context())
+    for gi, g in enumerate(lz.groups):
+        ev = g.etype.evaluate(lz.gather(gi), g.measurements, lz.context(gi))
         errs.append(ev.error[ev.active].ravel())
     e = np.concatenate(errs)
     return float(1.4826 * np.median(np.abs(e - np.median(e))))
@@ -112,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         for d in (0.5, 5.0, 20.0, round(sig * np.sqrt(q95), 1), 100.0):
             r = run(real, "xyz", "huber", d)
             opt = r["problem"].optimizer
-            s_all = np.concatenate([g.last_chi2 for g in opt._group_list])
+            s_all = np.concatenate([g.last_chi2 for g in opt.edge_groups()])
             inl = int(np.count_nonzero(s_all[s_all > 0] <= d * d))
             sg = residual_sigma(r["problem"])
             sweep.append({"delta": d, "initial": r["initial_chi2"], "final": r["final_chi2"],

@@ -179,7 +179,7 @@ class LevenbergMarquardt(Algorithm):
             else:
                 self.lam = cfg.tau * max(p.max_diagonal(asm), 1e-12)
             self.nu = 2.0
-        b = (asm.bu, asm.bv)
+        b = p.gradient(asm)
         damp = p.damping(asm, cfg.diagonal_damping)  # once per linearisation
         not_pd = 0
         for trial in range(1, cfg.max_trials + 1):
@@ -245,7 +245,7 @@ class Dogleg(Algorithm):
         """
         cfg = self.config
         asm, chi = p.linearize()
-        b: Step = (asm.bu, asm.bv)
+        b = p.gradient(asm)
         bb = _dot(b, b)
         hb = p.hessian_product(asm, b)
         bhb = _dot(b, hb)

@@ -116,6 +116,15 @@ class Problem:
 
     # --- the linear algebra ------------------------------------------------------------------
 
+    @staticmethod
+    def gradient(asm: Assembly) -> Step:
+        """The right-hand side ``b = −Jᵀρ'Ωe`` (minus half the chi2 gradient), in the step layout.
+
+        Args:
+            asm: The assembly.
+        """
+        return asm.bu, asm.bv
+
     def damping(self, asm: Assembly, diagonal: bool) -> Step:
         """The damping diagonal ``D``: the identity, or ``diag(H)`` clipped (Marquardt).
 
