@@ -108,7 +108,7 @@ def _check_options(args: argparse.Namespace) -> None:
 
 
 def _cameras_to_poses(cams: np.ndarray) -> np.ndarray:
-    from graphopt.types.lie import make_transform, so3_exp
+    from graphopt.lie import make_transform, so3_exp
 
     return make_transform(so3_exp(cams[:, :3]), cams[:, 3:6])
 
@@ -163,13 +163,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         The summary dictionary (also written by ``--json``).
     """
     from graphopt import GraphError, LevenbergConfig, SparseOptimizer, make_kernel
-    from graphopt.io.bal import (
-        ground_truth_errors,
-        normalize,
-        perturb,
-        read_bal,
-        synthetic_scene,
-    )
+    from graphopt.apps.bal_preprocess import normalize, perturb
+    from graphopt.apps.bal_scene import ground_truth_errors, synthetic_scene
+    from graphopt.io.bal import read_bal
     from graphopt.io.ply import write_scene_ply
     from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
     from graphopt.types.vertices import VertexPointXYZ

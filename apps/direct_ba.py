@@ -29,8 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.io.directba import DirectBAData, DirectBAFormatError, load_directba, synthetic_scene
-from graphopt.types.lie import so3_log, transform_inverse
+from graphopt.apps.direct_ba_scene import synthetic_scene
+from graphopt.io.directba import DirectBAData, DirectBAFormatError, load_directba
+from graphopt.lie import so3_log, transform_inverse
 from graphopt.types.photometric import PhotometricParams, numeric_variant, photometric_edge_types
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 

@@ -6,15 +6,14 @@ import numpy as np
 import pytest
 
 from graphopt.edge import EdgeContext
+from graphopt.lie import angle_axis_rotate, se3_exp, so3_exp, so3_log
 from graphopt.numeric import numeric_jacobians
 from graphopt.types.bal import (
     EdgeBALProjection,
     VertexCameraBAL,
-    angle_axis_rotate,
     bal_project,
     count_behind_camera,
 )
-from graphopt.types.lie import se3_exp, so3_exp, so3_log
 from graphopt.types.projection import (
     CameraParameters,
     EdgeInverseDepthProjection,

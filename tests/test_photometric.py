@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from graphopt.edge import EdgeContext
+from graphopt.lie import se3_exp
 from graphopt.numeric import numeric_jacobians
-from graphopt.types.lie import se3_exp
+from graphopt.types.image_sampling import central_gradients
 from graphopt.types.photometric import (
     EdgePhotometricPatch,
     EdgePhotometricPatchInverseDepth,
     EdgePhotometricPatchInverseDepthHost,
     PhotometricParams,
-    central_gradients,
     numeric_variant,
     photometric_edge_types,
 )
