@@ -12,7 +12,7 @@ import pytest
 
 from graphopt.apps.bal_preprocess import normalize, perturb
 from graphopt.apps.bal_scene import ground_truth_errors, synthetic_scene
-from graphopt.io.atomic import atomic_path, atomic_write
+from graphopt.io.atomic import PendingFile, atomic_path, atomic_write
 from graphopt.io.bal import BALFormatError, BALProblem, read_bal, write_bal
 from graphopt.io.ply import camera_centers_from_poses, write_ply, write_scene_ply
 from graphopt.lie import make_transform, so3_exp
@@ -260,6 +260,27 @@ def test_atomic_write_failure_leaves_old_file(tmp_path: Path) -> None:
         assert tmp.parent == tmp_path and not (tmp_path / "g.bin").exists()
         tmp.write_bytes(b"x")
     assert (tmp_path / "g.bin").read_bytes() == b"x"
+
+
+def test_pending_file_commit_and_discard(tmp_path: Path) -> None:
+    dest = tmp_path / "out.bin"
+    dest.write_bytes(b"old")
+    dest.chmod(0o640)
+    pending = PendingFile(dest)
+    assert pending.tmp.parent == tmp_path and pending.tmp.name.startswith(".out.bin.")
+    assert pending.tmp.name.endswith(".tmp") and pending.tmp.read_bytes() == b""
+    pending.tmp.write_bytes(b"new")
+    assert dest.read_bytes() == b"old"  # nothing visible before the commit
+    pending.commit()
+    assert dest.read_bytes() == b"new" and dest.stat().st_mode & 0o777 == 0o640
+    assert sorted(os.listdir(tmp_path)) == ["out.bin"]
+    other = PendingFile(dest)
+    other.tmp.write_bytes(b"discarded")
+    other.discard()
+    other.discard()  # a second discard is harmless
+    assert dest.read_bytes() == b"new" and sorted(os.listdir(tmp_path)) == ["out.bin"]
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        PendingFile(tmp_path / "missing" / "x.bin")
 
 
 def test_bal_problem_is_dataclass() -> None:
