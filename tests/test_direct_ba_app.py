@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from graphopt.apps import direct_ba
-from graphopt.apps.direct_ba import build_problem, main, truth_report
+from graphopt.apps.direct_ba import main
+from graphopt.apps.direct_ba_problem import build_problem
+from graphopt.apps.direct_ba_report import truth_report
 from graphopt.apps.direct_ba_scene import synthetic_scene
 from graphopt.io.directba import load_directba
 
