@@ -73,7 +73,7 @@ fi
 say "installing graphopt (editable) with its test tools into $VENV"
 run_logged "installing graphopt" "$VENV/bin/python" -P -m pip install -e ".[test]"
 if have_suitesparse; then
-    say "installing scikit-sparse (CHOLMOD; compiles on the first run)"
+    say "installing scikit-sparse for CHOLMOD (its first build compiles)"
     echo "### installing scikit-sparse" >>"$LOG"
     if ! "$VENV/bin/python" -P -m pip install "scikit-sparse>=0.4.16,<0.5" >>"$LOG" 2>&1; then
         tail -n 20 "$LOG" >&2
