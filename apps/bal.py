@@ -29,17 +29,7 @@ from typing import Any
 import numpy as np
 
 from graphopt import GraphError, LevenbergConfig, SparseOptimizer, make_kernel
-from graphopt.apps._cli import (
-    AppError,
-    OneLineParser,
-    RunRecording,
-    add_solver_option,
-    check_outputs,
-    check_run_options,
-    optimize_recorded,
-    run_main,
-    write_json,
-)
+from graphopt.apps import _cli
 from graphopt.apps.bal_preprocess import normalize, perturb
 from graphopt.apps.bal_scene import ground_truth_errors, synthetic_scene
 from graphopt.io.bal import BALFormatError, BALProblem, read_bal
@@ -57,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     Returns:
         The parser.
     """
-    p = OneLineParser(
+    p = _cli.OneLineParser(
         prog=PROG,
         description="Bundle adjustment of a BAL file (or a synthetic scene) with graphopt.",
     )
@@ -69,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lm-damping", choices=("diagonal", "identity"), default="diagonal",
                    help="LM damping: lambda*diag(H) (Marquardt, as Ceres; default) or "
                         "lambda*I (g2o)")
-    add_solver_option(p)
+    _cli.add_solver_option(p)
     p.add_argument("--robust", metavar="KERNEL", default=None,
                    help="robust kernel (huber, cauchy, pseudohuber, tukey, ...)")
     p.add_argument("--robust-delta", type=float, default=1.0, metavar="D",
@@ -88,12 +78,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check_options(args: argparse.Namespace) -> None:
-    """Option values argparse cannot check; outputs must be writable (see ``check_outputs``)."""
-    check_run_options(args.iterations, args.robust_delta)
+    """Check what argparse cannot: value ranges, and that the outputs can be written."""
+    _cli.check_run_options(args.iterations, args.robust_delta)
     if args.perturb is not None and any(not math.isfinite(s) or s < 0 for s in args.perturb):
-        raise AppError(f"--perturb sigmas must be finite and >= 0, got {args.perturb}")
-    check_outputs({"--ply-before": args.ply_before, "--ply-after": args.ply_after,
-                   "--rrd": args.rrd, "--json": args.json}, inputs=[args.input])
+        raise _cli.AppError(f"--perturb sigmas must be finite and >= 0, got {args.perturb}")
+    _cli.check_outputs({"--ply-before": args.ply_before, "--ply-after": args.ply_after,
+                        "--rrd": args.rrd, "--json": args.json}, inputs=[args.input])
 
 
 def _cameras_to_poses(cams: np.ndarray) -> np.ndarray:
@@ -110,7 +100,7 @@ def _residual_stats(
     return 0.5 * float(sq.sum()), float(np.sqrt(sq.mean())), int(np.count_nonzero(pz >= 0))
 
 
-class _BALRecording(RunRecording):
+class _BALRecording(_cli.RunRecording):
     """Points, camera frusta (BAL cameras look down −z) and the cost per iteration.
 
     Args:
@@ -189,14 +179,14 @@ def _build_optimizer(
     try:
         opt.initialize_optimization()
     except GraphError as exc:
-        raise AppError(f"{source}: {exc}") from None
+        raise _cli.AppError(f"{source}: {exc}") from None
     return opt
 
 
 def _start_recording(
     path: str, opt: SparseOptimizer, problem: BALProblem, initial_cost: float
 ) -> _BALRecording:
-    """Open the recording, log the start and every iteration (timed, see ``RunRecording``)."""
+    """Open the recording, log the start and every iteration (timed, see ``_cli.RunRecording``)."""
     centers = problem.camera_centers()
     scale = float(np.median(np.linalg.norm(centers - np.median(problem.points, 0), axis=1)))
     recording = _BALRecording(path, problem, scale if scale > 0 else 1.0)
@@ -228,19 +218,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         try:
             kernel = make_kernel(args.robust, args.robust_delta)
         except ValueError as exc:
-            raise AppError(str(exc)) from None
+            raise _cli.AppError(str(exc)) from None
 
     problem, truth, source = _load(args)
     initial_cost, initial_rms, behind0 = _residual_stats(problem, problem.cameras, problem.points)
     if not math.isfinite(initial_cost):
-        raise AppError(f"{source}: the initial reprojection error is not finite "
+        raise _cli.AppError(f"{source}: the initial reprojection error is not finite "
                        "(a point at depth 0 in its camera?)")
     if args.ply_before:
         write_scene_ply(args.ply_before, problem.points, problem.camera_centers())
 
     opt = _build_optimizer(args, problem, kernel, source)
     recording = _start_recording(args.rrd, opt, problem, initial_cost) if args.rrd else None
-    res = optimize_recorded(opt, args.iterations, recording)
+    res = _cli.optimize_recorded(opt, args.iterations, recording)
     est = BALProblem(opt.estimates_of(VertexCameraBAL), opt.estimates_of(VertexPointXYZ),
                      problem.camera_index, problem.point_index, problem.observations)
     final_cost, final_rms, behind1 = _residual_stats(problem, est.cameras, est.points)
@@ -248,7 +238,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             and np.isfinite(est.points).all()):
         if recording is not None:
             recording.abort()
-        raise AppError("the optimisation produced non-finite estimates")
+        raise _cli.AppError("the optimisation produced non-finite estimates")
     seconds = res.seconds - (recording.seconds if recording is not None else 0.0)
 
     summary: dict[str, Any] = {
@@ -282,7 +272,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.ply_after:
         write_scene_ply(args.ply_after, est.points, est.camera_centers())
     if args.json:
-        write_json(args.json, summary)
+        _cli.write_json(args.json, summary)
     if not args.quiet:
         print(format_summary(summary))
         if res.stop_reason == "failed":
@@ -335,7 +325,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns:
         Exit status: 0 on success, 1 on an input/processing error, 2 on bad options.
     """
-    return run_main(PROG, build_parser(), run, argv, user_errors=(BALFormatError,))
+    return _cli.run_main(PROG, build_parser(), run, argv, user_errors=(BALFormatError,))
 
 
 if __name__ == "__main__":

@@ -24,16 +24,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from graphopt import GraphError, NotPositiveDefiniteError
-from graphopt.apps._cli import (
-    AppError,
-    OneLineParser,
-    add_solver_option,
-    check_outputs,
-    check_run_options,
-    optimize_recorded,
-    run_main,
-    write_json,
-)
+from graphopt.apps import _cli
 from graphopt.apps.direct_ba_problem import PARAMETRIZATIONS, build_problem
 from graphopt.apps.direct_ba_report import DirectBARecording, truth_report, write_png
 from graphopt.apps.direct_ba_scene import synthetic_scene
@@ -48,7 +39,7 @@ SYNTHETIC = {"n_frames": 7, "n_points": 2000, "seed": 0}
 
 def _parser() -> argparse.ArgumentParser:
     """The command-line parser."""
-    ap = OneLineParser(
+    ap = _cli.OneLineParser(
         prog=PROG,
         description="Direct (photometric) bundle adjustment of the task's data (DATA_DIR with "
         "poses.txt, points.txt, 0.png...) or, without DATA_DIR, of a synthetic textured scene.",
@@ -64,7 +55,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="point parametrisation (default xyz)")
     ap.add_argument("--patch", type=int, choices=PATCHES, default=4,
                     help="patch side (default 4; other sizes need the synthetic scene)")
-    add_solver_option(ap)
+    _cli.add_solver_option(ap)
     ap.add_argument("--rrd", metavar="FILE", help="write a rerun recording")
     ap.add_argument("--png", metavar="FILE", help="write a top-down before/after picture")
     ap.add_argument("--json", metavar="FILE", help="write a JSON summary")
@@ -79,11 +70,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         args: Parsed command line (see :func:`main`).
 
     Raises:
-        AppError: Bad input or output location (one-line message).
+        _cli.AppError: Bad input or output location (one-line message).
     """
-    check_run_options(args.iterations, args.robust_delta)
-    check_outputs({"--rrd": args.rrd, "--png": args.png, "--json": args.json},
-                  inputs=[args.data_dir])
+    _cli.check_run_options(args.iterations, args.robust_delta)
+    _cli.check_outputs({"--rrd": args.rrd, "--png": args.png, "--json": args.json},
+                       inputs=[args.data_dir])
     out = sys.stdout
     say = (lambda *a: print(*a, file=out)) if not args.quiet else (lambda *a: None)
 
@@ -91,19 +82,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         if args.data_dir is not None:
             if args.patch != 4:
-                raise AppError(f"--patch {args.patch}: the data's points.txt holds 4x4 patches; "
-                               "other sizes work with the synthetic scene (no DATA_DIR)")
+                raise _cli.AppError(
+                    f"--patch {args.patch}: the data's points.txt holds 4x4 patches; other "
+                    "sizes work with the synthetic scene (no DATA_DIR)")
             data = load_directba(args.data_dir)
         else:
             data = synthetic_scene(patch=args.patch, **SYNTHETIC)
     except DirectBAFormatError as exc:
-        raise AppError(str(exc)) from None
+        raise _cli.AppError(str(exc)) from None
     load_s = time.perf_counter() - t0
     try:
         problem = build_problem(data, args.parametrization, args.robust, args.robust_delta,
                                 args.solver, verbose=not args.quiet, stream=out)
     except (ValueError, GraphError) as exc:
-        raise AppError(str(exc)) from None
+        raise _cli.AppError(str(exc)) from None
     opt = problem.optimizer
     before = (problem.poses(), problem.points())
     opt.compute_active_errors()
@@ -126,9 +118,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         opt.add_callback("post_iteration", on_iteration)
     try:
-        res = optimize_recorded(opt, args.iterations, recording)
+        res = _cli.optimize_recorded(opt, args.iterations, recording)
     except (NotPositiveDefiniteError, FloatingPointError) as exc:
-        raise AppError(f"optimisation failed: {exc}") from None
+        raise _cli.AppError(f"optimisation failed: {exc}") from None
     seconds = res.seconds - (recording.seconds if recording is not None else 0.0)
     per_iteration = seconds / res.iterations if res.iterations else 0.0
     opt.compute_active_errors()
@@ -160,7 +152,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.png:
         write_png(args.png, problem, before, (problem.poses(), problem.points()))
     if args.json:
-        write_json(args.json, summary)
+        _cli.write_json(args.json, summary)
     say(f"# chi2 {res.initial_chi2:.6g} -> {res.final_chi2:.6g} in {res.iterations} iterations "
         f"({res.stop_reason}), {seconds:.3f} s, {per_iteration:.4f} s/iteration; "
         f"active edges {active0} -> {summary['active_edges_final']} of {problem.n_edges}")
@@ -186,7 +178,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns:
         Exit status: 0 on success, 1 on a runtime error, 2 on a usage error.
     """
-    return run_main(PROG, _parser(), run, argv)
+    return _cli.run_main(PROG, _parser(), run, argv)
 
 
 if __name__ == "__main__":
