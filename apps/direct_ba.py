@@ -37,8 +37,12 @@ PATCHES = (2, 4, 6, 8)
 SYNTHETIC = {"n_frames": 7, "n_points": 2000, "seed": 0}
 
 
-def _parser() -> argparse.ArgumentParser:
-    """The command-line parser."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser.
+
+    Returns:
+        The parser.
+    """
     ap = _cli.OneLineParser(
         prog=PROG,
         description="Direct (photometric) bundle adjustment of the task's data (DATA_DIR with "
@@ -67,7 +71,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run the app with parsed arguments; returns the JSON summary.
 
     Args:
-        args: Parsed command line (see :func:`main`).
+        args: Parsed command line (see :func:`build_parser`).
 
     Raises:
         _cli.AppError: Bad input or output location (one-line message).
@@ -178,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns:
         Exit status: 0 on success, 1 on a runtime error, 2 on a usage error.
     """
-    return _cli.run_main(PROG, _parser(), run, argv)
+    return _cli.run_main(PROG, build_parser(), run, argv)
 
 
 if __name__ == "__main__":
