@@ -9,9 +9,10 @@ Small angles: every map built on ``θ = |ω|`` (:func:`so3_exp`, :func:`angle_ax
 ``b = (1−cosθ)/θ²`` and ``c = (θ−sinθ)/θ³`` by their second-order Taylor series when
 ``θ² < SMALL_ANGLE2`` (``1e-8``, θ below 1e-4 rad); the first omitted terms are below
 ``θ⁴/120 < 1e-18``. Above it the closed forms are used. Accuracy (against 40-digit
-arithmetic): rotations are within 2e-16 at every angle. In the left Jacobian (and so in the
-translation of :func:`se3_exp`), ``b`` multiplies ``[ω]×`` and the cancellation in ``1−cosθ``
-shows: its error peaks at ≈ 3e-13 just above θ = 1e-4 and is below 1e-14 from θ = 1e-3 on.
+arithmetic): rotations are within 2e-16 up to θ = 1 and 5e-16 up to π. In the left Jacobian
+(and so in the translation of :func:`se3_exp`), ``b`` multiplies ``[ω]×`` and the cancellation
+in ``1−cosθ`` shows: its error peaks at ≈ 3e-13 just above θ = 1e-4 and is below 1e-14 from
+θ = 1e-3 on.
 (The half-angle form ``2 sin²(θ/2)/θ²`` would avoid that, but it changes every result in the
 last bits, which bit-sensitive direct-BA runs amplify; it is left for a deliberate change.)
 """
