@@ -3,7 +3,7 @@
 Usage::
 
     graphopt-bal [INPUT] [--iterations N] [--algorithm lm|gn|dogleg]
-                 [--solver auto|cholmod|dense|pcg] [--robust KERNEL --robust-delta D]
+                 [--solver auto|cholmod|dense|pcg|scipy] [--robust KERNEL --robust-delta D]
                  [--normalize] [--perturb R T P] [--seed S]
                  [--ply-before FILE] [--ply-after FILE] [--rrd FILE] [--json FILE] [--quiet]
                  [--lm-damping diagonal|identity]
@@ -21,29 +21,24 @@ with a one-line message on stderr and exit status 1 (2 for bad options).
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
 import sys
-import time
 from collections.abc import Sequence
-from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 
+from graphopt import GraphError, LevenbergConfig, SparseOptimizer, make_kernel
+from graphopt.apps import _cli
+from graphopt.apps.bal_preprocess import normalize, perturb
+from graphopt.apps.bal_scene import ground_truth_errors, synthetic_scene
+from graphopt.io.bal import BALFormatError, BALProblem, read_bal
+from graphopt.io.ply import write_scene_ply
+from graphopt.lie import make_transform, so3_exp
+from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL, reprojection_errors
+from graphopt.types.vertices import VertexPointXYZ
+
 PROG = "graphopt-bal"
-
-
-class AppError(Exception):
-    """An error reported to the user as one line (no traceback)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (exit status 2) instead of usage + error."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     Returns:
         The parser.
     """
-    p = _Parser(
+    p = _cli.OneLineParser(
         prog=PROG,
         description="Bundle adjustment of a BAL file (or a synthetic scene) with graphopt.",
     )
@@ -64,9 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lm-damping", choices=("diagonal", "identity"), default="diagonal",
                    help="LM damping: lambda*diag(H) (Marquardt, as Ceres; default) or "
                         "lambda*I (g2o)")
-    p.add_argument("--solver", choices=("auto", "cholmod", "dense", "pcg"), default="auto",
-                   help="linear solver for the reduced camera system (default auto: dense "
-                        "Cholesky for a small dense system, else CHOLMOD)")
+    _cli.add_solver_option(p)
     p.add_argument("--robust", metavar="KERNEL", default=None,
                    help="robust kernel (huber, cauchy, pseudohuber, tukey, ...)")
     p.add_argument("--robust-delta", type=float, default=1.0, metavar="D",
@@ -85,61 +78,54 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check_options(args: argparse.Namespace) -> None:
-    if args.iterations < 0:
-        raise AppError(f"--iterations must be >= 0, got {args.iterations}")
-    if not math.isfinite(args.robust_delta) or args.robust_delta <= 0:
-        raise AppError(f"--robust-delta must be positive, got {args.robust_delta}")
+    """Check what argparse cannot: value ranges, and that the outputs can be written."""
+    _cli.check_run_options(args.iterations, args.robust_delta)
     if args.perturb is not None and any(not math.isfinite(s) or s < 0 for s in args.perturb):
-        raise AppError(f"--perturb sigmas must be finite and >= 0, got {args.perturb}")
-    outputs = [args.ply_before, args.ply_after, args.rrd, args.json]
-    for out in outputs:
-        if out is None:
-            continue
-        folder = Path(out).parent
-        if not folder.is_dir():
-            raise AppError(f"{out}: folder {folder} does not exist")
-        if Path(out).is_dir():
-            raise AppError(f"{out}: is a directory")
-        if args.input is not None and Path(out).resolve() == Path(args.input).resolve():
-            raise AppError(f"{out}: refusing to overwrite the input file")
-    named = [o for o in outputs if o is not None]
-    if len({str(Path(o).resolve()) for o in named}) != len(named):
-        raise AppError("two outputs name the same file")
+        raise _cli.AppError(f"--perturb sigmas must be finite and >= 0, got {args.perturb}")
+    _cli.check_outputs({"--ply-before": args.ply_before, "--ply-after": args.ply_after,
+                        "--rrd": args.rrd, "--json": args.json}, inputs=[args.input])
 
 
 def _cameras_to_poses(cams: np.ndarray) -> np.ndarray:
-    from graphopt.types.lie import make_transform, so3_exp
-
+    """``(c, 4, 4)`` world-to-camera transforms of BAL cameras."""
     return make_transform(so3_exp(cams[:, :3]), cams[:, 3:6])
 
 
-def _residual_stats(problem: Any, cams: np.ndarray, pts: np.ndarray) -> tuple[float, float, int]:
+def _residual_stats(
+    problem: BALProblem, cams: np.ndarray, pts: np.ndarray
+) -> tuple[float, float, int]:
     """Cost ½Σ‖r‖², RMS pixel error and observations behind their camera."""
-    from graphopt.types.bal import bal_project
-
-    uv, pz = bal_project(cams[problem.camera_index], pts[problem.point_index])
-    r = uv - problem.observations
+    r, pz = reprojection_errors(problem, cams, pts)
     sq = np.einsum("ij,ij->i", r, r)
     return 0.5 * float(sq.sum()), float(np.sqrt(sq.mean())), int(np.count_nonzero(pz >= 0))
 
 
-class _RecorderHook:
-    """Logs points, frusta and cost to a rerun recording; keeps its own time out of ``seconds``."""
+class _BALRecording(_cli.RunRecording):
+    """Points, camera frusta (BAL cameras look down −z) and the cost per iteration.
 
-    def __init__(self, path: str, problem: Any, scene_scale: float) -> None:
-        from graphopt.recording import Recorder
+    Args:
+        path: Destination ``.rrd`` file.
+        problem: The problem (observations give each camera's image extent).
+        scene_scale: Typical camera-to-scene distance (frustum depth is 5 % of it).
+    """
 
-        self.rec = Recorder(path, application_id=PROG, camera_xyz="RUB")
-        self.problem = problem
+    def __init__(self, path: str, problem: BALProblem, scene_scale: float) -> None:
+        super().__init__(path, PROG, camera_xyz="RUB")
         # Image size is not in BAL files: use the extent of each camera's observations.
         ext = np.zeros((problem.num_cameras, 2))
         np.maximum.at(ext, problem.camera_index, np.abs(problem.observations))
         self.resolution = np.maximum(2.0 * ext, 2.0)
         self.plane = 0.05 * scene_scale
-        self.seconds = 0.0
 
-    def log(self, iteration: int, cams: np.ndarray, pts: np.ndarray, cost: float) -> None:
-        t0 = time.perf_counter()
+    def log_state(self, iteration: int, cams: np.ndarray, pts: np.ndarray, cost: float) -> None:
+        """Log the estimates and the cost at an iteration.
+
+        Args:
+            iteration: Iteration number (0 = before optimisation).
+            cams: ``(c, 9)`` cameras.
+            pts: ``(n, 3)`` points.
+            cost: ``½Σ‖r‖²``.
+        """
         self.rec.set_iteration(iteration)
         self.rec.log_points(pts)
         self.rec.log_cameras(
@@ -150,38 +136,11 @@ class _RecorderHook:
             image_plane_distance=self.plane,
         )
         self.rec.log_scalar("cost", cost)
-        self.seconds += time.perf_counter() - t0
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
-    """Run bundle adjustment as configured by parsed options.
-
-    Args:
-        args: Options from :func:`build_parser`.
-
-    Returns:
-        The summary dictionary (also written by ``--json``).
-    """
-    from graphopt import GraphError, LevenbergConfig, SparseOptimizer, make_kernel
-    from graphopt.io.bal import (
-        ground_truth_errors,
-        normalize,
-        perturb,
-        read_bal,
-        synthetic_scene,
-    )
-    from graphopt.io.ply import write_scene_ply
-    from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
-    from graphopt.types.vertices import VertexPointXYZ
-
-    _check_options(args)
-    kernel = None
-    if args.robust is not None:
-        try:
-            kernel = make_kernel(args.robust, args.robust_delta)
-        except ValueError as exc:
-            raise AppError(str(exc)) from None
-
+def _load(args: argparse.Namespace) -> tuple[BALProblem, BALProblem | None, str]:
+    """The problem to solve (read or synthetic, then normalised/perturbed), its ground truth
+    (synthetic scene only) and a description of its source."""
     truth = None
     if args.input is None:
         scene = synthetic_scene(seed=args.seed)
@@ -194,24 +153,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         problem = normalize(problem)
     if args.perturb is not None:
         problem = perturb(problem, *args.perturb, seed=args.seed)
+    return problem, truth, source
 
-    nc, npt, nobs = problem.num_cameras, problem.num_points, problem.num_observations
-    initial_cost, initial_rms, behind0 = _residual_stats(problem, problem.cameras, problem.points)
-    if not math.isfinite(initial_cost):
-        raise AppError(f"{source}: the initial reprojection error is not finite "
-                       "(a point at depth 0 in its camera?)")
 
-    if args.ply_before:
-        write_scene_ply(args.ply_before, problem.points, problem.camera_centers())
-
-    verbose = not args.quiet
+def _build_optimizer(
+    args: argparse.Namespace, problem: BALProblem, kernel: Any, source: str
+) -> SparseOptimizer:
+    """Cameras, marginalised points and one projection edge per observation."""
     algorithm: Any = args.algorithm
     if args.algorithm == "lm":
         # BAL mixes parameters of very different scales (focal lengths ~1e3 px next to k2 as
         # small as 1e-7): λ·diag(H) damps each in its own units, λ·I starves the small ones.
         algorithm = LevenbergConfig(diagonal_damping=args.lm_damping == "diagonal")
-    opt = SparseOptimizer(algorithm=algorithm, solver=args.solver, verbose=verbose,
+    opt = SparseOptimizer(algorithm=algorithm, solver=args.solver, verbose=not args.quiet,
                           stream=sys.stderr)
+    nc, npt = problem.num_cameras, problem.num_points
     opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
     opt.add_vertices(VertexPointXYZ, nc + np.arange(npt), problem.points, marginalized=True)
     opt.add_edges(
@@ -223,46 +179,73 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         opt.initialize_optimization()
     except GraphError as exc:
-        raise AppError(f"{source}: {exc}") from None
+        raise _cli.AppError(f"{source}: {exc}") from None
+    return opt
 
-    hook = None
-    if args.rrd:
-        centers = problem.camera_centers()
-        scale = float(np.median(np.linalg.norm(centers - np.median(problem.points, 0), axis=1)))
-        hook = _RecorderHook(args.rrd, problem, scale if scale > 0 else 1.0)
-        hook.log(0, problem.cameras, problem.points, initial_cost)
 
-        def on_iteration(o: SparseOptimizer, info: Any) -> None:
-            t0 = time.perf_counter()
+def _start_recording(
+    path: str, opt: SparseOptimizer, problem: BALProblem, initial_cost: float
+) -> _BALRecording:
+    """Open the recording, log the start and every iteration (timed, see ``_cli.RunRecording``)."""
+    centers = problem.camera_centers()
+    scale = float(np.median(np.linalg.norm(centers - np.median(problem.points, 0), axis=1)))
+    recording = _BALRecording(path, problem, scale if scale > 0 else 1.0)
+    recording.log_state(0, problem.cameras, problem.points, initial_cost)
+
+    def on_iteration(o: SparseOptimizer, info: Any) -> None:
+        with recording.timed():  # the recording's work is kept out of the reported seconds
             cams = o.estimates_of(VertexCameraBAL)
             pts = o.estimates_of(VertexPointXYZ)
-            cost = _residual_stats(problem, cams, pts)[0]
-            extra = time.perf_counter() - t0
-            hook.log(info.iteration + 1, cams, pts, cost)
-            hook.seconds += extra  # keep the recording's work out of the reported seconds
+            recording.log_state(info.iteration + 1, cams, pts,
+                                _residual_stats(problem, cams, pts)[0])
 
-        opt.add_callback("post_iteration", on_iteration)
+    opt.add_callback("post_iteration", on_iteration)
+    return recording
 
-    try:
-        res = opt.optimize(args.iterations)
-    except BaseException:
-        if hook is not None:
-            hook.rec.abort()
-        raise
-    cams = opt.estimates_of(VertexCameraBAL)
-    pts = opt.estimates_of(VertexPointXYZ)
-    final_cost, final_rms, behind1 = _residual_stats(problem, cams, pts)
-    if not (math.isfinite(final_cost) and np.isfinite(cams).all() and np.isfinite(pts).all()):
-        if hook is not None:
-            hook.rec.abort()
-        raise AppError("the optimisation produced non-finite estimates")
-    seconds = res.seconds - (hook.seconds if hook is not None else 0.0)
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Run bundle adjustment as configured by parsed options.
+
+    Args:
+        args: Options from :func:`build_parser`.
+
+    Returns:
+        The summary dictionary (also written by ``--json``).
+    """
+    _check_options(args)
+    kernel = None
+    if args.robust is not None:
+        try:
+            kernel = make_kernel(args.robust, args.robust_delta)
+        except ValueError as exc:
+            raise _cli.AppError(str(exc)) from None
+
+    problem, truth, source = _load(args)
+    initial_cost, initial_rms, behind0 = _residual_stats(problem, problem.cameras, problem.points)
+    if not math.isfinite(initial_cost):
+        raise _cli.AppError(f"{source}: the initial reprojection error is not finite "
+                       "(a point at depth 0 in its camera?)")
+    if args.ply_before:
+        write_scene_ply(args.ply_before, problem.points, problem.camera_centers())
+
+    opt = _build_optimizer(args, problem, kernel, source)
+    recording = _start_recording(args.rrd, opt, problem, initial_cost) if args.rrd else None
+    res = _cli.optimize_recorded(opt, args.iterations, recording)
+    est = BALProblem(opt.estimates_of(VertexCameraBAL), opt.estimates_of(VertexPointXYZ),
+                     problem.camera_index, problem.point_index, problem.observations)
+    final_cost, final_rms, behind1 = _residual_stats(problem, est.cameras, est.points)
+    if not (math.isfinite(final_cost) and np.isfinite(est.cameras).all()
+            and np.isfinite(est.points).all()):
+        if recording is not None:
+            recording.abort()
+        raise _cli.AppError("the optimisation produced non-finite estimates")
+    seconds = res.seconds - (recording.seconds if recording is not None else 0.0)
 
     summary: dict[str, Any] = {
         "input": source,
-        "cameras": nc,
-        "points": npt,
-        "observations": nobs,
+        "cameras": problem.num_cameras,
+        "points": problem.num_points,
+        "observations": problem.num_observations,
         "algorithm": args.algorithm,
         "lm_damping": args.lm_damping if args.algorithm == "lm" else None,
         "solver": args.solver,
@@ -281,27 +264,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "behind_camera_final": behind1,
     }
     if truth is not None:
-        from graphopt.io.bal import BALProblem
-
-        est = BALProblem(cams, pts, problem.camera_index, problem.point_index,
-                         problem.observations)
         summary["ground_truth_initial"] = ground_truth_errors(problem, truth)
         summary["ground_truth"] = ground_truth_errors(est, truth)
 
-    if hook is not None:
-        hook.rec.close()
+    if recording is not None:
+        recording.close()
     if args.ply_after:
-        from graphopt.io.bal import BALProblem
-
-        est = BALProblem(cams, pts, problem.camera_index, problem.point_index,
-                         problem.observations)
-        write_scene_ply(args.ply_after, pts, est.camera_centers())
+        write_scene_ply(args.ply_after, est.points, est.camera_centers())
     if args.json:
-        from graphopt.io.atomic import atomic_write
-
-        with atomic_write(args.json) as f:
-            json.dump(summary, f, indent=2, allow_nan=False)
-            f.write("\n")
+        _cli.write_json(args.json, summary)
     if not args.quiet:
         print(format_summary(summary))
         if res.stop_reason == "failed":
@@ -354,24 +325,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns:
         Exit status: 0 on success, 1 on an input/processing error, 2 on bad options.
     """
-    from graphopt.io.bal import BALFormatError
-
-    args = build_parser().parse_args(argv)
-    try:
-        run(args)
-    except (AppError, BALFormatError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - the user gets one line, not a traceback
-        if os.environ.get("GRAPHOPT_DEBUG"):
-            raise
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        print(f"{PROG}: error: {type(exc).__name__}: {msg}", file=sys.stderr)
-        return 1
-    return 0
+    return _cli.run_main(PROG, build_parser(), run, argv, user_errors=(BALFormatError,))
 
 
 if __name__ == "__main__":

@@ -176,7 +176,7 @@ def _colmap_reconstruction(problem: BALProblem) -> tuple[Any, list[int]]:
     """
     import pycolmap
 
-    from graphopt.types.lie import so3_exp
+    from graphopt.lie import so3_exp
 
     flip = np.diag([1.0, -1.0, -1.0])
     R = flip @ so3_exp(problem.cameras[:, :3])
@@ -209,7 +209,7 @@ def _colmap_reconstruction(problem: BALProblem) -> tuple[Any, list[int]]:
 
 def _colmap_state(rec: Any, point_ids: list[int], nc: int) -> tuple[np.ndarray, np.ndarray]:
     """BAL cameras and points from a pycolmap Reconstruction (inverse of the conversion)."""
-    from graphopt.types.lie import so3_log
+    from graphopt.lie import so3_log
 
     flip = np.diag([1.0, -1.0, -1.0])
     cams = np.zeros((nc, 9))

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graphopt.apps.direct_ba import build_problem
+from graphopt.apps.direct_ba_problem import build_problem
 from graphopt.io.directba import load_directba
 
 TARGET = 0.04

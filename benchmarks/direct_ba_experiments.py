@@ -20,8 +20,10 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from graphopt.apps.direct_ba import build_problem, truth_report
-from graphopt.io.directba import load_directba, synthetic_scene
+from graphopt.apps.direct_ba_problem import build_problem
+from graphopt.apps.direct_ba_report import truth_report
+from graphopt.apps.direct_ba_scene import synthetic_scene
+from graphopt.io.directba import load_directba
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "directba"
 

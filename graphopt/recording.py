@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.io.atomic import _finish, _temp_path
+from graphopt.io.atomic import PendingFile
 
 __all__ = ["Recorder", "TIMELINE"]
 
@@ -76,13 +76,13 @@ class Recorder:
         self._camera_xyz = _view_coordinates(rr, camera_xyz)
         world = _view_coordinates(rr, world_xyz)
         self._closed = False
-        self._tmp = _temp_path(self.path)
+        self._pending = PendingFile(self.path)
         try:
             self._rec = rr.RecordingStream(application_id, make_default=False)
-            self._rec.save(str(self._tmp))
+            self._rec.save(str(self._pending.tmp))
             self._rec.log("world", world, static=True)
         except BaseException:
-            self._tmp.unlink(missing_ok=True)
+            self._pending.discard()
             raise
 
     # --- timeline ---------------------------------------------------------------------------
@@ -223,7 +223,7 @@ class Recorder:
         self._closed = True
         self._rec.flush()
         self._rec.disconnect()  # closes the file sink and writes the footer
-        _finish(self._tmp, self.path)
+        self._pending.commit()
 
     def abort(self) -> None:
         """Discard the recording; the destination file is left untouched."""
@@ -232,8 +232,7 @@ class Recorder:
         self._closed = True
         with contextlib.suppress(Exception):
             self._rec.disconnect()
-        with contextlib.suppress(OSError):
-            self._tmp.unlink()
+        self._pending.discard()
 
     def __enter__(self) -> Recorder:
         return self

@@ -1,31 +1,87 @@
 #!/usr/bin/env bash
 # Set up graphopt on a fresh Debian machine: system SuiteSparse (if permitted), a virtual
-# environment in .venv, and the package with its test extras. Safe to run again.
+# environment in .venv, and the package with its test extras. Safe to run again: when neither
+# pyproject.toml, this script nor the checkout's location changed since the last complete set-up
+# (a stamp inside .venv records them) and .venv still imports graphopt, it only says so.
+#
+# pip's output goes to .venv/bootstrap.log; it is printed in full when an installation fails.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
+STAMP="$VENV/.bootstrap-stamp"
+LOG="$VENV/bootstrap.log"
+
+say() { echo "bootstrap: $*"; }
 
 # CHOLMOD comes from scikit-sparse, which compiles against SuiteSparse's headers.
 have_suitesparse() { [ -f /usr/include/suitesparse/cholmod.h ]; }
+
+# What the installation depends on. The stamp is written only after a complete set-up.
+stamp() {
+    echo "checkout $(pwd -P)"
+    echo "pyproject $(sha256sum pyproject.toml | cut -d' ' -f1)"
+    echo "bootstrap $(sha256sum scripts/bootstrap.sh | cut -d' ' -f1)"
+    echo "suitesparse $(have_suitesparse && echo yes || echo no)"
+}
+
+# -P: never put the checkout on sys.path, where types/ would shadow the standard library.
+if [ -f "$STAMP" ] && [ "$(stamp)" = "$(cat "$STAMP")" ] \
+        && "$VENV/bin/python" -P -c "import graphopt" 2>/dev/null; then
+    cholmod=$("$VENV/bin/python" -P -c \
+        "from graphopt.solvers import CHOLMOD_AVAILABLE as a; print('with' if a else 'without')")
+    say "$VENV is up to date ($cholmod CHOLMOD); nothing to do"
+    exit 0
+fi
+
+# Run a step quietly, appending its output to the log; on failure show the log and stop.
+run_logged() {
+    local what=$1
+    shift
+    echo "### $what: $*" >>"$LOG"
+    if ! "$@" >>"$LOG" 2>&1; then
+        echo "bootstrap: $what failed; the output follows (also in $LOG):" >&2
+        cat "$LOG" >&2
+        exit 1
+    fi
+}
+
+start=$SECONDS
+rm -f "$STAMP"  # written again only after a complete set-up
 if ! have_suitesparse && command -v apt-get >/dev/null 2>&1; then
     if [ "$(id -u)" = 0 ]; then
-        echo "bootstrap: installing libsuitesparse-dev (for CHOLMOD)"
+        say "installing libsuitesparse-dev (for CHOLMOD)"
         (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libsuitesparse-dev >/dev/null) \
-            || echo "bootstrap: could not install libsuitesparse-dev; graphopt will use another linear solver"
+            || say "could not install libsuitesparse-dev; graphopt will use another linear solver"
     elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+        say "installing libsuitesparse-dev with sudo (for CHOLMOD)"
         (sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libsuitesparse-dev >/dev/null) \
-            || echo "bootstrap: could not install libsuitesparse-dev; graphopt will use another linear solver"
+            || say "could not install libsuitesparse-dev; graphopt will use another linear solver"
     else
-        echo "bootstrap: libsuitesparse-dev is missing and cannot be installed without root; CHOLMOD will be unavailable"
+        say "libsuitesparse-dev is missing and cannot be installed without root; CHOLMOD will be unavailable"
     fi
 fi
 
-# -P: never put the checkout on sys.path, where types/ would shadow the standard library.
-[ -x "$VENV/bin/python" ] || "$PY" -P -m venv "$VENV"
-"$VENV/bin/python" -P -m pip install -q --upgrade pip >/dev/null
-"$VENV/bin/python" -P -m pip install -q -e ".[test]"
-if have_suitesparse; then
-    "$VENV/bin/python" -P -m pip install -q "scikit-sparse>=0.4.16,<0.5" \
-        || echo "bootstrap: scikit-sparse failed to build; graphopt will use another linear solver"
+if [ ! -x "$VENV/bin/python" ]; then
+    say "creating $VENV ($("$PY" --version 2>&1))"
+    "$PY" -P -m venv "$VENV"
+    : >"$LOG"
+    run_logged "upgrading pip" "$VENV/bin/python" -P -m pip install --upgrade pip
+else
+    : >"$LOG"
 fi
+say "installing graphopt (editable) with its test tools into $VENV"
+run_logged "installing graphopt" "$VENV/bin/python" -P -m pip install -e ".[test]"
+if have_suitesparse; then
+    say "installing scikit-sparse for CHOLMOD (its first build compiles)"
+    echo "### installing scikit-sparse" >>"$LOG"
+    if ! "$VENV/bin/python" -P -m pip install "scikit-sparse>=0.4.16,<0.5" >>"$LOG" 2>&1; then
+        tail -n 20 "$LOG" >&2
+        say "scikit-sparse failed to build (above; all in $LOG); graphopt will use another linear solver"
+    fi
+fi
+# Deprecations would otherwise go unnoticed in the log (pip's notes about the local package
+# index locations that do not hold a package are expected and left there).
+grep -i "deprecat" "$LOG" | sed 's/^ */bootstrap: warning: /' || true
+stamp >"$STAMP"
+say "done in $((SECONDS - start)) s (pip's output: $LOG)"

@@ -10,18 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from graphopt.io.atomic import atomic_path, atomic_write
-from graphopt.io.bal import (
-    BALFormatError,
-    BALProblem,
-    ground_truth_errors,
-    normalize,
-    perturb,
-    read_bal,
-    synthetic_scene,
-    write_bal,
-)
+from graphopt.apps.bal_preprocess import normalize, perturb
+from graphopt.apps.bal_scene import ground_truth_errors, synthetic_scene
+from graphopt.io.atomic import PendingFile, atomic_path, atomic_write
+from graphopt.io.bal import BALFormatError, BALProblem, read_bal, write_bal
 from graphopt.io.ply import camera_centers_from_poses, write_ply, write_scene_ply
+from graphopt.lie import make_transform, so3_exp
+from graphopt.types.bal import bal_cost
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bal"
 
@@ -157,7 +152,7 @@ def test_normalize_matches_ceres_definition() -> None:
     mad = np.sort(np.abs(n.points).sum(1))[len(n.points) // 2]
     np.testing.assert_allclose(mad, 100.0, rtol=1e-12)
     # A similarity of the scene: reprojections (hence the cost) are unchanged.
-    np.testing.assert_allclose(n.cost(), p.cost(), rtol=1e-9)
+    np.testing.assert_allclose(bal_cost(n), bal_cost(p), rtol=1e-9)
     np.testing.assert_allclose(n.cameras[:, [0, 1, 2, 6, 7, 8]], p.cameras[:, [0, 1, 2, 6, 7, 8]])
     assert np.array_equal(p.points, scene.problem.points)  # input untouched
 
@@ -182,8 +177,8 @@ def test_perturb_is_deterministic() -> None:
 
 def test_synthetic_scene_ground_truth() -> None:
     s = synthetic_scene(num_cameras=6, num_points=200, seed=4)
-    assert s.truth.cost() == 0.0
-    assert s.problem.cost() > 0.0
+    assert bal_cost(s.truth) == 0.0
+    assert bal_cost(s.problem) > 0.0
     assert np.bincount(s.problem.point_index).min() >= 2
     assert s.problem.point_index.max() == s.problem.num_points - 1
     err = ground_truth_errors(s.truth, s.truth)
@@ -195,7 +190,7 @@ def test_synthetic_scene_ground_truth() -> None:
     a.points = 2.0 * a.points + 1.0
     c = a.camera_centers()
     a.cameras[:, 3:6] = -np.einsum(
-        "nij,nj->ni", __import__("graphopt.types.lie", fromlist=["so3_exp"]).so3_exp(
+        "nij,nj->ni", so3_exp(
             a.cameras[:, :3]), 2.0 * (c * 0.5 + s.truth.camera_centers() * 0.5) + 1.0
     )
     assert ground_truth_errors(a, s.truth)["point_rms"] < 1e-9
@@ -213,7 +208,7 @@ def test_read_real_files() -> None:
     assert (p.num_cameras, p.num_points, p.num_observations) == (3, 7, 19)
     p = read_bal(DATA / "problem-49-7776-pre.txt.bz2")
     assert (p.num_cameras, p.num_points, p.num_observations) == (49, 7776, 31843)
-    np.testing.assert_allclose(p.cost(), 8.509125e5, rtol=1e-6)  # Ceres' initial cost
+    np.testing.assert_allclose(bal_cost(p), 8.509125e5, rtol=1e-6)  # Ceres' initial cost
 
 
 # --- PLY and atomic writes --------------------------------------------------------------------
@@ -267,6 +262,27 @@ def test_atomic_write_failure_leaves_old_file(tmp_path: Path) -> None:
     assert (tmp_path / "g.bin").read_bytes() == b"x"
 
 
+def test_pending_file_commit_and_discard(tmp_path: Path) -> None:
+    dest = tmp_path / "out.bin"
+    dest.write_bytes(b"old")
+    dest.chmod(0o640)
+    pending = PendingFile(dest)
+    assert pending.tmp.parent == tmp_path and pending.tmp.name.startswith(".out.bin.")
+    assert pending.tmp.name.endswith(".tmp") and pending.tmp.read_bytes() == b""
+    pending.tmp.write_bytes(b"new")
+    assert dest.read_bytes() == b"old"  # nothing visible before the commit
+    pending.commit()
+    assert dest.read_bytes() == b"new" and dest.stat().st_mode & 0o777 == 0o640
+    assert sorted(os.listdir(tmp_path)) == ["out.bin"]
+    other = PendingFile(dest)
+    other.tmp.write_bytes(b"discarded")
+    other.discard()
+    other.discard()  # a second discard is harmless
+    assert dest.read_bytes() == b"new" and sorted(os.listdir(tmp_path)) == ["out.bin"]
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        PendingFile(tmp_path / "missing" / "x.bin")
+
+
 def test_bal_problem_is_dataclass() -> None:
     p = BALProblem(np.zeros((1, 9)), np.zeros((1, 3)), np.zeros(1, int), np.zeros(1, int),
                    np.zeros((1, 2)))
@@ -278,7 +294,6 @@ def test_bal_problem_is_dataclass() -> None:
 
 def test_recorder_writes_and_aborts(tmp_path: Path) -> None:
     from graphopt.recording import Recorder
-    from graphopt.types.lie import make_transform, so3_exp
 
     T = make_transform(so3_exp(np.array([[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]])),
                        np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))

@@ -6,15 +6,14 @@ import numpy as np
 import pytest
 
 from graphopt.edge import EdgeContext
+from graphopt.lie import angle_axis_rotate, se3_exp, so3_exp, so3_log
 from graphopt.numeric import numeric_jacobians
 from graphopt.types.bal import (
     EdgeBALProjection,
     VertexCameraBAL,
-    angle_axis_rotate,
     bal_project,
     count_behind_camera,
 )
-from graphopt.types.lie import se3_exp, so3_exp, so3_log
 from graphopt.types.projection import (
     CameraParameters,
     EdgeInverseDepthProjection,
@@ -277,3 +276,44 @@ def test_bal_edge_with_derived_rotations_matches_rodrigues() -> None:
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-9 * np.abs(a).max())
     np.testing.assert_allclose(EdgeBALProjection.error((cams, X), z, ctx), plain[0],
                                rtol=1e-12, atol=1e-9)
+
+
+def test_bal_camera_uses_the_one_rodrigues() -> None:
+    """The camera's rotation is graphopt.lie.so3_exp, bit for bit, at every angle."""
+    cams, X, z = _bal_inputs(m=60, seed=11)
+    cams[6, :3] = [0.6e-4, 0.0, 0.0]  # just inside the series branch of lie.SMALL_ANGLE2
+    R = so3_exp(cams[:, :3])
+    np.testing.assert_array_equal(VertexCameraBAL.derived(cams), R.reshape(60, 9))
+    np.testing.assert_array_equal(VertexCameraBAL.derived(cams[:4]), np.tile(np.eye(3).ravel(),
+                                                                              (4, 1)))
+    uv, Pz = bal_project(cams, X)
+    P = np.einsum("nij,nj->ni", R, X) + cams[:, 3:6]
+    np.testing.assert_allclose(Pz, P[:, 2], rtol=1e-14)
+    p = -P[:, :2] / P[:, 2:]
+    r2 = (p * p).sum(1)
+    d = 1 + cams[:, 7] * r2 + cams[:, 8] * r2 * r2
+    np.testing.assert_allclose(uv, cams[:, 6:7] * d[:, None] * p, rtol=1e-12)
+
+
+def test_reprojection_errors_and_cost() -> None:
+    from graphopt.io.bal import BALProblem
+    from graphopt.types.bal import bal_cost, reprojection_errors
+
+    cams, _, z = _bal_inputs(m=30, seed=12)
+    ci = np.arange(30) % 6  # 6 cameras, 30 points, one observation each
+    cams6 = cams[:6]
+    P = np.c_[np.zeros((30, 2)), np.full(30, -8.0)]  # on each camera's axis, 8 in front
+    Xw = angle_axis_rotate(-cams6[ci, :3], P - cams6[ci, 3:6])  # X = Rᵀ (P − t)
+    problem = BALProblem(cams6, Xw, ci, np.arange(30), z)
+    r, Pz = reprojection_errors(problem)
+    uv, Pz_ref = bal_project(cams6[ci], Xw)
+    np.testing.assert_array_equal(r, uv - z)
+    np.testing.assert_allclose(Pz, -8.0, rtol=1e-12)  # every point 8 units in front
+    np.testing.assert_array_equal(Pz, Pz_ref)
+    np.testing.assert_allclose(uv, 0.0, atol=1e-9)  # on the optical axis: the image centre
+    assert bal_cost(problem) == pytest.approx(0.5 * float((z * z).sum()), rel=1e-12)
+    moved = Xw + 1.0
+    r2, _ = reprojection_errors(problem, points=moved)
+    np.testing.assert_array_equal(r2, bal_project(cams6[ci], moved)[0] - z)
+    r3, _ = reprojection_errors(problem, cameras=cams6 * 1.0, points=Xw)
+    np.testing.assert_array_equal(r3, r)

@@ -11,8 +11,11 @@ import numpy as np
 import pytest
 
 from graphopt.apps import direct_ba
-from graphopt.apps.direct_ba import build_problem, main, truth_report
-from graphopt.io.directba import load_directba, synthetic_scene
+from graphopt.apps.direct_ba import main
+from graphopt.apps.direct_ba_problem import build_problem
+from graphopt.apps.direct_ba_report import truth_report
+from graphopt.apps.direct_ba_scene import synthetic_scene
+from graphopt.io.directba import load_directba
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "directba"
 needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"real data not found at {REAL}")

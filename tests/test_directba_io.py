@@ -8,13 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from graphopt.io.directba import (
-    DEFAULT_INTRINSICS,
-    DirectBAFormatError,
-    load_directba,
-    synthetic_scene,
-)
-from graphopt.types.lie import quat_to_rot
+from graphopt.apps.direct_ba_scene import synthetic_scene
+from graphopt.io.directba import DEFAULT_INTRINSICS, DirectBAFormatError, load_directba
+from graphopt.lie import quat_to_rot, so3_log
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "directba"
 
@@ -110,8 +106,6 @@ def test_synthetic_scene_deterministic() -> None:
     assert len(a.points) == 200 and a.patches.shape == (200, 16)
     np.testing.assert_array_equal(a.poses[0], a.true_poses[0])  # the gauge pose is exact
     # Perturbation magnitudes: 1° and 3 cm per pose (default).
-    from graphopt.types.lie import so3_log
-
     dR = a.poses[1:, :3, :3] @ np.swapaxes(a.true_poses[1:, :3, :3], 1, 2)
     np.testing.assert_allclose(np.degrees(np.linalg.norm(so3_log(dR), axis=1)), 1.0, rtol=1e-6)
     assert a.images.shape == (3, 240, 320)

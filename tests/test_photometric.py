@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from graphopt.edge import EdgeContext
+from graphopt.lie import se3_exp
 from graphopt.numeric import numeric_jacobians
-from graphopt.types.lie import se3_exp
+from graphopt.types.image_sampling import central_gradients
 from graphopt.types.photometric import (
     EdgePhotometricPatch,
     EdgePhotometricPatchInverseDepth,
     EdgePhotometricPatchInverseDepthHost,
     PhotometricParams,
-    central_gradients,
     numeric_variant,
     photometric_edge_types,
 )
@@ -260,3 +260,37 @@ def test_reduced_linearisation_preserves_normal_equations() -> None:
                 hj = np.swapaxes(jac[a], 1, 2) @ jac[b]
                 hr = np.swapaxes(red[a], 1, 2) @ red[b]
                 np.testing.assert_allclose(hr, hj, rtol=1e-9, atol=1e-9 * np.abs(hj).max())
+
+
+@pytest.mark.parametrize("gradient", ["central", "interpolated"])
+def test_project_and_sample_on_a_linear_image(gradient: str) -> None:
+    """Bilinear sampling reproduces a linear image exactly, gradients included."""
+    from graphopt.types.image_sampling import project_points, safe_points, sample_patches
+
+    yy, xx = np.mgrid[0:H, 0:W].astype(float)
+    images = np.stack([2.0 * xx - 0.5 * yy + 7.0, -1.0 * xx + 3.0 * yy])
+    prm = PhotometricParams(images, *CAM, patch=4, gradient=gradient, dtype="float64")
+    fx, fy, cx, cy = CAM
+    pc = np.array([[0.1, -0.05, 2.0],    # inside
+                   [0.0, 0.0, -1.0],     # behind the camera
+                   [10.0, 0.0, 1.0],     # far outside the image
+                   [0.2, 0.1, 1.5]])     # inside
+    u, v, iz, ok = project_points(pc, prm)
+    assert ok.tolist() == [True, False, False, True]
+    np.testing.assert_allclose(u[ok], fx * pc[ok, 0] / pc[ok, 2] + cx, rtol=1e-14)
+    np.testing.assert_allclose(v[ok], fy * pc[ok, 1] / pc[ok, 2] + cy, rtol=1e-14)
+    np.testing.assert_allclose(iz, [0.5, 0.0, 0.0, 1 / 1.5], rtol=1e-14)
+    assert (u[~ok] == prm.margin).all() and (v[~ok] == prm.margin).all()  # safe pixel
+    np.testing.assert_array_equal(safe_points(pc, ok)[~ok], [[0, 0, 1.0], [0, 0, 1.0]])
+    image = np.array([0, 0, 1, 1])
+    val, gu, gv = sample_patches(u, v, image, prm, grad=True)
+    d = np.arange(-2, 2)
+    dx, dy = np.repeat(d, 4), np.tile(d, 4)  # k = P (dx + P/2) + (dy + P/2)
+    for e in np.flatnonzero(ok):
+        a, b, c = (2.0, -0.5, 7.0) if image[e] == 0 else (-1.0, 3.0, 0.0)
+        np.testing.assert_allclose(val[:, e], a * (u[e] + dx) + b * (v[e] + dy) + c, rtol=1e-12)
+        np.testing.assert_allclose(gu[:, e], a, rtol=1e-12)
+        np.testing.assert_allclose(gv[:, e], b, rtol=1e-12)
+    only, none_u, none_v = sample_patches(u, v, image, prm, grad=False)
+    assert none_u is None and none_v is None
+    np.testing.assert_array_equal(only, val)

@@ -12,7 +12,8 @@ on the LEFT, ``R ← exp([δω]×) R``, and ``t, f, k1, k2`` additively; the sto
 minimal 3-vector (``ω ← log(exp(δω) exp(ω))``). The derivation of the Jacobians is in
 ``docs/bal.md``. Everything is elementwise over ``(m,)`` arrays. The camera type hands its
 rotation matrices to the edge as *derived* values (computed once per camera and state, not once
-per observation); without them the edge builds ``R`` per edge from Rodrigues' formula.
+per observation); without them the edge builds ``R`` per edge with
+:func:`graphopt.lie.so3_exp` (graphopt's one Rodrigues formula).
 """
 
 from __future__ import annotations
@@ -23,21 +24,19 @@ from typing import ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.types.lie import so3_exp, so3_log
+from graphopt.io.bal import BALProblem
+from graphopt.lie import so3_exp, so3_log
 from graphopt.types.vertices import VertexPointXYZ
 from graphopt.vertex import BaseVertex
 
 __all__ = [
     "EdgeBALProjection",
     "VertexCameraBAL",
-    "angle_axis_rotate",
+    "bal_cost",
     "bal_project",
     "count_behind_camera",
+    "reprojection_errors",
 ]
-
-# Below this squared angle, Rodrigues' formula is replaced by its first-order expansion (as in
-# Ceres' AngleAxisRotatePoint) to avoid 0/0; the error of the expansion is O(θ²) ≈ 1e-15.
-_SMALL_THETA2 = 1e-15
 
 
 class VertexCameraBAL(BaseVertex):
@@ -80,46 +79,9 @@ class VertexCameraBAL(BaseVertex):
         return _rotation_entries(estimates[:, :3])  # the edge's own formula, once per camera
 
 
-def _rodrigues(
-    w: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-row ``(cosθ, sinθ, 1−cosθ, kx, ky, kz)`` of angle-axis vectors ``w`` (``(m, 3)``).
-
-    For tiny θ the axis is returned as ``w`` itself with ``sinθ → 1`` and ``1−cosθ → 0`` so that
-    the rotation formula degenerates to ``R ≈ I + [w]×`` (first order).
-    """
-    wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
-    theta2 = wx * wx + wy * wy + wz * wz
-    small = theta2 < _SMALL_THETA2
-    theta = np.sqrt(np.where(small, 1.0, theta2))
-    inv = np.where(small, 1.0, 1.0 / theta)
-    c = np.where(small, 1.0, np.cos(theta))
-    s = np.where(small, 1.0, np.sin(theta))
-    return c, s, 1.0 - c, wx * inv, wy * inv, wz * inv
-
-
 def _rotation_entries(w: np.ndarray) -> np.ndarray:
-    """Row-major entries of ``R = exp([w]×) = cosθ I + sinθ [k]× + (1−cosθ) k kᵀ``, ``(m, 9)``."""
-    c, s, omc, kx, ky, kz = _rodrigues(w)
-    ox, oy, oz = omc * kx, omc * ky, omc * kz
-    sx, sy, sz = s * kx, s * ky, s * kz
-    xy, xz, yz = ox * ky, ox * kz, oy * kz
-    return np.stack([c + ox * kx, xy - sz, xz + sy,
-                     xy + sz, c + oy * ky, yz - sx,
-                     xz - sy, yz + sx, c + oz * kz], axis=1)
-
-
-def angle_axis_rotate(w: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate many vectors: ``exp([w_i]×) v_i``.
-
-    Args:
-        w: ``(m, 3)`` angle-axis vectors.
-        v: ``(m, 3)`` vectors.
-
-    Returns:
-        ``(m, 3)`` rotated vectors.
-    """
-    return np.einsum("nij,nj->ni", _rotation_entries(w).reshape(len(w), 3, 3), v)
+    """Row-major entries of ``R = exp([w]×)``, ``(m, 9)`` (a view of :func:`so3_exp`'s result)."""
+    return so3_exp(w).reshape(len(w), 9)
 
 
 def bal_project(
@@ -167,6 +129,35 @@ def count_behind_camera(
     """
     _, Pz = bal_project(cameras[camera_index], points[point_index])
     return int(np.count_nonzero(Pz >= 0))
+
+
+def reprojection_errors(
+    problem: BALProblem, cameras: np.ndarray | None = None, points: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection residuals ``p' − z`` of every observation of a BAL problem.
+
+    Args:
+        problem: The problem (observations and their camera/point indices).
+        cameras: ``(c, 9)`` cameras to evaluate at (``problem.cameras`` if None).
+        points: ``(n, 3)`` points to evaluate at (``problem.points`` if None).
+
+    Returns:
+        ``(r (m, 2), Pz (m,))``: residuals in pixels and camera-frame z (``Pz ≥ 0``: behind).
+    """
+    cams = problem.cameras if cameras is None else cameras
+    pts = problem.points if points is None else points
+    uv, Pz = bal_project(cams[problem.camera_index], pts[problem.point_index])
+    return uv - problem.observations, Pz
+
+
+def bal_cost(problem: BALProblem) -> float:
+    """Ceres' cost ``½ Σ ‖r‖²`` of a BAL problem at its own estimates (no robust kernel).
+
+    Args:
+        problem: The problem.
+    """
+    r, _ = reprojection_errors(problem)
+    return 0.5 * float(np.einsum("ij,ij->", r, r))
 
 
 class EdgeBALProjection(BaseEdge):

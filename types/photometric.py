@@ -6,10 +6,8 @@ patch ``C`` and the image sampled around the projection:
     e_k = C[k] − I_j(π(K T_j p) + (dx, dy)),   k = P (dx + P/2) + (dy + P/2),
 
 with ``dx, dy ∈ {−P/2, …, P/2 − 1}`` (dx outer, dy inner — the order of the task's points.txt),
-bilinear interpolation and ``T_j = T_cw``. Because the offsets are integers, every pixel of a
-patch shares the fractional part of the projection, so one edge needs a single
-``(P+1) × (P+1)`` window of the image and four bilinear weights: the whole group is evaluated with
-one flat fancy index into the (stacked, flattened) images.
+bilinear interpolation and ``T_j = T_cw``. The projection and the patch sampling (one flat
+gather of a ``(P+1) × (P+1)`` window per edge) are in :mod:`graphopt.types.image_sampling`.
 
 Two parametrisations of the point:
 
@@ -27,208 +25,33 @@ and patch size from ``ctx.params`` (a :class:`PhotometricParams`). Use
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from functools import cache
 from typing import Any, ClassVar
 
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.lie import relative_transform, transform_points
 from graphopt.reduction import factored_to_reduced
+from graphopt.types.image_sampling import (
+    PhotometricParams,
+    project_points,
+    safe_points,
+    sample_patches,
+)
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
-#: Depths at or below this (in the camera frame) make an edge inactive (behind the camera).
-MIN_DEPTH = 1e-6
-
-GRADIENTS = ("central", "interpolated")
-
-
-def central_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Image gradients by central differences, ``(I(x+1) − I(x−1)) / 2``.
-
-    The outermost rows/columns use one-sided differences; they are never sampled by an active
-    edge anyway (the margin keeps projections at least 4 px inside).
-
-    Args:
-        image: ``(H, W)`` image.
-
-    Returns:
-        ``(gx, gy)``: derivatives along columns (u) and rows (v), each ``(H, W)``.
-    """
-    gy, gx = np.gradient(np.asarray(image, dtype=np.float64))
-    return gx, gy
-
-
-@dataclass
-class PhotometricParams:
-    """Images, intrinsics and patch layout shared by a group of photometric edges.
-
-    Args:
-        images: ``(n, H, W)`` greyscale images (any real dtype; stored flattened as ``dtype``).
-        fx: Focal length along u, pixels.
-        fy: Focal length along v, pixels.
-        cx: Principal point u.
-        cy: Principal point v.
-        patch: Patch side ``P`` (even: 2, 4, 6, 8).
-        margin: An edge is active only while ``margin <= u <= W − margin`` and likewise for v.
-            ``None`` (default) uses the task's 4 px, widened to ``P/2 + 2`` for large patches so
-            that the interpolation and gradient stencil never leave the image.
-        gradient: ``"central"`` (precomputed central-difference gradient images, bilinearly
-            interpolated — the task's choice) or ``"interpolated"`` (the exact derivative of the
-            bilinear interpolant; what a numeric Jacobian sees).
-        dtype: Floating type of the stored images and of the interpolation. ``"float32"``
-            (default) halves the memory traffic of the gathers, which dominate the cost; the
-            geometry (projection, Jacobians of the projection) is always float64, and errors and
-            Jacobians are returned as float64. Use ``"float64"`` to compare against numeric
-            Jacobians with tiny steps.
-    """
-
-    images: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    patch: int = 4
-    margin: float | None = None
-    gradient: str = "central"
-    dtype: str = "float32"
-    # Derived in __post_init__.
-    height: int = field(init=False)
-    width: int = field(init=False)
-    flat: np.ndarray = field(init=False, repr=False)
-    window: np.ndarray = field(init=False, repr=False)
-    window_ext: np.ndarray = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        imgs = np.asarray(self.images, dtype=np.float64)
-        if imgs.ndim == 2:
-            imgs = imgs[None]
-        if imgs.ndim != 3:
-            raise ValueError(f"images must be (n, H, W), got shape {imgs.shape}")
-        if self.patch < 2 or self.patch % 2:
-            raise ValueError(f"patch size must be even and >= 2, got {self.patch}")
-        if self.gradient not in GRADIENTS:
-            raise ValueError(f"gradient must be one of {GRADIENTS}, got {self.gradient!r}")
-        half = self.patch // 2
-        # The central-difference sampler reads P/2 + 1 pixels left/up of floor(u) and P/2 + 1
-        # right/down of it, so the projection must stay P/2 + 2 px inside (the task's 4 for P=4).
-        need = half + 2
-        if self.margin is None:
-            self.margin = float(max(4, need))
-        if self.margin < need:
-            raise ValueError(
-                f"margin {self.margin} too small for a {self.patch}x{self.patch} patch "
-                f"(needs {need})"
-            )
-        self.images = imgs
-        _, self.height, self.width = imgs.shape
-        self.flat = np.ascontiguousarray(imgs.reshape(-1), dtype=np.dtype(self.dtype))
-        # Window of (P+1)² pixels around floor(u, v), laid out [wx, wy] so that reshaping the
-        # interpolated (P, P) block row-major gives k = P·(dx + P/2) + (dy + P/2).
-        w = np.arange(-half, half + 1)
-        self.window = (w[:, None] + w[None, :] * self.width).ravel().astype(np.int64)
-        # One more pixel on every side, for central differences of the interpolated image.
-        w = np.arange(-half - 1, half + 2)
-        self.window_ext = (w[:, None] + w[None, :] * self.width).ravel().astype(np.int64)
-
-    @property
-    def dimension(self) -> int:
-        """Error dimension ``P²``."""
-        return self.patch * self.patch
-
-    @property
-    def camera(self) -> np.ndarray:
-        """``[fx, fy, cx, cy]``."""
-        return np.array([self.fx, self.fy, self.cx, self.cy])
-
+__all__ = [
+    "EdgePhotometricPatch",
+    "EdgePhotometricPatchInverseDepth",
+    "EdgePhotometricPatchInverseDepthHost",
+    "PhotometricParams",
+    "numeric_variant",
+    "photometric_edge_types",
+]
 
 # --------------------------------------------------------------------------------------------
-# shared kernels
-
-
-def _project(
-    pc: np.ndarray, prm: PhotometricParams, extra_ok: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel coordinates, inverse depth and the activity mask of camera-frame points.
-
-    Inactive projections are moved to a safe pixel so that later gathers stay in bounds and no
-    NaN or inf is ever produced.
-    """
-    z = pc[:, 2]
-    ok = z > MIN_DEPTH
-    if extra_ok is not None:
-        ok &= extra_ok
-    iz = 1.0 / np.where(ok, z, 1.0)
-    mg = prm.margin
-    # Far-off or non-finite projections may overflow; they fail the margin test below.
-    with np.errstate(over="ignore", invalid="ignore"):
-        u = prm.fx * pc[:, 0] * iz + prm.cx
-        v = prm.fy * pc[:, 1] * iz + prm.cy
-        ok &= (u >= mg) & (u <= prm.width - mg) & (v >= mg) & (v <= prm.height - mg)
-    if not ok.all():
-        u = np.where(ok, u, mg)
-        v = np.where(ok, v, mg)
-        iz = np.where(ok, iz, 0.0)
-    return u, v, iz, ok
-
-
-def _safe_points(pc: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Replace the camera points of inactive edges by ``[0, 0, 1]`` (finite Jacobian inputs)."""
-    if ok.all():
-        return pc
-    return np.where(ok[:, None], pc, np.array([0.0, 0.0, 1.0]))
-
-
-def _sample(
-    u: np.ndarray, v: np.ndarray, image: np.ndarray, prm: PhotometricParams, grad: bool
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """Bilinear patch samples (and gradients) for all edges, pixel-major.
-
-    Arrays are laid out ``(P², m)`` (pixel first) so that every arithmetic operation runs over
-    long contiguous rows; the caller transposes once at the end.
-
-    With ``gradient="central"`` the image is interpolated on a ``(P+2)²`` grid (one pixel of
-    extra border) and the gradients are central differences of that grid: bilinear
-    interpolation commutes with integer shifts, so this equals bilinearly interpolating
-    precomputed central-difference gradient images — with one gather instead of three.
-
-    Returns ``(I, gu, gv)``, each ``(P², m)`` in k order; ``gu, gv`` are ``None`` unless asked.
-    """
-    p = prm.patch
-    u0 = np.floor(u)
-    v0 = np.floor(v)
-    a = u - u0
-    b = v - v0
-    base = (image.astype(np.int64) * prm.height + v0.astype(np.int64)) * prm.width
-    base += u0.astype(np.int64)
-    ext = grad and prm.gradient == "central"
-    window = prm.window_ext if ext else prm.window
-    n = p + 3 if ext else p + 1  # raw window side
-    # np.take is markedly faster than fancy indexing for a flat gather.
-    win = np.take(prm.flat, window[:, None] + base[None, :]).reshape(n, n, -1)  # [wx, wy, edge]
-    # Bilinear weights of the four corners, shared by every pixel of a patch.
-    a = a.astype(prm.flat.dtype)
-    b = b.astype(prm.flat.dtype)
-    ia, ib = 1.0 - a, 1.0 - b
-    w00, w10, w01, w11 = ia * ib, a * ib, ia * b, a * b
-    k = n - 1
-    c00, c10, c01, c11 = win[:k, :k], win[1:, :k], win[:k, 1:], win[1:, 1:]
-    val = w00 * c00
-    val += w10 * c10
-    val += w01 * c01
-    val += w11 * c11
-    if not grad:
-        return val.reshape(p * p, -1), None, None
-    if ext:
-        # val is the interpolated image at offsets −P/2−1 … P/2 (both axes).
-        gu = 0.5 * (val[2:, 1:-1] - val[:-2, 1:-1])
-        gv = 0.5 * (val[1:-1, 2:] - val[1:-1, :-2])
-        val = val[1:-1, 1:-1]
-        return val.reshape(p * p, -1), gu.reshape(p * p, -1), gv.reshape(p * p, -1)
-    # Exact derivative of the bilinear interpolant.
-    gu = ib * (c10 - c00) + b * (c11 - c01)
-    gv = ia * (c01 - c00) + a * (c11 - c10)
-    return val.reshape(p * p, -1), gu.reshape(p * p, -1), gv.reshape(p * p, -1)
+# projection Jacobians and error assembly
 
 
 def _uv_jacobian_camera(pc: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
@@ -292,20 +115,6 @@ def _image_index(ctx: EdgeContext, m: int) -> np.ndarray:
             raise ValueError("photometric edges need ctx.data['image'] (image index per edge)")
         return np.zeros(m, dtype=np.int64)
     return np.asarray(img)
-
-
-def _transform(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``R p + t`` for ``(m, 4, 4)`` transforms and ``(m, 3)`` points."""
-    return np.matmul(T[:, :3, :3], p[:, :, None])[:, :, 0] + T[:, :3, 3]
-
-
-def _relative(Ta: np.ndarray, Tj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation and translation of ``T_j T_a⁻¹``."""
-    Ra, ta = Ta[:, :3, :3], Ta[:, :3, 3]
-    Rj, tj = Tj[:, :3, :3], Tj[:, :3, 3]
-    R = Rj @ np.swapaxes(Ra, 1, 2)
-    t = tj - np.matmul(R, ta[:, :, None])[:, :, 0]
-    return R, t
 
 
 def _anchor_point(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -390,8 +199,8 @@ class _PatchEdge(BaseEdge):
         """
         prm = cls._check(ctx)
         pc, extra_ok, _ = cls._geometry(x)
-        u, v, _, ok = _project(pc, prm, extra_ok)
-        val, _, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
+        u, v, _, ok = project_points(pc, prm, extra_ok)
+        val, _, _ = sample_patches(u, v, _image_index(ctx, len(u)), prm, grad=False)
         return Linearization(_finish(measurement, val, ok), active=ok)
 
     @classmethod
@@ -427,11 +236,11 @@ class _PatchEdge(BaseEdge):
         """
         prm = cls._check(ctx)
         pc, extra_ok, geo = cls._geometry(x)
-        u, v, iz, ok = _project(pc, prm, extra_ok)
-        val, gu, gv = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
+        u, v, iz, ok = project_points(pc, prm, extra_ok)
+        val, gu, gv = sample_patches(u, v, _image_index(ctx, len(u)), prm, grad=True)
         e = _finish(measurement, val, ok)
         g = _gradients(gu, gv, ok)
-        factors = cls._projection_jacobians(x, _safe_points(pc, ok), iz, ok, geo, prm)
+        factors = cls._projection_jacobians(x, safe_points(pc, ok), iz, ok, geo, prm)
         return e, g, tuple(-f for f in factors), ok
 
     @classmethod
@@ -488,7 +297,7 @@ class EdgePhotometricPatch(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        return _transform(x[0], x[1]), None, None
+        return transform_points(x[0], x[1]), None, None
 
     @classmethod
     def _projection_jacobians(
@@ -497,6 +306,7 @@ class EdgePhotometricPatch(_PatchEdge):
     ) -> tuple[np.ndarray, ...]:
         return (_uv_jacobian_pose(pc, iz, prm),
                 _uv_jacobian_camera(pc, iz, prm) @ x[0][:, :3, :3])
+
 
 class EdgePhotometricPatchInverseDepth(_PatchEdge):
     """Photometric patch error of an inverse-depth point seen from a non-anchor image.
@@ -519,7 +329,7 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        R, t = _relative(x[0], x[1])
+        R, t = relative_transform(x[0], x[1])
         pa, irho, ok = _anchor_point(x[2])
         pc = np.matmul(R, pa[:, :, None])[:, :, 0] + t
         return pc, ok, (R, pa, irho)
@@ -530,7 +340,7 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
         prm: PhotometricParams,
     ) -> tuple[np.ndarray, ...]:
         R, pa, irho = geo
-        pa = _safe_points(pa, ok)
+        pa = safe_points(pa, ok)
         d = _uv_jacobian_camera(pc, iz, prm) @ R  # ∂(u,v)/∂P_a
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.
         ja = np.concatenate([np.cross(d, pa[:, None, :]), -d], axis=2)
@@ -567,6 +377,7 @@ class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
     ) -> tuple[np.ndarray, ...]:
         jq = _inverse_depth_point_jacobian(_uv_jacobian_camera(pc, iz, prm), pc, geo)
         return np.zeros((len(pc), 2, 6)), jq
+
 
 _BASES: tuple[type[BaseEdge], ...] = (
     EdgePhotometricPatch,

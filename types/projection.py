@@ -22,6 +22,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.lie import relative_transform, transform_points
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 from graphopt.vertex import BaseVertex
 
@@ -116,10 +117,6 @@ class EdgeSE3ProjectXYZ(BaseEdge):
     dimension: ClassVar[int] = 2
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE3Expmap, VertexPointXYZ)
 
-    @staticmethod
-    def _camera_point(T: np.ndarray, X: np.ndarray) -> np.ndarray:
-        return np.einsum("nij,nj->ni", T[:, :3, :3], X) + T[:, :3, 3]
-
     @classmethod
     def error(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
@@ -131,7 +128,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
             measurement: ``(m, 2)`` pixels.
             ctx: ``ctx.params`` holds the intrinsics.
         """
-        P = cls._camera_point(x[0], x[1])
+        P = transform_points(x[0], x[1])
         return _pinhole_ctx(P, measurement, ctx)[0]
 
     @classmethod
@@ -149,7 +146,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
             ``(e (m, 2), (J_pose (m, 2, 6), J_point (m, 2, 3)))``.
         """
         T, X = x
-        P = cls._camera_point(T, X)
+        P = transform_points(T, X)
         e, D = _pinhole_ctx(P, measurement, ctx)
         J_pose = np.concatenate([_cross_matrix_rows(D, P), D], axis=2)
         J_point = D @ T[:, :3, :3]
@@ -199,19 +196,12 @@ class EdgeInverseDepthProjection(BaseEdge):
         VertexPointInverseDepth,
     )
 
-    @staticmethod
-    def _relative(T_aw: np.ndarray, T_cw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``R_ca = R_cw R_awᵀ`` and ``t_ca = t_cw − R_ca t_aw``."""
-        R_ca = T_cw[:, :3, :3] @ np.swapaxes(T_aw[:, :3, :3], 1, 2)
-        t_ca = T_cw[:, :3, 3] - np.einsum("nij,nj->ni", R_ca, T_aw[:, :3, 3])
-        return R_ca, t_ca
-
     @classmethod
     def _scaled_point(
         cls, x: Sequence[np.ndarray]
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         T_aw, T_cw, ip = x
-        R_ca, t_ca = cls._relative(T_aw, T_cw)
+        R_ca, t_ca = relative_transform(T_aw, T_cw)
         q = np.ones((len(ip), 3))
         q[:, :2] = ip[:, :2]
         rho = ip[:, 2]

@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from graphopt.types.lie import se3_exp
+from graphopt.lie import se3_exp
 from graphopt.vertex import BaseVertex, VertexVector
 
 

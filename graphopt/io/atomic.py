@@ -10,6 +10,10 @@ Example::
         f.write(data)
 
     atomic_save("run.rrd", lambda tmp: recording.save(tmp))
+
+    pending = PendingFile("run.rrd")   # when opening and finishing happen in different places
+    ...                                # write pending.tmp
+    pending.commit()                   # or pending.discard()
 """
 
 from __future__ import annotations
@@ -21,30 +25,55 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_path", "atomic_save", "atomic_write"]
+__all__ = ["PendingFile", "atomic_path", "atomic_save", "atomic_write"]
 
 
-def _temp_path(dest: Path) -> Path:
-    """Create (and close) an empty temporary file beside ``dest``; return its path."""
-    folder = dest.parent if str(dest.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{dest}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=folder)
-    os.close(fd)
-    return Path(tmp)
+class PendingFile:
+    """A temporary file beside ``path`` that becomes ``path`` on :meth:`commit`.
 
+    For writers whose lifetime is not one ``with`` block (e.g. a recording opened in one method
+    and finished in another); otherwise prefer :func:`atomic_path`. The temporary file is
+    created empty at once (so a missing folder is reported before any work is done), has a
+    hidden name ending in ``.tmp`` and lives in the destination's folder.
 
-def _finish(tmp: Path, dest: Path) -> None:
-    """Give the temporary file the usual permissions (mkstemp makes it 0600) and rename it."""
-    try:
-        mode = dest.stat().st_mode & 0o7777 if dest.exists() else 0o666 & ~_umask()
-        os.chmod(tmp, mode)
-    except OSError:
-        pass  # permissions are cosmetic; the content is what matters
-    os.replace(tmp, dest)
+    Args:
+        path: The destination file.
+
+    Raises:
+        FileNotFoundError: The destination's folder does not exist.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        folder = self.path.parent if str(self.path.parent) else Path(".")
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{self.path}: folder {folder} does not exist")
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=folder)
+        os.close(fd)
+        #: Where to write the content.
+        self.tmp = Path(tmp)
+
+    def commit(self) -> None:
+        """Rename the temporary file over the destination (with the usual permissions)."""
+        try:
+            # mkstemp makes the file 0600; give it the destination's or the umask's mode.
+            if self.path.exists():
+                mode = self.path.stat().st_mode & 0o7777
+            else:
+                mode = 0o666 & ~_umask()
+            os.chmod(self.tmp, mode)
+        except OSError:
+            pass  # permissions are cosmetic; the content is what matters
+        os.replace(self.tmp, self.path)
+
+    def discard(self) -> None:
+        """Delete the temporary file; the destination keeps its old content."""
+        with contextlib.suppress(OSError):
+            self.tmp.unlink()
 
 
 def _umask() -> int:
+    """The process's file mode creation mask."""
     # os.umask can only be read by setting it; restore immediately.
     mask = os.umask(0)
     os.umask(mask)
@@ -64,14 +93,12 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     Yields:
         The temporary path to write to (same folder, hidden name ending in ``.tmp``).
     """
-    dest = Path(path)
-    tmp = _temp_path(dest)
+    pending = PendingFile(path)
     try:
-        yield tmp
-        _finish(tmp, dest)
+        yield pending.tmp
+        pending.commit()
     except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        pending.discard()
         raise
 
 

@@ -1,5 +1,5 @@
-"""BAL ("Bundle Adjustment in the Large") problem files: read, write, normalise, perturb, and a
-synthetic BAL-like scene with ground truth.
+"""BAL ("Bundle Adjustment in the Large") problem files: :class:`BALProblem`, :func:`read_bal`,
+:func:`write_bal` and :class:`BALFormatError`.
 
 File format (plain, ``.gz`` or ``.bz2``)::
 
@@ -24,24 +24,13 @@ import os
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from graphopt.io.atomic import atomic_path
+from graphopt.lie import angle_axis_rotate
 
-__all__ = [
-    "BALFormatError",
-    "BALProblem",
-    "SyntheticScene",
-    "ground_truth_errors",
-    "normalize",
-    "perturb",
-    "read_bal",
-    "similarity_align",
-    "synthetic_scene",
-    "write_bal",
-]
+__all__ = ["BALFormatError", "BALProblem", "read_bal", "write_bal"]
 
 _WHITESPACE = np.zeros(256, dtype=bool)
 _WHITESPACE[[9, 10, 11, 12, 13, 32]] = True  # exactly what bytes.split() splits on
@@ -74,6 +63,9 @@ class BALProblem:
         point_index: ``(m,)`` point of each observation.
         observations: ``(m, 2)`` pixels (origin at the image centre, y up).
         path: Source file, if read from one.
+
+    The camera model (projection, residuals, cost) lives with the BA types:
+    :func:`graphopt.types.bal.reprojection_errors` and :func:`graphopt.types.bal.bal_cost`.
     """
 
     cameras: np.ndarray
@@ -111,21 +103,7 @@ class BALProblem:
 
     def camera_centers(self) -> np.ndarray:
         """Camera centres ``C = −Rᵀ t`` in the world frame, ``(c, 3)``."""
-        from graphopt.types.bal import angle_axis_rotate
-
         return -angle_axis_rotate(-self.cameras[:, :3], self.cameras[:, 3:6])
-
-    def residuals(self) -> np.ndarray:
-        """Reprojection residuals ``p' − z``, ``(m, 2)``."""
-        from graphopt.types.bal import bal_project
-
-        uv, _ = bal_project(self.cameras[self.camera_index], self.points[self.point_index])
-        return uv - self.observations
-
-    def cost(self) -> float:
-        """Ceres' cost ``½ Σ ‖r‖²`` (no robust kernel)."""
-        r = self.residuals()
-        return 0.5 * float(np.einsum("ij,ij->", r, r))
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,246 +350,3 @@ def write_bal(path: str | os.PathLike[str], problem: BALProblem) -> None:
         payload = gzip.compress(payload, 6, mtime=0)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(payload)
-
-
-# --------------------------------------------------------------------------------------------
-# Normalisation and perturbation (as Ceres' examples/bal_problem.cc)
-# --------------------------------------------------------------------------------------------
-
-
-def _rotation_matrices(aa: np.ndarray) -> np.ndarray:
-    from graphopt.types.lie import so3_exp
-
-    return so3_exp(aa)
-
-
-def _upper_median(x: np.ndarray, axis: int = 0) -> np.ndarray:
-    """``std::nth_element`` at ``n/2`` (Ceres' Median): the upper median for even ``n``."""
-    n = x.shape[axis]
-    return np.take(np.partition(x, n // 2, axis=axis), n // 2, axis=axis)
-
-
-def normalize(problem: BALProblem) -> BALProblem:
-    """Centre and scale a problem as Ceres' bundle_adjuster does.
-
-    Points are translated by their coordinate-wise median and scaled so that the median of
-    ``‖X − median‖₁`` becomes 100; camera centres get the same similarity; rotations are kept.
-
-    Args:
-        problem: The problem (not modified).
-
-    Returns:
-        A normalised copy.
-    """
-    out = problem.copy()
-    median = _upper_median(out.points, axis=0)
-    mad = float(_upper_median(np.abs(out.points - median).sum(axis=1)))
-    if not np.isfinite(mad) or mad <= 0:
-        raise ValueError("normalize: the points have zero spread")
-    scale = 100.0 / mad
-    out.points = scale * (out.points - median)
-    R = _rotation_matrices(out.cameras[:, :3])
-    centers = out.camera_centers()
-    centers = scale * (centers - median)
-    out.cameras[:, 3:6] = -np.einsum("nij,nj->ni", R, centers)
-    return out
-
-
-def perturb(
-    problem: BALProblem,
-    rotation_sigma: float,
-    translation_sigma: float,
-    point_sigma: float,
-    seed: int = 0,
-) -> BALProblem:
-    """Add Gaussian noise as Ceres' bundle_adjuster does, deterministically for a seed.
-
-    Points get ``N(0, point_sigma²)`` per coordinate; each camera's angle-axis gets
-    ``N(0, rotation_sigma²)`` per component with the camera *centre* held fixed, then its
-    translation ``t`` gets ``N(0, translation_sigma²)`` per component. Draw order: all points,
-    then per camera rotation then translation (as a single vectorised draw each).
-
-    Args:
-        problem: The problem (not modified).
-        rotation_sigma: Std-dev of the angle-axis noise (radians); 0 disables.
-        translation_sigma: Std-dev of the translation noise; 0 disables.
-        point_sigma: Std-dev of the point noise; 0 disables.
-        seed: Random seed.
-
-    Returns:
-        A perturbed copy.
-    """
-    sig = (rotation_sigma, translation_sigma, point_sigma)
-    if any((not np.isfinite(s)) or s < 0 for s in sig):
-        raise ValueError(f"perturb: sigmas must be finite and >= 0, got {sig}")
-    rng = np.random.default_rng(seed)
-    out = problem.copy()
-    if point_sigma > 0:
-        out.points = out.points + rng.normal(0.0, point_sigma, out.points.shape)
-    if rotation_sigma > 0:
-        centers = out.camera_centers()
-        out.cameras[:, :3] += rng.normal(0.0, rotation_sigma, (out.num_cameras, 3))
-        R = _rotation_matrices(out.cameras[:, :3])
-        out.cameras[:, 3:6] = -np.einsum("nij,nj->ni", R, centers)
-    if translation_sigma > 0:
-        out.cameras[:, 3:6] += rng.normal(0.0, translation_sigma, (out.num_cameras, 3))
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# Synthetic scene
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class SyntheticScene:
-    """A synthetic BAL problem with its ground truth.
-
-    Args:
-        problem: The problem to solve (perturbed initial estimates, noisy observations).
-        truth: The same problem at the true cameras and points (noise-free parameters).
-        pixel_sigma: Std-dev of the observation noise in pixels.
-    """
-
-    problem: BALProblem
-    truth: BALProblem
-    pixel_sigma: float
-
-
-def synthetic_scene(
-    num_cameras: int = 16,
-    num_points: int = 3000,
-    *,
-    pixel_sigma: float = 0.5,
-    rotation_sigma: float = 0.005,
-    translation_sigma: float = 0.05,
-    point_sigma: float = 0.05,
-    focal: float = 800.0,
-    half_width: float = 400.0,
-    seed: int = 0,
-) -> SyntheticScene:
-    """Generate a BAL-like scene: a camera moving along a street, filming a facade.
-
-    Cameras stand 2 units apart on the x axis (with small random offsets and rotations), looking
-    down −z (BAL's convention) at points spread on a 2-unit-deep facade 10 units away, with a
-    focal length near ``focal`` and mild radial distortion. A point is observed by every camera
-    that sees it in front and within ``±half_width`` pixels, which gives BAL-like tracks of a few
-    observations per point (the Schur complement's cost depends on track length); points seen
-    fewer than twice are dropped. Observations get ``N(0, pixel_sigma²)`` noise; the initial
-    estimate is the truth perturbed with :func:`perturb`.
-
-    Args:
-        num_cameras: Number of cameras (>= 2).
-        num_points: Number of points drawn (some may be dropped if seen fewer than twice).
-        pixel_sigma: Observation noise (pixels).
-        rotation_sigma: Initial rotation noise (radians).
-        translation_sigma: Initial translation noise (scene units).
-        point_sigma: Initial point noise (scene units).
-        focal: Nominal focal length (pixels).
-        half_width: Half image size (pixels); projections outside are not observed.
-        seed: Random seed (the scene is a deterministic function of the arguments).
-
-    Returns:
-        The scene.
-    """
-    from graphopt.types.bal import bal_project
-
-    if num_cameras < 2 or num_points < 1:
-        raise ValueError("synthetic_scene: need at least 2 cameras and 1 point")
-    rng = np.random.default_rng(seed)
-    spacing, distance = 2.0, 10.0
-    length = spacing * (num_cameras - 1)
-    reach = distance * half_width / focal  # half the facade width one camera sees
-    pts = rng.uniform(
-        [-reach, -0.8 * reach, -distance - 1.0], [length + reach, 0.8 * reach, -distance + 1.0],
-        (num_points, 3),
-    )
-    centers = np.column_stack([
-        spacing * np.arange(num_cameras) + rng.normal(0, 0.1, num_cameras),
-        rng.normal(0, 0.2, num_cameras),
-        rng.normal(0, 0.2, num_cameras),
-    ])
-    cams = np.zeros((num_cameras, 9))
-    cams[:, :3] = rng.normal(0, 0.05, (num_cameras, 3))  # R_cw close to I: looking down −z
-    from graphopt.types.bal import angle_axis_rotate
-
-    cams[:, 3:6] = -angle_axis_rotate(cams[:, :3], centers)
-    cams[:, 6] = focal * rng.uniform(0.9, 1.1, num_cameras)
-    cams[:, 7] = rng.normal(0.0, 0.05, num_cameras)
-    cams[:, 8] = rng.normal(0.0, 0.005, num_cameras)
-
-    ci, pi = np.meshgrid(np.arange(num_cameras), np.arange(num_points), indexing="ij")
-    ci, pi = ci.ravel(), pi.ravel()
-    uv, pz = bal_project(cams[ci], pts[pi])
-    visible = (pz < 0) & (np.abs(uv) < half_width).all(axis=1)
-    ci, pi, uv = ci[visible], pi[visible], uv[visible]
-    keep = np.bincount(pi, minlength=num_points) >= 2
-    remap = np.cumsum(keep) - 1
-    sel = keep[pi]
-    ci, pi, uv = ci[sel], remap[pi[sel]], uv[sel]
-    order = np.lexsort((ci, pi))  # BAL files list observations by point
-    ci, pi, uv = ci[order], pi[order], uv[order]
-    pts = pts[keep]
-
-    truth = BALProblem(cams, pts, ci.astype(np.int64), pi.astype(np.int64), uv.copy())
-    noisy = truth.copy()
-    noisy.observations = uv + rng.normal(0.0, pixel_sigma, uv.shape)
-    problem = perturb(noisy, rotation_sigma, translation_sigma, point_sigma, seed=seed + 1)
-    return SyntheticScene(problem=problem, truth=truth, pixel_sigma=pixel_sigma)
-
-
-def similarity_align(
-    source: np.ndarray, target: np.ndarray
-) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama's similarity ``(s, R, t)`` minimising ``Σ‖s R source_i + t − target_i‖²``.
-
-    Bundle adjustment fixes the scene only up to a similarity (gauge freedom), so estimates are
-    compared with ground truth after this alignment.
-
-    Args:
-        source: ``(n, 3)`` points.
-        target: ``(n, 3)`` corresponding points.
-
-    Returns:
-        ``(scale, R (3, 3), t (3,))``.
-    """
-    mu_s, mu_t = source.mean(0), target.mean(0)
-    xs, xt = source - mu_s, target - mu_t
-    cov = xt.T @ xs / len(source)
-    U, S, Vt = np.linalg.svd(cov)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1.0
-    R = U @ D @ Vt
-    var_s = (xs**2).sum() / len(source)
-    s = float(np.trace(np.diag(S) @ D) / var_s)
-    return s, R, mu_t - s * R @ mu_s
-
-
-def ground_truth_errors(estimate: BALProblem, truth: BALProblem) -> dict[str, Any]:
-    """Errors of an estimate against ground truth after a similarity alignment of the points.
-
-    Args:
-        estimate: The estimated problem.
-        truth: The ground truth (same cameras, points and observations).
-
-    Returns:
-        ``point_rms`` and ``camera_center_rms`` (scene units, after alignment),
-        ``rotation_deg_rms`` and ``focal_rel_rms``.
-    """
-    from graphopt.types.lie import so3_exp, so3_log
-
-    s, R, t = similarity_align(estimate.points, truth.points)
-    pts = s * estimate.points @ R.T + t
-    cen = s * estimate.camera_centers() @ R.T + t
-    R_est = so3_exp(estimate.cameras[:, :3]) @ R.T  # R_cw of the aligned camera
-    dR = so3_log(R_est @ np.swapaxes(so3_exp(truth.cameras[:, :3]), 1, 2))
-    rms = lambda a: float(np.sqrt(np.mean(np.sum(a * a, axis=-1))))  # noqa: E731
-    return {
-        "point_rms": rms(pts - truth.points),
-        "camera_center_rms": rms(cen - truth.camera_centers()),
-        "rotation_deg_rms": float(np.degrees(rms(dR))),
-        "focal_rel_rms": float(
-            np.sqrt(np.mean((estimate.cameras[:, 6] / truth.cameras[:, 6] - 1.0) ** 2))
-        ),
-    }

@@ -1,15 +1,44 @@
-"""Batched SO(3)/SE(3) maps used by the vertex and edge types.
+"""Batched SO(3)/SE(3) helpers: Rodrigues' rotation, logarithm, left Jacobian, SE(3) exponential,
+quaternions and rigid transforms.
 
 All functions take arrays whose leading axis runs over many elements: ``(n, 3)`` vectors,
-``(n, 3, 3)`` rotations, ``(n, 4, 4)`` homogeneous transforms. Small angles use Taylor
-expansions so that nothing divides by zero.
+``(n, 3, 3)`` rotations, ``(n, 4, 4)`` homogeneous transforms (``T = [[R, t], [0, 1]]``).
+
+Small angles: every map built on ``θ = |ω|`` (:func:`so3_exp`, :func:`angle_axis_rotate`,
+:func:`so3_left_jacobian`, :func:`se3_exp`) evaluates its coefficients ``a = sinθ/θ``,
+``b = (1−cosθ)/θ²`` and ``c = (θ−sinθ)/θ³`` by their second-order Taylor series when
+``θ² < SMALL_ANGLE2`` (``1e-8``, θ below 1e-4 rad); the first omitted terms are below
+``θ⁴/120 < 1e-18``. Above it the closed forms are used. Accuracy (against 40-digit
+arithmetic): rotations are within 2e-16 up to θ = 1 and 5e-16 up to π. In the left Jacobian
+(and so in the translation of :func:`se3_exp`), ``b`` multiplies ``[ω]×`` and the cancellation
+in ``1−cosθ`` shows: its error peaks at ≈ 3e-13 just above θ = 1e-4 and is below 1e-14 from
+θ = 1e-3 on.
+(The half-angle form ``2 sin²(θ/2)/θ²`` would avoid that, but it changes every result in the
+last bits, which bit-sensitive direct-BA runs amplify; it is left for a deliberate change.)
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-_SMALL = 1e-8
+__all__ = [
+    "SMALL_ANGLE2",
+    "angle_axis_rotate",
+    "hat",
+    "make_transform",
+    "quat_to_rot",
+    "relative_transform",
+    "rot_to_quat",
+    "se3_exp",
+    "so3_exp",
+    "so3_left_jacobian",
+    "so3_log",
+    "transform_inverse",
+    "transform_points",
+]
+
+#: Below this squared angle (radians²) the rotation coefficients use their Taylor series.
+SMALL_ANGLE2 = 1e-8
 
 
 def hat(w: np.ndarray) -> np.ndarray:
@@ -30,8 +59,9 @@ def hat(w: np.ndarray) -> np.ndarray:
 
 
 def _coefficients(theta2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``a = sinθ/θ``, ``b = (1−cosθ)/θ²``, ``c = (θ−sinθ)/θ³`` with series for small θ."""
-    small = theta2 < _SMALL
+    """``a = sinθ/θ``, ``b = (1−cosθ)/θ²``, ``c = (θ−sinθ)/θ³``, by series below
+    :data:`SMALL_ANGLE2`."""
+    small = theta2 < SMALL_ANGLE2
     t2 = np.where(small, 1.0, theta2)
     theta = np.sqrt(t2)
     s, c = np.sin(theta), np.cos(theta)
@@ -42,19 +72,36 @@ def _coefficients(theta2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula ``exp([w]×)``.
+    """Rodrigues' formula ``exp([w]×) = I + (sinθ/θ)[w]× + ((1−cosθ)/θ²)[w]×²``.
+
+    This is graphopt's one angle-axis rotation: the BAL camera, the SE(3) vertex and the
+    data loaders all use it (see the module docstring for the small-angle series).
 
     Args:
         w: ``(n, 3)`` rotation vectors (angle-axis).
 
     Returns:
-        ``(n, 3, 3)`` rotation matrices.
+        ``(n, 3, 3)`` rotation matrices (C-contiguous, so ``.reshape(n, 9)`` gives the
+        row-major entries without a copy).
     """
     theta2 = np.einsum("ni,ni->n", w, w)
     a, b, _ = _coefficients(theta2)
     W = hat(w)
     WW = W @ W
     return np.eye(3) + a[:, None, None] * W + b[:, None, None] * WW
+
+
+def angle_axis_rotate(w: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate many vectors: ``exp([w_i]×) v_i``.
+
+    Args:
+        w: ``(m, 3)`` angle-axis vectors.
+        v: ``(m, 3)`` vectors.
+
+    Returns:
+        ``(m, 3)`` rotated vectors.
+    """
+    return np.einsum("nij,nj->ni", so3_exp(w), v)
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
@@ -105,7 +152,6 @@ def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + b[:, None, None] * W + c[:, None, None] * (W @ W)
 
 
-
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """Exponential of ``se(3)`` in g2o's order ``xi = [ω, υ]``.
 
@@ -116,15 +162,9 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
         ``(n, 4, 4)`` homogeneous transforms ``[[exp(ω), J_l(ω) υ], [0, 1]]``.
     """
     w, u = xi[:, :3], xi[:, 3:]
-    theta2 = np.einsum("ni,ni->n", w, w)
-    a, b, c = _coefficients(theta2)
-    W = hat(w)
-    WW = W @ W
-    eye = np.eye(3)
     T = np.zeros((len(xi), 4, 4))
-    T[:, :3, :3] = eye + a[:, None, None] * W + b[:, None, None] * WW
-    V = eye + b[:, None, None] * W + c[:, None, None] * WW
-    T[:, :3, 3] = np.einsum("nij,nj->ni", V, u)
+    T[:, :3, :3] = so3_exp(w)
+    T[:, :3, 3] = np.einsum("nij,nj->ni", so3_left_jacobian(w), u)
     T[:, 3, 3] = 1.0
     return T
 
@@ -186,3 +226,34 @@ def transform_inverse(T: np.ndarray) -> np.ndarray:
     """
     Rt = np.swapaxes(T[:, :3, :3], 1, 2)
     return make_transform(Rt, -np.einsum("nij,nj->ni", Rt, T[:, :3, 3]))
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply rigid transforms to points: ``R_i p_i + t_i``.
+
+    Args:
+        T: ``(m, 4, 4)`` transforms.
+        p: ``(m, 3)`` points.
+
+    Returns:
+        ``(m, 3)`` transformed points.
+    """
+    return np.matmul(T[:, :3, :3], p[:, :, None])[:, :, 0] + T[:, :3, 3]
+
+
+def relative_transform(T_a: np.ndarray, T_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation of ``T_b T_a⁻¹`` (frame ``a`` to frame ``b`` for ``T_·w``).
+
+    With world-to-camera poses ``T_aw`` and ``T_bw`` this is ``T_ba``: ``R = R_b R_aᵀ``,
+    ``t = t_b − R t_a``.
+
+    Args:
+        T_a: ``(m, 4, 4)`` transforms.
+        T_b: ``(m, 4, 4)`` transforms.
+
+    Returns:
+        ``(R (m, 3, 3), t (m, 3))``.
+    """
+    R = T_b[:, :3, :3] @ np.swapaxes(T_a[:, :3, :3], 1, 2)
+    t = T_b[:, :3, 3] - np.matmul(R, T_a[:, :3, 3][:, :, None])[:, :, 0]
+    return R, t

@@ -1,0 +1,239 @@
+"""What the command-line apps share: one-line errors, option checks, solver names, JSON and rerun
+outputs, and the ``main`` wrapper.
+
+Every app reports a user's mistake (bad option, unreadable input, unwritable output) as one line
+``PROG: error: …`` on stderr with exit status 1 (2 for a bad option, from the parser), and
+replaces an existing output file only by a complete new one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+from graphopt.io.atomic import atomic_write
+from graphopt.solvers import SOLVERS
+
+__all__ = [
+    "AppError",
+    "OneLineParser",
+    "RunRecording",
+    "add_solver_option",
+    "check_outputs",
+    "check_run_options",
+    "optimize_recorded",
+    "run_main",
+    "write_json",
+]
+
+
+class AppError(Exception):
+    """An error reported to the user as one line (no traceback), exit status 1."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with one-line errors (exit status 2) instead of the usage and the error."""
+
+    def error(self, message: str) -> NoReturn:
+        """Print ``PROG: error: message (see --help)`` and exit with status 2.
+
+        Args:
+            message: argparse's description of the problem.
+        """
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def add_solver_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--solver`` with graphopt's linear solver names (:data:`graphopt.solvers.SOLVERS`).
+
+    Args:
+        parser: The app's parser.
+    """
+    parser.add_argument(
+        "--solver", choices=SOLVERS, default="auto",
+        help="linear solver of the reduced camera system (default auto: dense Cholesky for a "
+             "small dense system, else CHOLMOD)",
+    )
+
+
+def check_run_options(iterations: int, robust_delta: float) -> None:
+    """Check the options every app has: ``--iterations`` and ``--robust-delta``.
+
+    Args:
+        iterations: Maximum iterations (must be >= 0).
+        robust_delta: Robust kernel width (must be finite and positive).
+
+    Raises:
+        AppError: Either is out of range.
+    """
+    if iterations < 0:
+        raise AppError(f"--iterations must be >= 0, got {iterations}")
+    if not math.isfinite(robust_delta) or robust_delta <= 0:
+        raise AppError(f"--robust-delta must be positive, got {robust_delta:g}")
+
+
+def check_outputs(outputs: Mapping[str, str | None], inputs: Sequence[str | None] = ()) -> None:
+    """Check output files before any work is done.
+
+    Args:
+        outputs: Option name (e.g. ``"--json"``) to the file it names, or None if not given.
+        inputs: Input files or folders that no output may overwrite.
+
+    Raises:
+        AppError: An output's folder does not exist, an output is a directory or an input, or
+            two outputs name the same file.
+    """
+    given = {opt: Path(p) for opt, p in outputs.items() if p is not None}
+    protected = {Path(p).resolve() for p in inputs if p is not None}
+    for opt, path in given.items():
+        folder = path.resolve().parent
+        if not folder.is_dir():
+            raise AppError(f"{opt} {path}: folder {folder} does not exist")
+        if path.is_dir():
+            raise AppError(f"{opt} {path}: is a directory")
+        if path.resolve() in protected:
+            raise AppError(f"{opt} {path}: refusing to overwrite the input")
+    if len({p.resolve() for p in given.values()}) != len(given):
+        raise AppError("two outputs name the same file")
+
+
+def _finite_or_none(value: Any) -> Any:
+    """``value`` with every non-finite float (at any depth) replaced by None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def write_json(path: str | os.PathLike[str], data: Mapping[str, Any]) -> None:
+    """Write a summary as one indented JSON object, atomically.
+
+    NaN and infinities are written as ``null``, so that the file is valid JSON.
+
+    Args:
+        path: Destination file.
+        data: The summary (JSON-serialisable values).
+    """
+    with atomic_write(path) as f:
+        json.dump(_finite_or_none(data), f, indent=2, allow_nan=False)
+        f.write("\n")
+
+
+class RunRecording:
+    """A rerun recording of an app run.
+
+    The file appears only on :meth:`close` (see :class:`graphopt.recording.Recorder`);
+    :meth:`timed` measures the time spent logging, which the apps keep out of the optimisation
+    time they report.
+
+    Args:
+        path: Destination ``.rrd`` file.
+        prog: The app's name (rerun application id).
+        camera_xyz: Camera axis convention (``"RDF"`` or ``"RUB"``).
+        world_xyz: World axis convention (a ``rerun.ViewCoordinates`` name).
+    """
+
+    def __init__(
+        self, path: str, prog: str, *, camera_xyz: str, world_xyz: str = "RIGHT_HAND_Z_UP"
+    ) -> None:
+        from graphopt.recording import Recorder  # rerun is heavy: only import it when recording
+
+        self.rec = Recorder(path, application_id=prog, camera_xyz=camera_xyz,
+                            world_xyz=world_xyz)
+        self.seconds = 0.0
+
+    @contextlib.contextmanager
+    def timed(self) -> Iterator[Any]:
+        """Add the time spent in the ``with`` block to :attr:`seconds`.
+
+        Yields:
+            The :class:`graphopt.recording.Recorder`.
+        """
+        t0 = time.perf_counter()
+        try:
+            yield self.rec
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def close(self) -> None:
+        """Write the recording to its destination."""
+        self.rec.close()
+
+    def abort(self) -> None:
+        """Discard the recording; an existing destination file is left untouched."""
+        self.rec.abort()
+
+
+def optimize_recorded(opt: Any, iterations: int, recording: RunRecording | None) -> Any:
+    """``opt.optimize(iterations)``, discarding the recording if it raises.
+
+    Args:
+        opt: The :class:`graphopt.SparseOptimizer`.
+        iterations: Maximum iterations.
+        recording: The run's recording, or None.
+
+    Returns:
+        The optimisation result.
+    """
+    try:
+        return opt.optimize(iterations)
+    except BaseException:
+        if recording is not None:
+            recording.abort()
+        raise
+
+
+def run_main(
+    prog: str,
+    parser: argparse.ArgumentParser,
+    run: Callable[[argparse.Namespace], Any],
+    argv: Sequence[str] | None,
+    user_errors: tuple[type[BaseException], ...] = (),
+) -> int:
+    """Parse the arguments, run the app and turn errors into one line on stderr.
+
+    Args:
+        prog: The app's name, the prefix of every message.
+        parser: The app's parser.
+        run: The app; it receives the parsed arguments.
+        argv: Arguments (``sys.argv[1:]`` if None).
+        user_errors: Further exception types whose message is meant for the user (besides
+            :class:`AppError` and ``OSError``).
+
+    Returns:
+        Exit status: 0 on success, 1 on an error, 130 on Ctrl-C (2 for bad options, by the
+        parser's ``SystemExit``). With the environment variable ``GRAPHOPT_DEBUG`` set, an
+        unexpected exception propagates with its traceback.
+    """
+    args = parser.parse_args(argv)
+    try:
+        run(args)
+    except (AppError, OSError, *user_errors) as exc:
+        print(f"{prog}: error: {_first_line(exc)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the user gets one line, not a traceback
+        if os.environ.get("GRAPHOPT_DEBUG"):
+            raise
+        print(f"{prog}: error: {type(exc).__name__}: {_first_line(exc)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first line of an exception's message."""
+    text = str(exc)
+    return text.splitlines()[0] if text else ""

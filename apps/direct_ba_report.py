@@ -1,0 +1,178 @@
+"""Reports of a direct-BA run: errors against the truth (synthetic scene), a top-down PNG of
+cameras and points before/after, and the rerun recording.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from graphopt.apps._cli import RunRecording
+from graphopt.apps.direct_ba_problem import DirectBAProblem
+from graphopt.io.atomic import atomic_path
+from graphopt.lie import so3_log, transform_inverse
+
+__all__ = ["DirectBARecording", "pose_errors", "truth_report", "write_png"]
+
+
+def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (degrees) and camera-centre (metres) errors of every pose.
+
+    Args:
+        T_est: ``(n, 4, 4)`` estimated ``T_cw``.
+        T_true: ``(n, 4, 4)`` true ``T_cw``.
+    """
+    dR = T_est[:, :3, :3] @ np.swapaxes(T_true[:, :3, :3], 1, 2)
+    rot = np.degrees(np.linalg.norm(so3_log(dR), axis=1))
+    c_est = transform_inverse(T_est)[:, :3, 3]
+    c_true = transform_inverse(T_true)[:, :3, 3]
+    return rot, np.linalg.norm(c_est - c_true, axis=1)
+
+
+def truth_report(problem: DirectBAProblem) -> dict[str, float]:
+    """Errors against the truth (synthetic scene): mean/max over the free poses, median points.
+
+    Args:
+        problem: The problem (its data must carry ``true_poses``/``true_points``).
+    """
+    data = problem.data
+    assert data.true_poses is not None and data.true_points is not None
+    out: dict[str, float] = {}
+    truth = data.true_points[problem.point_index]
+    c_true = transform_inverse(data.true_poses)[:, :3, 3]
+    for when, T, X in (("initial", data.poses, data.points[problem.point_index]),
+                       ("final", problem.poses(), problem.points())):
+        rot, trans = pose_errors(T[1:], data.true_poses[1:])
+        out[f"{when}_rotation_error_deg_mean"] = float(rot.mean())
+        out[f"{when}_rotation_error_deg_max"] = float(rot.max())
+        out[f"{when}_translation_error_m_mean"] = float(trans.mean())
+        out[f"{when}_translation_error_m_max"] = float(trans.max())
+        # Monocular scale is a gauge freedom (only the first pose is fixed): also report the
+        # centre errors after the best scale about the fixed first camera.
+        a = transform_inverse(T)[:, :3, 3] - c_true[0]
+        b = c_true - c_true[0]
+        scale = float((a * b).sum() / max(float((a * a).sum()), 1e-300))
+        out[f"{when}_scale"] = scale
+        out[f"{when}_translation_error_scale_aligned_m_mean"] = float(
+            np.linalg.norm(scale * a - b, axis=1)[1:].mean())
+        out[f"{when}_point_error_m_median"] = float(np.median(np.linalg.norm(X - truth, axis=1)))
+    return out
+
+
+def _intensity_colors(patches: np.ndarray) -> np.ndarray:
+    """Grey ``(N, 3)`` uint8 colours from the mean intensity of each patch."""
+    g = np.clip(patches.mean(axis=1), 0, 255).astype(np.uint8)
+    return np.stack([g, g, g], axis=1)
+
+
+def write_png(path: str | Path, problem: DirectBAProblem, before: tuple[np.ndarray, np.ndarray],
+              after: tuple[np.ndarray, np.ndarray]) -> None:
+    """Top-down (x–z) picture of cameras and points before (red/grey) and after (green/blue).
+
+    Args:
+        path: Destination ``.png`` (replaced atomically).
+        problem: The problem (for the truth on the synthetic scene).
+        before: ``(poses, points)`` before optimisation.
+        after: ``(poses, points)`` after.
+    """
+    import cv2
+
+    size, pad = 900, 50
+    c_before = transform_inverse(before[0])[:, :3, 3]
+    c_after = transform_inverse(after[0])[:, :3, 3]
+    allp = np.vstack([before[1], after[1]])
+    finite = np.isfinite(allp).all(axis=1)
+    lo = np.minimum(np.percentile(allp[finite], 2, axis=0), np.minimum(c_before, c_after).min(0))
+    hi = np.maximum(np.percentile(allp[finite], 98, axis=0), np.maximum(c_before, c_after).max(0))
+    span = max(hi[0] - lo[0], hi[2] - lo[2], 1e-9)
+    scale = (size - 2 * pad) / span
+
+    def px(p: np.ndarray) -> np.ndarray:
+        # x to the right, z (viewing direction) up the picture.
+        u = pad + (p[:, 0] - lo[0]) * scale
+        v = size - pad - (p[:, 2] - lo[2]) * scale
+        return np.stack([u, v], axis=1)
+
+    canvas = np.full((size, size, 3), 255, np.uint8)
+    for pts, colour in ((before[1], (170, 170, 170)), (after[1], (200, 120, 40))):
+        q = px(pts[np.isfinite(pts).all(axis=1)])
+        inside = (q >= 0).all(axis=1) & (q < size).all(axis=1)
+        q = q[inside].astype(int)
+        canvas[q[:, 1], q[:, 0]] = colour
+    if problem.data.true_poses is not None:
+        ct = transform_inverse(problem.data.true_poses)[:, :3, 3]
+        for p in px(ct).astype(int):
+            cv2.drawMarker(canvas, tuple(int(x) for x in p), (0, 0, 0), cv2.MARKER_CROSS, 14, 1)
+    for cams, colour in ((c_before, (0, 0, 220)), (c_after, (0, 160, 0))):
+        q = px(cams).astype(int)
+        cv2.polylines(canvas, [q.reshape(-1, 1, 2)], False, colour, 1, cv2.LINE_AA)
+        for p in q:
+            cv2.circle(canvas, tuple(int(x) for x in p), 4, colour, -1, cv2.LINE_AA)
+    legend = [("cameras before", (0, 0, 220)), ("cameras after", (0, 160, 0)),
+              ("points before", (170, 170, 170)), ("points after", (200, 120, 40))]
+    if problem.data.true_poses is not None:
+        legend.append(("true cameras", (0, 0, 0)))
+    for i, (text, colour) in enumerate(legend):
+        cv2.putText(canvas, text, (12, 22 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1,
+                    cv2.LINE_AA)
+    shift_c = float(np.linalg.norm(c_after - c_before, axis=1).max())
+    ok = np.isfinite(before[1]).all(axis=1) & np.isfinite(after[1]).all(axis=1)
+    shift_p = float(np.median(np.linalg.norm(after[1][ok] - before[1][ok], axis=1))) if ok.any() \
+        else float("nan")
+    cv2.putText(canvas, f"top view: x right, z up; largest camera shift {shift_c:.4g}, median "
+                f"point shift {shift_p:.4g}", (12, size - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(".png", canvas)
+        if not ok:
+            raise OSError(f"{path}: PNG encoding failed")
+        tmp.write_bytes(buf.tobytes())
+
+
+class DirectBARecording(RunRecording):
+    """The run as a rerun recording: frusta with images, points, chi2 per iteration.
+
+    Args:
+        path: Destination ``.rrd`` file.
+        problem: The problem.
+        prog: The app's name (rerun application id).
+    """
+
+    def __init__(self, path: str, problem: DirectBAProblem, prog: str) -> None:
+        # The data's world frame is camera-like (x right, y down, z forward).
+        super().__init__(path, prog, camera_xyz="RDF", world_xyz="RDF")
+        self.problem = problem
+        data = problem.data
+        fx, fy, cx, cy = data.intrinsics
+        n = len(data.poses)
+        # Per-camera (n, 2) arrays: Recorder reads a 1-D focal as one value per camera.
+        self.cam = {"focal": np.tile([fx, fy], (n, 1)),
+                    "principal_point": np.tile([cx, cy], (n, 1)),
+                    "resolution": np.tile([data.images.shape[2], data.images.shape[1]], (n, 1))}
+        self.colors = _intensity_colors(data.patches[problem.point_index])
+
+    def log_state(self, iteration: int, chi2: float, first: bool = False) -> None:
+        """Log the current estimates and chi2.
+
+        Args:
+            iteration: Iteration number (0 = before optimisation).
+            chi2: The robust chi2 at this iteration.
+            first: Also log the images and the start (and true) trajectories, once.
+        """
+        rec, p = self.rec, self.problem
+        rec.set_iteration(iteration)
+        poses, points = p.poses(), p.points()
+        images = None
+        if first:
+            images = [np.clip(im, 0, 255).astype(np.uint8) for im in p.data.images]
+            # The start stays visible at every later iteration, for comparison.
+            rec.log_points(points, [150, 150, 150], entity="world/initial/points")
+            rec.log_trajectory(transform_inverse(poses)[:, :3, 3],
+                               entity="world/initial/trajectory")
+            if p.data.true_poses is not None:
+                rec.log_trajectory(transform_inverse(p.data.true_poses)[:, :3, 3],
+                                   entity="world/truth/trajectory")
+        rec.log_cameras(poses, images=images, **self.cam)
+        rec.log_points(points, self.colors)
+        rec.log_scalar("chi2", chi2)

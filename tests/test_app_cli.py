@@ -1,0 +1,179 @@
+"""What both apps share (graphopt/apps/_cli.py): one-line errors, option and output checks,
+solver names, JSON output, the recording wrapper and the ``main`` wrapper."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from graphopt.apps import bal, direct_ba
+from graphopt.apps._cli import (
+    AppError,
+    OneLineParser,
+    RunRecording,
+    add_solver_option,
+    check_outputs,
+    check_run_options,
+    optimize_recorded,
+    run_main,
+    write_json,
+)
+from graphopt.solvers import SOLVERS
+
+
+def test_one_line_parser_error(capsys: pytest.CaptureFixture[str]) -> None:
+    p = OneLineParser(prog="tool")
+    p.add_argument("--n", type=int)
+    with pytest.raises(SystemExit) as info:
+        p.parse_args(["--n", "x"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err == "tool: error: argument --n: invalid int value: 'x' (see --help)\n"
+
+
+@pytest.mark.parametrize("parser", [bal.build_parser, direct_ba.build_parser])
+def test_both_apps_take_the_library_solver_names(parser) -> None:
+    p = parser()
+    assert p.parse_args([]).solver == "auto"
+    for name in SOLVERS:
+        assert p.parse_args(["--solver", name]).solver == name
+    assert {"auto", "cholmod", "dense", "pcg"} <= set(SOLVERS)
+    with pytest.raises(SystemExit) as info:
+        p.parse_args(["--solver", "magic"])
+    assert info.value.code == 2
+    own = OneLineParser(prog="x")
+    add_solver_option(own)
+    assert own.parse_args(["--solver", "pcg"]).solver == "pcg"
+    assert "--solver {" + ",".join(SOLVERS) + "}" in own.format_help()
+
+
+@pytest.mark.parametrize(
+    ("iterations", "delta", "message"),
+    [(-1, 1.0, "--iterations must be >= 0, got -1"),
+     (5, 0.0, "--robust-delta must be positive, got 0"),
+     (5, -2.5, "--robust-delta must be positive, got -2.5"),
+     (5, float("nan"), "--robust-delta must be positive, got nan"),
+     (5, float("inf"), "--robust-delta must be positive, got inf")],
+)
+def test_check_run_options_rejects(iterations: int, delta: float, message: str) -> None:
+    with pytest.raises(AppError) as info:
+        check_run_options(iterations, delta)
+    assert str(info.value) == message
+
+
+def test_check_run_options_accepts() -> None:
+    assert check_run_options(0, 1e-9) is None
+    assert check_run_options(40, 0.5) is None
+
+
+def test_check_outputs(tmp_path: Path) -> None:
+    data = tmp_path / "in.txt"
+    data.write_text("x")
+    ok = {"--json": str(tmp_path / "a.json"), "--rrd": None, "--png": str(tmp_path / "b.png")}
+    assert check_outputs(ok, inputs=[str(data), None]) is None
+    cases = [
+        ({"--json": str(tmp_path / "no" / "a.json")}, "does not exist"),
+        ({"--png": str(tmp_path)}, f"--png {tmp_path}: is a directory"),
+        ({"--json": str(data)}, "refusing to overwrite the input"),
+        ({"--json": str(tmp_path / "s.x"), "--rrd": str(tmp_path / "." / "s.x")},
+         "two outputs name the same file"),
+    ]
+    for outputs, fragment in cases:
+        with pytest.raises(AppError) as info:
+            check_outputs(outputs, inputs=[str(data)])
+        assert fragment in str(info.value), (outputs, str(info.value))
+        assert "\n" not in str(info.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.txt"]  # nothing created
+
+
+def test_write_json_is_strict_and_atomic(tmp_path: Path) -> None:
+    path = tmp_path / "s.json"
+    path.write_text("old")
+    write_json(path, {"a": 1.5, "nan": float("nan"), "nested": {"inf": float("-inf"), "k": 2},
+                      "history": [1.0, float("nan"), 3], "name": "x"})
+
+    def no_constants(name: str) -> None:
+        raise AssertionError(f"non-standard JSON constant {name}")
+
+    data = json.loads(path.read_text(), parse_constant=no_constants)
+    assert data == {"a": 1.5, "nan": None, "nested": {"inf": None, "k": 2},
+                    "history": [1.0, None, 3], "name": "x"}
+    assert path.read_text().endswith("}\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.json"]
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = OneLineParser(prog="tool")
+    p.add_argument("--what", default="ok")
+    return p
+
+
+@pytest.mark.parametrize(
+    ("raised", "code", "stderr"),
+    [
+        (None, 0, ""),
+        (AppError("bad input\nsecond line"), 1, "tool: error: bad input\n"),
+        (FileNotFoundError(2, "No such file", "x.txt"), 1,
+         "tool: error: [Errno 2] No such file: 'x.txt'\n"),
+        (LookupError("user-facing"), 1, "tool: error: user-facing\n"),
+        (RuntimeError("boom\ntrace"), 1, "tool: error: RuntimeError: boom\n"),
+        (KeyboardInterrupt(), 130, "tool: interrupted\n"),
+    ],
+)
+def test_run_main_reports_one_line(monkeypatch: pytest.MonkeyPatch,
+                                   capsys: pytest.CaptureFixture[str],
+                                   raised: BaseException | None, code: int, stderr: str) -> None:
+    monkeypatch.delenv("GRAPHOPT_DEBUG", raising=False)
+    seen: list[str] = []
+
+    def run(args: argparse.Namespace) -> None:
+        seen.append(args.what)
+        if raised is not None:
+            raise raised
+
+    assert run_main("tool", _parser(), run, ["--what", "w"], user_errors=(LookupError,)) == code
+    assert seen == ["w"]
+    assert capsys.readouterr().err == stderr
+
+
+def test_run_main_debug_shows_the_exception(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("GRAPHOPT_DEBUG", "1")
+
+    def run(args: argparse.Namespace) -> None:
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        run_main("tool", _parser(), run, [])
+
+
+class _Optimizer:
+    def __init__(self, fail: bool) -> None:
+        self.fail = fail
+
+    def optimize(self, iterations: int) -> str:
+        if self.fail:
+            raise FloatingPointError("diverged")
+        return f"done {iterations}"
+
+
+def test_recording_is_timed_and_discarded_on_failure(tmp_path: Path) -> None:
+    path = tmp_path / "run.rrd"
+    rec = RunRecording(str(path), "tool", camera_xyz="RDF")
+    with rec.timed() as recorder:
+        recorder.set_iteration(0)
+        time.sleep(0.02)
+    assert 0.02 <= rec.seconds < 5.0
+    with pytest.raises(FloatingPointError):
+        optimize_recorded(_Optimizer(fail=True), 3, rec)
+    assert os.listdir(tmp_path) == []  # no recording, no temporary file
+
+    rec = RunRecording(str(path), "tool", camera_xyz="RUB")
+    assert optimize_recorded(_Optimizer(fail=False), 3, rec) == "done 3"
+    rec.close()
+    assert path.stat().st_size > 0 and os.listdir(tmp_path) == ["run.rrd"]
+    assert optimize_recorded(_Optimizer(fail=False), 2, None) == "done 2"
