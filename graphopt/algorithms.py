@@ -13,7 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from graphopt.errors import NotPositiveDefiniteError
-from graphopt.linear_system import Assembly
+from graphopt.linear import Assembly
 
 
 @dataclass(frozen=True)

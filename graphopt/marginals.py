@@ -31,8 +31,9 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
     sysm, solver = opt._system, opt.solver
     assert sysm is not None and solver is not None
     asm, _ = opt.linearize()
-    s, _, vinv, _ = sysm.reduce(asm, 0.0)
+    s, _, vinv = sysm.reduce(asm, 0.0)
     yt = sysm.y_transposed(asm, vinv)
+    index = sysm.index
     store_index = {id(st): i for i, st in enumerate(opt._store_list)}
     wanted: list[tuple[int, str, int, int, np.ndarray]] = []
     cols: list[np.ndarray] = []
@@ -41,16 +42,16 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
             raise GraphError(f"compute_marginals: vertex {vid} does not exist")
         st, slot = opt._ids[vid]
         si = store_index[id(st)]
-        if sysm.ublock[si][slot] >= 0:
-            ub = int(sysm.ublock[si][slot])
-            idx = sysm.uoffset[ub] + np.arange(sysm.udims[ub])
+        if index.ublock[si][slot] >= 0:
+            ub = int(index.ublock[si][slot])
+            idx = index.uoffset[ub] + np.arange(index.udims[ub])
             wanted.append((vid, "u", ub, -1, idx))
             cols.append(idx)
-        elif sysm.vblock[si][slot] >= 0:
-            vc = sysm.vclass_of_store[si]
-            vb = int(sysm.vblock[si][slot])
+        elif index.vblock[si][slot] >= 0:
+            vc = index.vclass_of_store[si]
+            vb = int(index.vblock[si][slot])
             wanted.append((vid, "v", vc, vb, np.zeros(0, dtype=np.int64)))
-            for wc in sysm.wclasses:
+            for wc in index.wclasses:
                 if wc.vclass == vc:
                     for w in np.flatnonzero(wc.vblock == vb):
                         cols.append(wc.upos[w])
@@ -71,7 +72,7 @@ def marginal_covariances(opt: SparseOptimizer, ids: list[int]) -> dict[int, np.n
             continue
         cov = vinv[a][b].copy()
         parts = []  # (Yᵀ block (dv, du), scalar rows of u)
-        for k, wc in enumerate(sysm.wclasses):
+        for k, wc in enumerate(index.wclasses):
             if wc.vclass == a:
                 for w in np.flatnonzero(wc.vblock == b):
                     parts.append((yt[k][w], wc.upos[w]))

@@ -2,7 +2,7 @@
 
 Data flow (see ``docs/architecture.md``): ``add_vertex``/``add_edge`` (or their bulk forms) fill
 struct-of-arrays stores; ``initialize_optimization`` resolves ids to slots and builds the
-:class:`~graphopt.linear_system.LinearSystem` (block pattern, scatter maps, Schur pairs) and the
+:class:`~graphopt.linear.LinearSystem` (block pattern, scatter maps, Schur strategies) and the
 linear solver's symbolic analysis once; ``optimize`` then runs the chosen algorithm, whose
 iterations only compute numbers.
 """
@@ -27,7 +27,7 @@ from graphopt.algorithms import (
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.graph import EdgeGroup, VertexStore
-from graphopt.linear_system import Assembly, LinearSystem
+from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.robust_kernel import RobustKernel
 from graphopt.solvers import LinearSolver, make_solver
 from graphopt.vertex import BaseVertex
@@ -97,6 +97,8 @@ class SparseOptimizer:
         gain_threshold: Stop when the relative chi2 decrease of an iteration falls below this
             (g2o's ``-gain``); ``0`` disables it.
         stream: Where verbose lines go (stderr by default).
+        schur: How ``W V⁻¹ Wᵀ`` is formed (:class:`~graphopt.linear.SchurConfig`; default:
+            the cheapest way per W class by the cost model).
     """
 
     def __init__(
@@ -106,6 +108,7 @@ class SparseOptimizer:
         verbose: bool = False,
         gain_threshold: float = 0.0,
         stream: TextIO | None = None,
+        schur: SchurConfig | None = None,
     ) -> None:
         self._stores: dict[type[BaseVertex], VertexStore] = {}
         self._groups: dict[tuple[type[BaseEdge], int], EdgeGroup] = {}
@@ -120,6 +123,7 @@ class SparseOptimizer:
         self.stream = stream
         self._callbacks: dict[str, list[Callback]] = {"pre_iteration": [], "post_iteration": []}
         self._system: LinearSystem | None = None
+        self._schur_config = schur
         self._structure_key: tuple[Any, ...] | None = None
         self._stop = False
         self._saved: list[np.ndarray] = []
@@ -520,7 +524,7 @@ class SparseOptimizer:
             self._positions.append(pos)
         self._store_list = stores
         self._group_list = groups
-        self._system = LinearSystem(stores, groups, self._positions)
+        self._system = LinearSystem(stores, groups, self._positions, self._schur_config)
         self.solver = make_solver(self._solver_spec)
         self.solver.analyze(self._system.pattern, self._system.udims)
         self._build_update_maps()
@@ -531,8 +535,8 @@ class SparseOptimizer:
         return True
 
     def _build_update_maps(self) -> None:
-        sysm = self._system
-        assert sysm is not None
+        assert self._system is not None
+        sysm = self._system.index
         self._update: list[tuple[np.ndarray, np.ndarray, list[tuple[int, np.ndarray,
                                                                     np.ndarray]]]] = []
         for si, st in enumerate(self._store_list):
@@ -747,7 +751,7 @@ class SparseOptimizer:
         assert self._system is not None and self.solver is not None
         t0 = time.perf_counter()
         try:
-            s, rhs, vinv, _ = self._system.reduce(asm, lam, diagonal)
+            s, rhs, vinv = self._system.reduce(asm, lam, diagonal)
         finally:
             t1 = time.perf_counter()
             self._timing["schur"] += t1 - t0
@@ -921,6 +925,11 @@ class SparseOptimizer:
         res.final_chi2 = last
         res.seconds = time.perf_counter() - t_start
         return res
+
+    @property
+    def linear_system(self) -> LinearSystem | None:
+        """The normal equations' structure after :meth:`initialize_optimization`, else None."""
+        return self._system
 
     @property
     def _out(self) -> TextIO:

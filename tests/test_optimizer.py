@@ -358,7 +358,7 @@ def test_pcg_tolerance_and_iteration_cap() -> None:
     opt.initialize_optimization()
     asm, _ = opt.linearize()
     ref = opt.solve(asm, 1e-2)[0]
-    s, rhs, _, _ = opt._system.reduce(asm, 1e-2)
+    s, rhs, _ = opt._system.reduce(asm, 1e-2)
     for cfg, close in ((PCGConfig(tolerance=1e-12), True), (PCGConfig(max_iterations=2), False)):
         pcg = LinearSolverPCG(cfg)
         pcg.analyze(opt._system.pattern, opt._system.udims)
