@@ -5,50 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from custom_types import EdgeSE2, VertexSE2, pose_graph
+from schur_toys import VertexCam, VertexLandmark, ba_toy
 
-from graphopt import BaseEdge, GraphError, SparseOptimizer, VertexVector
+from graphopt import BaseEdge, GraphError, SparseOptimizer
 from graphopt.linear import SchurConfig, SchurCostModel
 from graphopt.solvers import CHOLMOD_AVAILABLE
-
-
-class VertexCam(VertexVector):
-    dimension = 4
-
-
-class VertexLandmark(VertexVector):
-    dimension = 3
-
-
-class EdgeObs(BaseEdge):
-    """A smooth nonlinear 'projection' coupling a camera and a landmark (numeric Jacobians)."""
-
-    dimension = 2
-    vertex_types = (VertexCam, VertexLandmark)
-
-    @classmethod
-    def error(cls, x, z, ctx):
-        c, p = x
-        q = p[:, :2] * c[:, :2] + np.sin(p[:, 2:3] * c[:, 2:4]) + c[:, :2] * c[:, 2:4]
-        return q - z
-
-
-def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1, per_point: int = 3,
-           schur: SchurConfig | None = None):
-    rng = np.random.default_rng(seed)
-    nc, npt = 6, 40
-    obs = np.array([(i, j) for j in range(npt)
-                    for i in rng.choice(nc, per_point, replace=False)])
-    C = rng.normal(size=(nc, 4))
-    P = rng.normal(size=(npt, 3))
-    Z = EdgeObs.error((C[obs[:, 0]], P[obs[:, 1]]), np.zeros((len(obs), 2)), None)
-    Z += rng.normal(0, 0.01, Z.shape)
-    info = np.array([[2.0, 0.3], [0.3, 1.0]])
-    opt = SparseOptimizer("lm", solver, schur=schur)
-    opt.add_vertices(VertexCam, np.arange(nc), C + 0.05, fixed=np.arange(nc) == 0)
-    opt.add_vertices(VertexLandmark, 100 + np.arange(npt), P + 0.05, marginalized=marginalize)
-    opt.add_edges(EdgeObs, np.stack([obs[:, 0], 100 + obs[:, 1]], 1), Z, information=info)
-    return opt
-
 
 SOLVERS = ["dense", "pcg", "scipy"] + (["cholmod"] if CHOLMOD_AVAILABLE else [])
 

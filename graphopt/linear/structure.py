@@ -91,6 +91,9 @@ class BlockIndex:
             :func:`~graphopt.linear.ordering.co_visibility_order`).
 
     Attributes:
+        stores: The vertex stores (as given).
+        groups: The edge groups (as given).
+        positions: The groups' positions (as given).
         ublock: Per store, ``(n_store,)`` global U block of every slot (−1: not a U block).
         vblock: Per store, ``(n_store,)`` V block of every slot within its V class (−1: none).
         vclass_of_store: Per store, its V class (−1: none).
