@@ -30,30 +30,31 @@ class VertexLine(VertexVector):
     dimension = 2
 
 
+def observe(c: np.ndarray, p: np.ndarray, gain: np.ndarray | float = 1.0) -> np.ndarray:
+    """A smooth nonlinear 'projection' of landmarks ``p`` by cameras ``c``."""
+    return p[:, :2] * c[:, :2] * gain + np.sin(p[:, 2:3] * c[:, 2:4]) + c[:, :2] * c[:, 2:4]
+
+
 class EdgeObs(BaseEdge):
-    """A smooth nonlinear 'projection' coupling a camera and a landmark (numeric Jacobians)."""
+    """A camera observing a landmark (numeric Jacobians)."""
 
     dimension = 2
     vertex_types = (VertexCam, VertexLandmark)
 
     @classmethod
     def error(cls, x, z, ctx):
-        c, p = x
-        q = p[:, :2] * c[:, :2] + np.sin(p[:, 2:3] * c[:, 2:4]) + c[:, :2] * c[:, 2:4]
-        return q - z
+        return observe(*x) - z
 
 
-class EdgeObsIntrinsics(BaseEdge):
-    """A camera, its intrinsics and a landmark."""
+class EdgeObsIntrinsics(EdgeObs):
+    """A camera with its intrinsics (a gain) observing a landmark."""
 
-    dimension = 2
     vertex_types = (VertexCam, VertexIntrinsics, VertexLandmark)
 
     @classmethod
     def error(cls, x, z, ctx):
         c, k, p = x
-        q = p[:, :2] * c[:, :2] * (1 + k) + np.sin(p[:, 2:3] * c[:, 2:4]) + c[:, :2] * c[:, 2:4]
-        return q - z
+        return observe(c, p, 1 + k) - z
 
 
 class EdgeLine(BaseEdge):
@@ -68,15 +69,19 @@ class EdgeLine(BaseEdge):
         return np.cos(line * c[:, :2]) + line * c[:, 2:4] - z
 
 
-class EdgeCamChain(BaseEdge):
-    """A prior between consecutive cameras (U-U blocks off the diagonal)."""
-
-    dimension = 4
-    vertex_types = (VertexCam, VertexCam)
+class EdgeDifference(BaseEdge):
+    """``x₁ − x₀ − z`` between two vertices of one vector type (subclasses name the type)."""
 
     @classmethod
     def error(cls, x, z, ctx):
         return x[1] - x[0] - z
+
+
+class EdgeCamChain(EdgeDifference):
+    """A prior between consecutive cameras (U-U blocks off the diagonal)."""
+
+    dimension = 4
+    vertex_types = (VertexCam, VertexCam)
 
 
 def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1, per_point: int = 3,
@@ -88,7 +93,7 @@ def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1, per_point: i
                     for i in rng.choice(nc, per_point, replace=False)])
     C = rng.normal(size=(nc, 4))
     P = rng.normal(size=(npt, 3))
-    Z = EdgeObs.error((C[obs[:, 0]], P[obs[:, 1]]), np.zeros((len(obs), 2)), None)
+    Z = observe(C[obs[:, 0]], P[obs[:, 1]])
     Z += rng.normal(0, 0.01, Z.shape)
     info = np.array([[2.0, 0.3], [0.3, 1.0]])
     opt = SparseOptimizer("lm", solver, schur=schur)

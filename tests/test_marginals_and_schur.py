@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from custom_types import EdgeSE2, VertexSE2, pose_graph
-from schur_toys import VertexCam, VertexLandmark, ba_toy
+from schur_toys import EdgeDifference, VertexCam, VertexLandmark, ba_toy
 
-from graphopt import BaseEdge, GraphError, SparseOptimizer
+from graphopt import GraphError, SparseOptimizer
 from graphopt.linear import SchurConfig, SchurCostModel
 from graphopt.solvers import CHOLMOD_AVAILABLE
 
@@ -147,13 +147,9 @@ def test_marginals_reject_fixed_and_unknown() -> None:
 
 
 def test_edge_between_two_marginalised_vertices_is_rejected() -> None:
-    class EdgeLL(BaseEdge):
+    class EdgeLL(EdgeDifference):
         dimension = 3
         vertex_types = (VertexLandmark, VertexLandmark)
-
-        @classmethod
-        def error(cls, x, z, ctx):
-            return x[1] - x[0] - z
 
     opt = ba_toy(True)
     opt.add_edges(EdgeLL, np.array([[100, 101]]), np.zeros((1, 3)))

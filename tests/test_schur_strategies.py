@@ -151,9 +151,9 @@ def test_auto_picks_the_cheapest_plan() -> None:
         opt = ba_toy(True, per_point=per_point)
         opt.initialize_optimization()
         ix = opt.linear_system.index
-        w1, w2 = ix.w_pairs(0, 0)
-        plans = {"sparse": SparsePlan.plan(ix, 0, w1, w2, cost),
-                 "dense": DensePlan.plan(ix, 0, cost), "gram": GramPlan.plan(ix, 0, w1, w2, cost)}
+        pairs = ix.w_pairs(0, 0)
+        plans = {"sparse": SparsePlan.plan(ix, 0, pairs, cost),
+                 "dense": DensePlan.plan(ix, 0, cost), "gram": GramPlan.plan(ix, 0, pairs, cost)}
         seconds = {name: p.seconds for name, p in plans.items() if p is not None}
         assert len(seconds) == 3 and len(set(seconds.values())) == 3
         assert opt.linear_system.reduction.strategies[0].name == min(seconds, key=seconds.get)

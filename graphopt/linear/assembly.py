@@ -25,6 +25,10 @@ if TYPE_CHECKING:
     from graphopt.linear.structure import BlockIndex
 
 
+#: Per edge group, one array per vertex position.
+GroupArrays = list[tuple[np.ndarray, ...]]
+
+
 @dataclass
 class Assembly:
     """The numbers of one linearisation.
@@ -212,12 +216,8 @@ class Assembler:
 
     # --- numbers -----------------------------------------------------------------------------
 
-    def assemble(
-        self,
-        jacobians: list[tuple[np.ndarray, ...]],
-        weighted: list[tuple[np.ndarray, ...]],
-        weighted_errors: list[np.ndarray],
-    ) -> Assembly:
+    def assemble(self, jacobians: GroupArrays, weighted: GroupArrays,
+                 weighted_errors: list[np.ndarray]) -> Assembly:
         """Accumulate ``JᵀΩJ`` and ``−JᵀΩe`` of every edge group into the fixed structure.
 
         Args:

@@ -43,28 +43,29 @@ class SchurComplement:
         self.index, self.config = index, config
         strategies: list[SchurStrategy] = []
         self.couplings: list[SparsePairs] = []
-        pairs: list[SchurStrategy] = []  # sparse pairs, by class pair
+        by_pair: list[SchurStrategy] = []  # sparse pairs, by class pair
         for k1, c1 in enumerate(index.wclasses):
-            strategies.append(self._plan(k1, *index.w_pairs(k1, k1)).build(index))
+            strategies.append(self._plan(k1, index.w_pairs(k1, k1)).build(index))
             if strategies[-1].name == "sparse":
-                pairs.append(strategies[-1])
+                by_pair.append(strategies[-1])
             for k2 in range(k1 + 1, len(index.wclasses)):
                 if index.wclasses[k2].vclass == c1.vclass:
-                    w1, w2 = index.w_pairs(k1, k2)
-                    if len(w1):
-                        self.couplings.append(SparsePairs(index, k1, k2, w1, w2))
-                        pairs.append(self.couplings[-1])
+                    pairs = index.w_pairs(k1, k2)
+                    if len(pairs[0]):
+                        plan = SparsePlan.plan(index, k1, pairs, config.cost, k2)
+                        self.couplings.append(SparsePairs(index, plan))
+                        by_pair.append(self.couplings[-1])
         self.strategies = tuple(strategies)
         # Where W classes share entries of S, this order (dense, Gram, then sparse pairs)
         # keeps the floating-point order of their sums fixed.
         self._order = [*(t for t in strategies if t.name == "dense"),
-                       *(t for t in strategies if t.name == "gram"), *pairs]
+                       *(t for t in strategies if t.name == "gram"), *by_pair]
 
-    def _plan(self, k: int, w1: np.ndarray, w2: np.ndarray) -> SchurPlan:
-        """The plan for W class ``k`` (pairs ``w1``, ``w2`` sharing a V block)."""
+    def _plan(self, k: int, pairs: tuple[np.ndarray, np.ndarray]) -> SchurPlan:
+        """The plan for W class ``k`` (``pairs`` of W blocks sharing a V block)."""
         ix, strategy, cost = self.index, self.config.strategy, self.config.cost
         if strategy == "gram":
-            plan = GramPlan.plan(ix, k, w1, w2, cost)
+            plan = GramPlan.plan(ix, k, pairs, cost)
             assert plan is not None  # a W class has W blocks
             return plan
         dense = DensePlan.plan(ix, k, cost) if strategy in ("auto", "dense") else None
@@ -76,14 +77,14 @@ class SchurComplement:
                     f"elements, over SchurCostModel.dense_limit ({cost.dense_limit}); raise "
                     "the limit or use another strategy")
             return dense
-        best: SchurPlan = SparsePlan.plan(ix, k, w1, w2, cost)
+        best: SchurPlan = SparsePlan.plan(ix, k, pairs, cost)
         if strategy == "sparse":
             return best
         if (dense is not None and dense.elements <= cost.dense_limit
                 and dense.seconds < best.seconds):
             best = dense
         if cost.gram_enabled:
-            gram = GramPlan.plan(ix, k, w1, w2, cost, beat=best.seconds)
+            gram = GramPlan.plan(ix, k, pairs, cost, beat=best.seconds)
             if gram is not None and gram.seconds < best.seconds:
                 best = gram
         return best

@@ -24,6 +24,9 @@ STRATEGIES: tuple[str, ...] = ("auto", "sparse", "dense", "gram")
 class SchurCostModel:
     """Modelled costs (seconds per unit) and the limits of the Schur plans.
 
+    Each strategy's module turns these into its modelled seconds; the gathered Gram's formula
+    (:meth:`gram_seconds`) is shared by the Schur Gram and the U blocks' Gram.
+
     Args:
         gather: Per value gathered in whole rows by ``np.take`` (the sparse pairs' ``Yᵀ``).
         sparse_mac: Per multiply-add in SciPy's sparse product (the contractions).
@@ -83,33 +86,6 @@ class SchurCostModel:
         if self.panel_rows < 1:
             raise ValueError(f"SchurCostModel.panel_rows must be >= 1, got {self.panel_rows}")
 
-    def sparse_seconds(self, nw: int, n_cross: int, dv: int, du: int) -> float:
-        """Sparse pair contractions of a W class: ``nw`` blocks, ``n_cross`` pairs of distinct
-        blocks sharing a V block.
-
-        Args:
-            nw: W blocks.
-            n_cross: Pairs of W blocks (``u1 < u2``) that share a V block.
-            dv: V block dimension.
-            du: U block dimension.
-        """
-        return (self.gather * n_cross * dv * du
-                + self.sparse_mac * (n_cross + nw) * dv * du * du
-                + self.sparse_mac * nw * dv * du  # the right-hand side
-                + self.small_mac * nw * dv * dv * du)  # Yᵀ = V⁻¹Wᵀ
-
-    def panel_seconds(self, rows: int, n: int, placed: int) -> float:
-        """One dense panel: a ``rows × n`` matrix of which ``placed`` values are formed.
-
-        Args:
-            rows: Rows of the panel's matrix.
-            n: Its columns.
-            placed: Values of ``L⁻¹Wᵀ`` formed in it.
-        """
-        syrk = self.blas_mac * rows * n * (n + self.blas_half) / 2
-        return (self.panel + syrk + self.place * placed + self.area * rows * n
-                + self.dense_element * n * n)
-
     def gram_seconds(self, gram: GatheredGram, gathered: int) -> float:
         """One call of a gathered Gram that gathers ``gathered`` blocks.
 
@@ -122,20 +98,6 @@ class SchurCostModel:
                 + self.gemm_mac * gram.padded * r * d * d
                 + self.gemm_output * gram.n_out
                 + self.gemm_chunk * len(gram.chunks))
-
-    def gram_schur_bound(self, nw: int, n_cross: int, dv: int, du: int) -> float:
-        """A lower bound (no padding or overheads) of a W class's Gram products, which spares
-        building a hopeless Gram.
-
-        Args:
-            nw: W blocks.
-            n_cross: Pairs of W blocks (``u1 < u2``) that share a V block.
-            dv: V block dimension.
-            du: U block dimension.
-        """
-        return (self.z * nw * dv * du
-                + self.gram_gather * (nw + 2 * n_cross) * dv * du
-                + self.gemm_mac * (nw + n_cross) * dv * du * du)
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ co-visibility order (``ordering.py``), which keeps every panel's ``M`` narrow.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 import scipy.linalg.blas as blas
@@ -58,99 +58,6 @@ class Panel:
     rhs_pos: np.ndarray
 
 
-@dataclass(frozen=True)
-class DensePlan(SchurPlan):
-    """Dense panels for W class ``k``.
-
-    Args:
-        k: The W class.
-        spans: Per panel ``(v0, v1, w0, w1, local U blocks)``.
-        seconds: Modelled seconds per reduction.
-        elements: Elements of all panels' matrices together.
-    """
-
-    k: int
-    spans: tuple[tuple[int, int, int, int, np.ndarray], ...]
-    seconds: float
-    elements: int
-
-    @classmethod
-    def plan(cls, index: BlockIndex, k: int, cost: SchurCostModel) -> DensePlan | None:
-        """Panels of W class ``k`` and their modelled cost (``None`` without W blocks).
-
-        V blocks come in runs with identical U sets. A greedy scan merges the next run into
-        the current panel while that is cheaper than starting a new one (fewer, larger BLAS
-        calls against wider panels, but more zeros in them).
-
-        Args:
-            index: The block index.
-            k: The W class.
-            cost: The cost model.
-        """
-        c = index.wclasses[k]
-        n_v = len(index.vclasses[c.vclass].slots)
-        nw = len(c.ublock)
-        if nw == 0:
-            return None
-        uu = unique_ints(c.ublock, max(index.n_ublocks, 1))
-        lu = np.searchsorted(uu, c.ublock)
-        dv, du = c.dv, c.du
-        wstart = np.searchsorted(c.vblock, np.arange(n_v + 1))
-        # Runs of V blocks with the same U set: a block continues the run of its predecessor
-        # when both meet as many U blocks and the same ones (lists are sorted; compare each
-        # W block with its counterpart in the previous V block).
-        cnt = np.diff(wstart)
-        eq = np.zeros(n_v, dtype=bool)
-        eq[1:] = cnt[1:] == cnt[:-1]
-        w = np.flatnonzero(eq[c.vblock])
-        prev = w - cnt[c.vblock[w] - 1]
-        eq[c.vblock[w[lu[w] != lu[prev]]]] = False
-        run_start = np.flatnonzero(~eq)
-        run_end = np.r_[run_start[1:], n_v]
-        max_rows = max(1, cost.panel_rows // dv)
-        lul = lu.tolist()
-        ws = wstart.tolist()
-        closed: list[tuple[int, int, int, float]] = []  # panels: v0, v1, U mask, cost
-        cur: tuple[int, int, int, float] | None = None  # the open panel
-        for r0, r1 in zip(run_start.tolist(), run_end.tolist(), strict=True):  # runs
-            mask = 0
-            for x in lul[ws[r0]:ws[r0 + 1]]:
-                mask |= 1 << x
-            nset = mask.bit_count()
-            if nset == 0:
-                continue  # V blocks that meet no U block of this class
-            for a in range(r0, r1, max_rows):  # split runs longer than a panel
-                b = min(r1, a + max_rows)
-                alone = cost.panel_seconds((b - a) * dv, nset * du, (ws[b] - ws[a]) * dv * du)
-                if cur is not None:
-                    v0, _, cmask, ccost = cur
-                    um = cmask | mask
-                    merged = cost.panel_seconds((b - v0) * dv, um.bit_count() * du,
-                                                (ws[b] - ws[v0]) * dv * du)
-                    if b - v0 <= max_rows and merged < ccost + alone:
-                        cur = (v0, b, um, merged)
-                        continue
-                    closed.append(cur)
-                cur = (a, b, mask, alone)
-        if cur is not None:
-            closed.append(cur)
-        seconds = sum(p[3] for p in closed)
-        elements = sum((v1 - v0) * dv * m.bit_count() * du for v0, v1, m, _ in closed)
-        spans = []
-        for v0, v1, m, _ in closed:
-            local = np.array([i for i in range(m.bit_length()) if m >> i & 1], dtype=np.int64)
-            spans.append((v0, v1, ws[v0], ws[v1], local))
-        return cls(k, tuple(spans), seconds, elements)
-
-    def build(self, index: BlockIndex) -> DensePanels:
-        """See :meth:`SchurPlan.build`.
-
-        Args:
-            index: The block index.
-        """
-        return DensePanels(index, self)
-
-
 class DensePanels(SchurStrategy):
     """The panels of one W class: their CSR structures, buffers and map into ``S``.
 
@@ -165,9 +72,8 @@ class DensePanels(SchurStrategy):
     name = "dense"
 
     def __init__(self, index: BlockIndex, plan: DensePlan) -> None:
-        self.k = k = plan.k
-        self.index = index
-        c = index.wclasses[k]
+        super().__init__(index, plan)
+        c = index.wclasses[self.k]
         nb = max(index.n_ublocks, 1)
         dv, du = c.dv, c.du
         uu = unique_ints(c.ublock, nb)
@@ -224,13 +130,9 @@ class DensePanels(SchurStrategy):
 
     def reduce_into(self, s: np.ndarray, rhs: np.ndarray, asm: Assembly,
                     factors: VFactors) -> None:
-        """See :meth:`SchurStrategy.reduce_into`.
+        """Per panel ``Z = L⁻¹Wᵀ``, ``ZᵀZ`` by ``syrk`` and ``Zᵀ L⁻¹b_v``; the results into S.
 
-        Args:
-            s: Data of ``S`` (updated).
-            rhs: Reduced right-hand side (updated).
-            asm: The assembled system.
-            factors: The damped V blocks' factors.
+        Arguments as in :meth:`SchurStrategy.reduce_into`.
         """
         wc = self.index.wclasses[self.k]
         dv, du = wc.dv, wc.du
@@ -247,3 +149,98 @@ class DensePanels(SchurStrategy):
             blas.dsyrk(1.0, m2.T, trans=0, c=c, overwrite_c=1)  # m2ᵀ m2, upper triangle
             rhs[p.rhs_pos] -= m2.T @ x[p.v0:p.v0 + p.rows].reshape(-1)
         s -= self._to_s @ self._results
+
+
+@dataclass(frozen=True)
+class DensePlan(SchurPlan):
+    """Dense panels for W class ``k``.
+
+    Args:
+        k: The W class.
+        spans: Per panel ``(v0, v1, w0, w1, local U blocks)``.
+        seconds: Modelled seconds per reduction.
+        elements: Elements of all panels' matrices together.
+    """
+
+    strategy: ClassVar[type[SchurStrategy]] = DensePanels
+    k: int
+    spans: tuple[tuple[int, int, int, int, np.ndarray], ...]
+    seconds: float
+    elements: int
+
+    @classmethod
+    def plan(cls, index: BlockIndex, k: int, cost: SchurCostModel) -> DensePlan | None:
+        """Panels of W class ``k`` and their modelled cost (``None`` without W blocks).
+
+        V blocks come in runs with identical U sets. A greedy scan merges the next run into
+        the current panel while that is cheaper than starting a new one (fewer, larger BLAS
+        calls against wider panels, but more zeros in them).
+
+        Args:
+            index: The block index.
+            k: The W class.
+            cost: The cost model.
+        """
+        c = index.wclasses[k]
+        n_v = len(index.vclasses[c.vclass].slots)
+        nw = len(c.ublock)
+        if nw == 0:
+            return None
+        uu = unique_ints(c.ublock, max(index.n_ublocks, 1))
+        lu = np.searchsorted(uu, c.ublock)
+        dv, du = c.dv, c.du
+        wstart = np.searchsorted(c.vblock, np.arange(n_v + 1))
+        # Runs of V blocks with the same U set: a block continues the run of its predecessor
+        # when both meet as many U blocks and the same ones (lists are sorted; compare each
+        # W block with its counterpart in the previous V block).
+        cnt = np.diff(wstart)
+        eq = np.zeros(n_v, dtype=bool)
+        eq[1:] = cnt[1:] == cnt[:-1]
+        w = np.flatnonzero(eq[c.vblock])
+        prev = w - cnt[c.vblock[w] - 1]
+        eq[c.vblock[w[lu[w] != lu[prev]]]] = False
+        run_start = np.flatnonzero(~eq)
+        run_end = np.r_[run_start[1:], n_v]
+        max_rows = max(1, cost.panel_rows // dv)
+        lul = lu.tolist()
+        ws = wstart.tolist()
+        closed: list[tuple[int, int, int, float]] = []  # panels: v0, v1, U mask, cost
+        cur: tuple[int, int, int, float] | None = None  # the open panel
+        for r0, r1 in zip(run_start.tolist(), run_end.tolist(), strict=True):  # runs
+            mask = 0
+            for x in lul[ws[r0]:ws[r0 + 1]]:
+                mask |= 1 << x
+            nset = mask.bit_count()
+            if nset == 0:
+                continue  # V blocks that meet no U block of this class
+            for a in range(r0, r1, max_rows):  # split runs longer than a panel
+                b = min(r1, a + max_rows)
+                alone = _panel_seconds(cost, (b - a) * dv, nset * du, (ws[b] - ws[a]) * dv * du)
+                if cur is not None:
+                    v0, _, cmask, ccost = cur
+                    um = cmask | mask
+                    merged = _panel_seconds(cost, (b - v0) * dv, um.bit_count() * du,
+                                                (ws[b] - ws[v0]) * dv * du)
+                    if b - v0 <= max_rows and merged < ccost + alone:
+                        cur = (v0, b, um, merged)
+                        continue
+                    closed.append(cur)
+                cur = (a, b, mask, alone)
+        if cur is not None:
+            closed.append(cur)
+        seconds = sum(p[3] for p in closed)
+        elements = sum((v1 - v0) * dv * m.bit_count() * du for v0, v1, m, _ in closed)
+        spans = []
+        for v0, v1, m, _ in closed:
+            local = np.array([i for i in range(m.bit_length()) if m >> i & 1], dtype=np.int64)
+            spans.append((v0, v1, ws[v0], ws[v1], local))
+        return cls(k, tuple(spans), seconds, elements)
+
+
+def _panel_seconds(cost: SchurCostModel, rows: int, n: int, placed: int) -> float:
+    """Modelled seconds of one panel: a ``rows × n`` matrix of which ``placed`` values are
+    formed (per-panel overhead, ``syrk`` at a column-dependent BLAS rate, the values formed,
+    the panel's elements, the ``n × n`` result)."""
+    syrk = cost.blas_mac * rows * n * (n + cost.blas_half) / 2
+    return (cost.panel + syrk + cost.place * placed + cost.area * rows * n
+            + cost.dense_element * n * n)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
@@ -27,58 +27,6 @@ if TYPE_CHECKING:
     from graphopt.linear.structure import BlockIndex
 
 
-@dataclass(frozen=True)
-class GramPlan(SchurPlan):
-    """Gram products for W class ``k``.
-
-    Args:
-        k: The W class.
-        gram: Sums ``Z_aᵀ Z_b`` per block of ``S`` (diagonal pairs ``(w, w)`` first).
-        keys: ``u1 · n_ublocks + u2`` of every target of ``gram``.
-        seconds: Modelled seconds per reduction.
-    """
-
-    k: int
-    gram: GatheredGram
-    keys: np.ndarray
-    seconds: float
-
-    @classmethod
-    def plan(cls, index: BlockIndex, k: int, w1: np.ndarray, w2: np.ndarray,
-             cost: SchurCostModel, beat: float = math.inf) -> GramPlan | None:
-        """The Gram of W class ``k`` and its modelled cost; ``None`` when even a lower bound
-        of that cost is not below ``beat`` (nothing is built then).
-
-        Args:
-            index: The block index.
-            k: The W class.
-            w1: Its pairs sharing a V block (:meth:`BlockIndex.w_pairs`): first ...
-            w2: ... and second blocks.
-            cost: The cost model.
-            beat: The cost to beat.
-        """
-        c = index.wclasses[k]
-        nw, dv, du = len(c.ublock), c.dv, c.du
-        if not nw or cost.gram_schur_bound(nw, len(w1), dv, du) >= beat:
-            return None
-        nb = max(index.n_ublocks, 1)
-        w = np.arange(nw)
-        keys = np.concatenate([c.ublock * (nb + 1), c.ublock[w1] * nb + c.ublock[w2]])
-        uniq, inv = unique_ints(keys, nb * nb, True)
-        gram = GatheredGram(inv, np.concatenate([w, w1]), np.concatenate([w, w2]), len(uniq),
-                            dv, du)
-        seconds = cost.z * nw * dv * du + cost.gram_seconds(gram, gram.gathered)
-        return cls(k, gram, uniq, seconds)
-
-    def build(self, index: BlockIndex) -> GramProducts:
-        """See :meth:`SchurPlan.build`.
-
-        Args:
-            index: The block index.
-        """
-        return GramProducts(index, self)
-
-
 class GramProducts(SchurStrategy):
     """The Gram products of one W class, with their CSR structures and buffers.
 
@@ -90,8 +38,7 @@ class GramProducts(SchurStrategy):
     name = "gram"
 
     def __init__(self, index: BlockIndex, plan: GramPlan) -> None:
-        self.k = plan.k
-        self.index = index
+        super().__init__(index, plan)
         self.gram = plan.gram
         c = index.wclasses[self.k]
         nb = max(index.n_ublocks, 1)
@@ -116,13 +63,9 @@ class GramProducts(SchurStrategy):
 
     def reduce_into(self, s: np.ndarray, rhs: np.ndarray, asm: Assembly,
                     factors: VFactors) -> None:
-        """See :meth:`SchurStrategy.reduce_into`.
+        """``Z = L⁻¹Wᵀ``, the Gram products ``Z_aᵀZ_b`` into S and ``Z_wᵀ L⁻¹b_v``.
 
-        Args:
-            s: Data of ``S`` (updated).
-            rhs: Reduced right-hand side (updated).
-            asm: The assembled system.
-            factors: The damped V blocks' factors.
+        Arguments as in :meth:`SchurStrategy.reduce_into`.
         """
         wc = self.index.wclasses[self.k]
         dv, du, nw = wc.dv, wc.du, len(wc.ublock)
@@ -138,3 +81,52 @@ class GramProducts(SchurStrategy):
                          np.take(factors.l_inv_b(wc.vclass), self._rhs_lidx), self._z, zl,
                          csc=True)
         rhs[wc.rhs_dest] -= zl.reshape(n_u, du)  # Σ_w Z_wᵀ L⁻¹b_v per U block
+
+
+@dataclass(frozen=True)
+class GramPlan(SchurPlan):
+    """Gram products for W class ``k``.
+
+    Args:
+        k: The W class.
+        gram: Sums ``Z_aᵀ Z_b`` per block of ``S`` (diagonal pairs ``(w, w)`` first).
+        keys: ``u1 · n_ublocks + u2`` of every target of ``gram``.
+        seconds: Modelled seconds per reduction.
+    """
+
+    strategy: ClassVar[type[SchurStrategy]] = GramProducts
+    k: int
+    gram: GatheredGram
+    keys: np.ndarray
+    seconds: float
+
+    @classmethod
+    def plan(cls, index: BlockIndex, k: int, pairs: tuple[np.ndarray, np.ndarray],
+             cost: SchurCostModel, beat: float = math.inf) -> GramPlan | None:
+        """The Gram of W class ``k`` and its modelled cost; ``None`` when even a lower bound
+        of that cost is not below ``beat`` (nothing is built then).
+
+        Args:
+            index: The block index.
+            k: The W class.
+            pairs: Its pairs of W blocks sharing a V block (:meth:`BlockIndex.w_pairs`).
+            cost: The cost model.
+            beat: The cost to beat.
+        """
+        w1, w2 = pairs
+        c = index.wclasses[k]
+        nw, dv, du = len(c.ublock), c.dv, c.du
+        # Without padding or overheads: a lower bound that spares building a hopeless Gram.
+        bound = (cost.z * nw * dv * du
+                 + cost.gram_gather * (nw + 2 * len(w1)) * dv * du
+                 + cost.gemm_mac * (nw + len(w1)) * dv * du * du)
+        if not nw or bound >= beat:
+            return None
+        nb = max(index.n_ublocks, 1)
+        w = np.arange(nw)
+        keys = np.concatenate([c.ublock * (nb + 1), c.ublock[w1] * nb + c.ublock[w2]])
+        uniq, inv = unique_ints(keys, nb * nb, True)
+        gram = GatheredGram(inv, np.concatenate([w, w1]), np.concatenate([w, w2]), len(uniq),
+                            dv, du)
+        seconds = cost.z * nw * dv * du + cost.gram_seconds(gram, gram.gathered)
+        return cls(k, gram, uniq, seconds)

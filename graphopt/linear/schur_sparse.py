@@ -11,7 +11,7 @@ couple two W classes of one V class (``k1 != k2``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -27,75 +27,32 @@ if TYPE_CHECKING:
     from graphopt.linear.structure import BlockIndex
 
 
-@dataclass(frozen=True)
-class SparsePlan(SchurPlan):
-    """Sparse pairs for W class ``k``.
-
-    Args:
-        k: The W class.
-        w1: First W blocks of its pairs sharing a V block (``u(w1) < u(w2)``) ...
-        w2: ... and second.
-        seconds: Modelled seconds per reduction.
-    """
-
-    k: int
-    w1: np.ndarray
-    w2: np.ndarray
-    seconds: float
-
-    @classmethod
-    def plan(cls, index: BlockIndex, k: int, w1: np.ndarray, w2: np.ndarray,
-             cost: SchurCostModel) -> SparsePlan:
-        """Plan W class ``k``.
-
-        Args:
-            index: The block index.
-            k: The W class.
-            w1: Its pairs sharing a V block (:meth:`BlockIndex.w_pairs`): first ...
-            w2: ... and second blocks.
-            cost: The cost model.
-        """
-        c = index.wclasses[k]
-        return cls(k, w1, w2, cost.sparse_seconds(len(c.ublock), len(w1), c.dv, c.du))
-
-    def build(self, index: BlockIndex) -> SparsePairs:
-        """See :meth:`SchurPlan.build`.
-
-        Args:
-            index: The block index.
-        """
-        return SparsePairs(index, self.k, self.k, self.w1, self.w2)
-
-
 class SparsePairs(SchurStrategy):
     """``Σ Y_w1 W_w2ᵀ`` over pairs of W blocks of classes ``k1``, ``k2`` that share a V block.
 
-    For a class with itself (``k1 == k2``) this is the class's whole share: the pairs
-    ``(w, w)`` and the given ones (both triangles), and ``W V⁻¹ b_v`` in the right-hand side.
-    For two classes it is their coupling only (the right-hand side belongs to each class).
+    For a class with itself this is the class's whole share: the pairs ``(w, w)`` and the
+    planned ones (both triangles), and ``W V⁻¹ b_v`` in the right-hand side. For two classes
+    it is their coupling only (the right-hand side belongs to each class).
 
     Args:
         index: The block index.
-        k1: A W class.
-        k2: A W class of the same V class (``k1 <= k2``).
-        w1: Blocks of ``k1`` ...
-        w2: ... and of ``k2`` that share a V block (``u(w1) < u(w2)`` when ``k1 == k2``).
+        plan: The classes and their pairs.
 
     Attributes:
-        k2: The second class.
+        k2: The second class (``k`` for a class with itself).
     """
 
     name = "sparse"
 
-    def __init__(self, index: BlockIndex, k1: int, k2: int, w1: np.ndarray,
-                 w2: np.ndarray) -> None:
-        self.k, self.k2 = k1, k2
-        self.index = index
+    def __init__(self, index: BlockIndex, plan: SparsePlan) -> None:
+        super().__init__(index, plan)
+        k1, self.k2 = plan.k, plan.k if plan.k2 is None else plan.k2
+        w1, w2 = plan.w1, plan.w2
         nb = max(index.n_ublocks, 1)
-        c1, c2 = index.wclasses[k1], index.wclasses[k2]
+        c1, c2 = index.wclasses[k1], index.wclasses[self.k2]
         # Terms (contraction of Yᵀ of k1 with Wᵀ of k2, its sum into S's data).
         self._terms: list[tuple[BlockContraction | EdgeContraction, sp.csr_matrix]] = []
-        if k1 == k2:  # the pairs (w, w): diagonal blocks, one block with itself
+        if plan.k2 is None:  # the pairs (w, w): diagonal blocks, one block with itself
             uniq, inv = unique_ints(c1.ublock, nb, True)
             nw = len(c1.ublock)
             self._terms.append((EdgeContraction(np.arange(nw), inv, len(uniq), nw, c1.dv, c1.du),
@@ -108,19 +65,60 @@ class SparsePairs(SchurStrategy):
 
     def reduce_into(self, s: np.ndarray, rhs: np.ndarray, asm: Assembly,
                     factors: VFactors) -> None:
-        """See :meth:`SchurStrategy.reduce_into`.
+        """The pair contractions with ``Yᵀ``; ``W (V⁻¹b_v)`` for a class with itself.
+
+        Arguments as in :meth:`SchurStrategy.reduce_into`.
+        """
+        if self.k2 == self.k:
+            wc = self.index.wclasses[self.k]
+            y = factors.v_inv_b(wc.vclass)[wc.vblock]
+            rhs[wc.rhs_dest] -= w_product(self.index, asm, self.k, y)
+        yt = factors.y_transposed(self.k)
+        for con, to_s in self._terms:
+            s -= to_s @ con(yt, asm.wt[self.k2]).reshape(-1)
+
+
+@dataclass(frozen=True)
+class SparsePlan(SchurPlan):
+    """Sparse pairs for W class ``k`` (with itself, or with class ``k2`` of its V class).
+
+    Args:
+        k: The W class.
+        w1: First W blocks of the pairs sharing a V block (``u(w1) < u(w2)`` for a class
+            with itself) ...
+        w2: ... and second.
+        seconds: Modelled seconds per reduction.
+        k2: The second class, or ``None``: ``k`` with itself.
+    """
+
+    strategy: ClassVar[type[SchurStrategy]] = SparsePairs
+    k: int
+    w1: np.ndarray
+    w2: np.ndarray
+    seconds: float
+    k2: int | None = None
+
+    @classmethod
+    def plan(cls, index: BlockIndex, k: int, pairs: tuple[np.ndarray, np.ndarray],
+             cost: SchurCostModel, k2: int | None = None) -> SparsePlan:
+        """Plan W class ``k`` with itself, or its coupling with class ``k2``.
 
         Args:
-            s: Data of ``S`` (updated).
-            rhs: Reduced right-hand side (updated).
-            asm: The assembled system.
-            factors: The damped V blocks' factors.
+            index: The block index.
+            k: The W class.
+            pairs: The pairs of W blocks sharing a V block (:meth:`BlockIndex.w_pairs`).
+            cost: The cost model.
+            k2: The second class of a coupling.
         """
-        k1, k2 = self.k, self.k2
-        if k1 == k2:
-            wc = self.index.wclasses[k1]
-            y = factors.v_inv_b(wc.vclass)[wc.vblock]
-            rhs[wc.rhs_dest] -= w_product(self.index, asm, k1, y)
-        yt = factors.y_transposed(k1)
-        for con, to_s in self._terms:
-            s -= to_s @ con(yt, asm.wt[k2]).reshape(-1)
+        w1, w2 = pairs
+        c = index.wclasses[k]
+        nw, n_cross, dv, du = len(c.ublock), len(w1), c.dv, c.du
+        if k2 is not None:  # the gather of Yᵀ rows and the pairs' product
+            du2 = index.wclasses[k2].du
+            return cls(k, w1, w2, (cost.gather * n_cross * dv * du
+                                   + cost.sparse_mac * n_cross * dv * du * du2), k2)
+        seconds = (cost.gather * n_cross * dv * du
+                   + cost.sparse_mac * (n_cross + nw) * dv * du * du
+                   + cost.sparse_mac * nw * dv * du  # the right-hand side
+                   + cost.small_mac * nw * dv * dv * du)  # Yᵀ = V⁻¹Wᵀ
+        return cls(k, w1, w2, seconds)

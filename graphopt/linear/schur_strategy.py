@@ -56,9 +56,7 @@ class VFactors:
         Args:
             vc: The V class.
         """
-        if vc not in self._lb:
-            self._lb[vc] = np.einsum("nij,nj->ni", self.linv[vc], self.asm.bv[vc])
-        return self._lb[vc]
+        return self._times_bv(self._lb, self.linv, vc)
 
     def v_inv_b(self, vc: int) -> np.ndarray:
         """``V⁻¹ b_v`` of V class ``vc``, ``(n, d)``.
@@ -66,9 +64,13 @@ class VFactors:
         Args:
             vc: The V class.
         """
-        if vc not in self._vb:
-            self._vb[vc] = np.einsum("nij,nj->ni", self.vinv[vc], self.asm.bv[vc])
-        return self._vb[vc]
+        return self._times_bv(self._vb, self.vinv, vc)
+
+    def _times_bv(self, cache: dict[int, np.ndarray], blocks: list[np.ndarray], vc: int
+                  ) -> np.ndarray:
+        if vc not in cache:
+            cache[vc] = np.einsum("nij,nj->ni", blocks[vc], self.asm.bv[vc])
+        return cache[vc]
 
     def y_transposed(self, k: int) -> np.ndarray:
         """``Yᵀ = V⁻¹ Wᵀ`` of W class ``k``, ``(n, dv, du)``.
@@ -82,7 +84,8 @@ class VFactors:
 
 
 class SchurStrategy(ABC):
-    """One way to subtract a W class's share of the Schur complement.
+    """One way to subtract a W class's share of the Schur complement, built from the block
+    index and its plan (``Strategy(index, plan)``).
 
     Attributes:
         name: ``"sparse"``, ``"dense"`` or ``"gram"``.
@@ -90,7 +93,15 @@ class SchurStrategy(ABC):
     """
 
     name: ClassVar[str]
-    k: int
+
+    def __init__(self, index: BlockIndex, plan: SchurPlan) -> None:
+        """Build the strategy's index arrays (subclasses).
+
+        Args:
+            index: The block index.
+            plan: Its plan.
+        """
+        self.index, self.k = index, plan.k
 
     @abstractmethod
     def reduce_into(self, s: np.ndarray, rhs: np.ndarray, asm: Assembly,
@@ -105,21 +116,23 @@ class SchurStrategy(ABC):
         """
 
 
-class SchurPlan(ABC):
+class SchurPlan:
     """A strategy planned for one W class: its modelled cost, before anything is built.
 
     Attributes:
         k: The W class.
         seconds: Modelled seconds per reduction.
+        strategy: The strategy class the plan builds.
     """
 
     k: int
     seconds: float
+    strategy: ClassVar[type[SchurStrategy]]
 
-    @abstractmethod
     def build(self, index: BlockIndex) -> SchurStrategy:
         """The strategy with its index arrays.
 
         Args:
             index: The block index.
         """
+        return self.strategy(index, self)

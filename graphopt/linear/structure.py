@@ -25,6 +25,9 @@ from graphopt.linear.pattern import ReducedPattern
 if TYPE_CHECKING:
     from graphopt.graph import EdgeGroup, VertexStore
 
+#: Per edge group, per vertex position: ``(store index, slots (m,))``.
+Positions = list[list[tuple[int, np.ndarray]]]
+
 
 @dataclass
 class VClass:
@@ -110,13 +113,8 @@ class BlockIndex:
         GraphError: if an edge joins two different marginalised vertices.
     """
 
-    def __init__(
-        self,
-        stores: list[VertexStore],
-        groups: list[EdgeGroup],
-        positions: list[list[tuple[int, np.ndarray]]],
-        spectral_max: int = 600,
-    ) -> None:
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+                 spectral_max: int = 600) -> None:
         self.stores, self.groups, self.positions = stores, groups, positions
         self._number_blocks()
         nb = max(self.n_ublocks, 1)

@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import graphopt.linear.products as products
-from graphopt.linear.assembly import Assembler, Assembly
+from graphopt.linear.assembly import Assembler, Assembly, GroupArrays
 from graphopt.linear.schur import SchurComplement
 from graphopt.linear.schur_config import SchurConfig
-from graphopt.linear.structure import BlockIndex
+from graphopt.linear.structure import BlockIndex, Positions
 
 if TYPE_CHECKING:
     from graphopt.graph import EdgeGroup, VertexStore
@@ -47,13 +47,8 @@ class LinearSystem:
         ValueError: if a forced dense strategy exceeds its limit.
     """
 
-    def __init__(
-        self,
-        stores: list[VertexStore],
-        groups: list[EdgeGroup],
-        positions: list[list[tuple[int, np.ndarray]]],
-        config: SchurConfig | None = None,
-    ) -> None:
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+                 config: SchurConfig | None = None) -> None:
         self.config = config if config is not None else SchurConfig()
         self.index = BlockIndex(stores, groups, positions, self.config.cost.spectral_max)
         self.assembler = Assembler(self.index, self.config.cost)
@@ -63,18 +58,14 @@ class LinearSystem:
         self.pattern = self.index.pattern.csc
         self.schur = bool(self.index.vclasses)
 
-    def assemble(
-        self,
-        jacobians: list[tuple[np.ndarray, ...]],
-        weighted: list[tuple[np.ndarray, ...]],
-        weighted_errors: list[np.ndarray],
-    ) -> Assembly:
-        """See :meth:`Assembler.assemble`.
+    def assemble(self, jacobians: GroupArrays, weighted: GroupArrays,
+                 weighted_errors: list[np.ndarray]) -> Assembly:
+        """The numbers of one linearisation (:meth:`Assembler.assemble`).
 
         Args:
-            jacobians: Per group, per position ``(m, e, d)`` (C-contiguous).
-            weighted: Per group, per position ``ρ' Ω J`` ``(m, e, d)`` (C-contiguous).
-            weighted_errors: Per group ``ρ' Ω e`` ``(m, e)``.
+            jacobians: The Jacobians, per group and position.
+            weighted: ``ρ'ΩJ``, per group and position.
+            weighted_errors: ``ρ'Ωe``, per group.
         """
         return self.assembler.assemble(jacobians, weighted, weighted_errors)
 
