@@ -102,6 +102,7 @@ class BlockIndex:
         vclass_of_store: Per store, its V class (−1: none).
         vclasses: The V classes.
         wclasses: The W classes, in the order edges first reveal them.
+        wclass_of: The W class of every ``(U store, V class)``.
         n_ublocks: Number of U blocks.
         udims: ``(n_ublocks,)`` dimension of every U block.
         ustore: ``(n_ublocks,)`` store of every U block.
