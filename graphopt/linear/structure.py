@@ -15,6 +15,7 @@ from itertools import combinations
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.sparse as sp
 
 from graphopt.errors import GraphError
 from graphopt.linear.block_ops import EdgeContraction
@@ -123,8 +124,10 @@ class BlockIndex:
         keys = [u_keys]
         for vc in range(len(self.vclasses)):
             v, u = self._incidence(vc, w_found)
-            i, j = pairs_sharing_key(v, v)
-            keys.append(u[j] * nb + u[i])  # the fill: pairs of U blocks that share a V block
+            # The fill: pairs of U blocks that share a V block, the structure of IncᵀInc.
+            inc = sp.csr_matrix((np.ones(len(v)), (v, u)), shape=(len(self.vclasses[vc].slots), nb))
+            fill = (inc.T @ inc).tocoo()
+            keys.append(fill.col.astype(np.int64) * nb + fill.row)
             self._order_v_blocks(vc, v, u, w_found, spectral_max)
         self.wclass_of: dict[tuple[int, int], int] = {}
         self.wclasses: list[WClass] = []
