@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-import graphopt.block_ops as bo
-from graphopt.block_ops import batched_cholesky_inverses
+import graphopt.linear.block_ops as bo
 from graphopt.errors import NotPositiveDefiniteError
+from graphopt.linear.block_ops import batched_cholesky_inverses
 
 
 @pytest.mark.parametrize("d", [1, 2, 3, 4, 6])

@@ -5,74 +5,31 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from custom_types import EdgeSE2, VertexSE2, pose_graph
+from schur_toys import EdgeDifference, VertexCam, VertexLandmark, ba_toy
 
-from graphopt import BaseEdge, GraphError, SparseOptimizer, VertexVector
+from graphopt import GraphError, SparseOptimizer
+from graphopt.linear import SchurConfig, SchurCostModel
 from graphopt.solvers import CHOLMOD_AVAILABLE
-
-
-class VertexCam(VertexVector):
-    dimension = 4
-
-
-class VertexLandmark(VertexVector):
-    dimension = 3
-
-
-class EdgeObs(BaseEdge):
-    """A smooth nonlinear 'projection' coupling a camera and a landmark (numeric Jacobians)."""
-
-    dimension = 2
-    vertex_types = (VertexCam, VertexLandmark)
-
-    @classmethod
-    def error(cls, x, z, ctx):
-        c, p = x
-        q = p[:, :2] * c[:, :2] + np.sin(p[:, 2:3] * c[:, 2:4]) + c[:, :2] * c[:, 2:4]
-        return q - z
-
-
-def ba_toy(marginalize: bool, solver: str = "dense", seed: int = 1, per_point: int = 3):
-    rng = np.random.default_rng(seed)
-    nc, npt = 6, 40
-    obs = np.array([(i, j) for j in range(npt)
-                    for i in rng.choice(nc, per_point, replace=False)])
-    C = rng.normal(size=(nc, 4))
-    P = rng.normal(size=(npt, 3))
-    Z = EdgeObs.error((C[obs[:, 0]], P[obs[:, 1]]), np.zeros((len(obs), 2)), None)
-    Z += rng.normal(0, 0.01, Z.shape)
-    info = np.array([[2.0, 0.3], [0.3, 1.0]])
-    opt = SparseOptimizer("lm", solver)
-    opt.add_vertices(VertexCam, np.arange(nc), C + 0.05, fixed=np.arange(nc) == 0)
-    opt.add_vertices(VertexLandmark, 100 + np.arange(npt), P + 0.05, marginalized=marginalize)
-    opt.add_edges(EdgeObs, np.stack([obs[:, 0], 100 + obs[:, 1]], 1), Z, information=info)
-    return opt
-
 
 SOLVERS = ["dense", "pcg", "scipy"] + (["cholmod"] if CHOLMOD_AVAILABLE else [])
 
 
-@pytest.fixture(params=["sparse", "dense", "gram"])
-def schur_path(request, monkeypatch):
-    """Run a test with W V⁻¹ Wᵀ formed by the sparse contractions, by the dense syrk or by the
-    gathered Gram products."""
-    from graphopt.linear_system import LinearSystem
+#: W V⁻¹ Wᵀ formed by the sparse contractions, by the dense syrk or by the gathered Gram
+#: products. Dense: only the per-panel cost counts, so runs of points merge into panels of at
+#: most 10 points (30 rows). Gram: the sparse contractions are made so dear that the U blocks
+#: take Gram products too.
+SCHUR = {
+    "sparse": SchurConfig("sparse", SchurCostModel(gram_enabled=False)),
+    "dense": SchurConfig("dense", SchurCostModel(
+        blas_mac=0.0, dense_element=0.0, place=0.0, area=0.0, panel=1.0, panel_rows=30,
+        gram_enabled=False)),
+    "gram": SchurConfig("gram", SchurCostModel(sparse_mac=1e9)),
+}
 
-    monkeypatch.setattr(LinearSystem, "GRAM_ENABLED", request.param == "gram")
-    if request.param == "sparse":
-        monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
-    elif request.param == "gram":
-        monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
-        monkeypatch.setattr(LinearSystem, "COST_SPARSE_MAC", 1e9)
-    else:
-        # Only the per-panel cost counts: runs of points merge into panels of at most 10
-        # points (30 rows), and the sparse path is never cheaper.
-        monkeypatch.setattr(LinearSystem, "COST_BLAS_MAC", 0.0)
-        monkeypatch.setattr(LinearSystem, "COST_DENSE_ELEMENT", 0.0)
-        monkeypatch.setattr(LinearSystem, "COST_PLACE", 0.0)
-        monkeypatch.setattr(LinearSystem, "COST_AREA", 0.0)
-        monkeypatch.setattr(LinearSystem, "COST_PANEL", 1.0)
-        monkeypatch.setattr(LinearSystem, "COST_SPARSE_MAC", 1e9)
-        monkeypatch.setattr(LinearSystem, "PANEL_ROWS", 30)
+
+@pytest.fixture(params=sorted(SCHUR))
+def schur_path(request):
+    """The name of a Schur strategy (a key of ``SCHUR``)."""
     return request.param
 
 
@@ -81,14 +38,16 @@ def schur_path(request, monkeypatch):
 def test_schur_step_equals_full_step(solver: str, schur_path: str, per_point: int) -> None:
     full = ba_toy(False, "dense", per_point=per_point)
     full.initialize_optimization()
-    asm, _ = full.linearize()
-    ref = full.solve(asm, 1e-3)[0]
-    schur = ba_toy(True, solver, per_point=per_point)
+    asm, _ = full.problem.linearize()
+    ref = full.problem.solve(asm, 1e-3)[0]
+    schur = ba_toy(True, solver, per_point=per_point, schur=SCHUR[schur_path])
     schur.initialize_optimization()
+    system = schur.linear_system
+    assert system is not None
     if schur_path == "dense":
-        panels = schur._system.dense_terms[0].panels
+        panels = system.reduction.strategies[0].panels
         # Panels cover the W blocks in order, each once; 40 points, at most 10 per panel.
-        nw = len(schur._system.wclasses[0].ublock)
+        nw = len(system.index.wclasses[0].ublock)
         assert [p.w0 for p in panels] == [0] + [p.w1 for p in panels[:-1]]
         assert panels[-1].w1 == nw and 4 <= len(panels) <= 8
         assert all(p.rows <= 10 for p in panels)
@@ -96,21 +55,21 @@ def test_schur_step_equals_full_step(solver: str, schur_path: str, per_point: in
         assert sum(p.d1 - p.d0 for p in panels) == 6 * nw
         # Every point sees all cameras (6, one fixed): every panel is 5 U blocks wide.
         if per_point == 6:
-            assert all(p.cols == schur._system.n_ublocks == 5 for p in panels)
-    assert schur._system.schur and not full._system.schur
-    assert bool(schur._system.dense_terms) == (schur_path == "dense")
-    assert bool(schur._system.gram_terms) == (schur_path == "gram")
-    assert bool(schur._system.pair_terms) == (schur_path == "sparse")
-    asm, _ = schur.linearize()
-    du, dv = schur.solve(asm, 1e-3)
+            assert all(p.cols == system.index.n_ublocks == 5 for p in panels)
+    assert system.schur and not full.linear_system.schur
+    # One W class (cameras x points), formed by the forced strategy.
+    assert [t.name for t in system.reduction.strategies] == [schur_path]
+    assert system.reduction.couplings == []
+    asm, _ = schur.problem.linearize()
+    du, dv = schur.problem.solve(asm, 1e-3)
     by_slot = np.zeros_like(dv[0])
-    by_slot[schur._system.vclasses[0].slots] = dv[0]  # V blocks are numbered internally
+    by_slot[system.index.vclasses[0].slots] = dv[0]  # V blocks are numbered internally
     np.testing.assert_allclose(np.concatenate([du, by_slot.ravel()]), ref, rtol=1e-7,
                                atol=1e-10)
 
 
 def test_schur_and_full_converge_to_the_same_optimum(schur_path: str) -> None:
-    a, b = ba_toy(False), ba_toy(True)
+    a, b = ba_toy(False), ba_toy(True, schur=SCHUR[schur_path])
     ra, rb = a.optimize(30), b.optimize(30)
     assert rb.final_chi2 == pytest.approx(ra.final_chi2, rel=1e-9)
     np.testing.assert_allclose(a.estimates_of(VertexLandmark), b.estimates_of(VertexLandmark),
@@ -168,7 +127,7 @@ def test_marginals_equal_inverse_hessian_blocks_pose_graph() -> None:
 
 @pytest.mark.parametrize("solver", ["dense", "pcg"] + (["cholmod"] if CHOLMOD_AVAILABLE else []))
 def test_marginals_with_schur_equal_inverse_hessian_blocks(solver: str, schur_path: str) -> None:
-    opt = ba_toy(True, solver)
+    opt = ba_toy(True, solver, schur=SCHUR[schur_path])
     opt.optimize(20)
     H = numeric_hessian(opt, [VertexCam, VertexLandmark], [np.arange(6) > 0, np.ones(40, bool)])
     cov = np.linalg.inv(H)
@@ -188,13 +147,9 @@ def test_marginals_reject_fixed_and_unknown() -> None:
 
 
 def test_edge_between_two_marginalised_vertices_is_rejected() -> None:
-    class EdgeLL(BaseEdge):
+    class EdgeLL(EdgeDifference):
         dimension = 3
         vertex_types = (VertexLandmark, VertexLandmark)
-
-        @classmethod
-        def error(cls, x, z, ctx):
-            return x[1] - x[0] - z
 
     opt = ba_toy(True)
     opt.add_edges(EdgeLL, np.array([[100, 101]]), np.zeros((1, 3)))
@@ -206,7 +161,7 @@ def test_edge_between_two_marginalised_vertices_is_rejected() -> None:
 def test_other_algorithms_with_schur_reach_the_lm_optimum(algorithm: str, schur_path: str) -> None:
     ref = ba_toy(True)
     ref.optimize(40)
-    opt = ba_toy(True)
+    opt = ba_toy(True, schur=SCHUR[schur_path])
     opt.set_algorithm(algorithm)
     res = opt.optimize(40)
     assert res.final_chi2 == pytest.approx(ref.active_robust_chi2(), rel=1e-6)
@@ -216,18 +171,19 @@ def test_other_algorithms_with_schur_reach_the_lm_optimum(algorithm: str, schur_
 
 def test_hessian_product_matches_the_full_hessian(schur_path: str) -> None:
     rng = np.random.default_rng(7)
-    full, schur = ba_toy(False), ba_toy(True)
+    full, schur = ba_toy(False), ba_toy(True, schur=SCHUR[schur_path])
     for o in (full, schur):
         o.initialize_optimization()
-    xu = rng.normal(size=schur._system.n)
+    system = schur.linear_system
+    xu = rng.normal(size=system.n)
     xv = [rng.normal(size=(40, 3))]
-    slots = schur._system.vclasses[0].slots  # V block b is the landmark in slot slots[b]
-    asm_f, _ = full.linearize()
+    slots = system.index.vclasses[0].slots  # V block b is the landmark in slot slots[b]
+    asm_f, _ = full.problem.linearize()
     by_slot = np.zeros_like(xv[0])
     by_slot[slots] = xv[0]
-    ref = full.hessian_product(asm_f, (np.concatenate([xu, by_slot.ravel()]), []))[0]
-    asm_s, _ = schur.linearize()
-    hu, hv = schur.hessian_product(asm_s, (xu, xv))
+    ref = full.problem.hessian_product(asm_f, (np.concatenate([xu, by_slot.ravel()]), []))[0]
+    asm_s, _ = schur.problem.linearize()
+    hu, hv = schur.problem.hessian_product(asm_s, (xu, xv))
     hv_slot = np.zeros_like(hv[0])
     hv_slot[slots] = hv[0]
     np.testing.assert_allclose(np.concatenate([hu, hv_slot.ravel()]), ref, rtol=1e-10,
@@ -235,26 +191,22 @@ def test_hessian_product_matches_the_full_hessian(schur_path: str) -> None:
 
 
 @pytest.mark.parametrize("kernel", [None, "huber"])
-def test_gram_products_equal_the_sparse_contractions(kernel, monkeypatch) -> None:
+def test_gram_products_equal_the_sparse_contractions(kernel) -> None:
     """The gathered Gram products (camera blocks of U, and every block of W V⁻¹ Wᵀ) give the
     sparse contractions' numbers: with and without a robust kernel (then ρ'ΩJ is not J)."""
     from graphopt import RobustKernelHuber
-    from graphopt.linear_system import LinearSystem
 
     def reduced(gram: bool):
-        monkeypatch.setattr(LinearSystem, "GRAM_ENABLED", gram)
-        monkeypatch.setattr(LinearSystem, "DENSE_LIMIT", 0)
-        monkeypatch.setattr(LinearSystem, "COST_SPARSE_MAC", 1e9 if gram else 0.4e-9)
-        opt = ba_toy(True, per_point=4)
+        opt = ba_toy(True, per_point=4, schur=SCHUR["gram" if gram else "sparse"])
         if kernel:
             for g in opt.edge_groups():
                 g.set_kernel(slice(None), RobustKernelHuber(0.02))
         opt.initialize_optimization()
-        system = opt._system
-        assert bool(system.gram_terms) == gram
-        assert any(t.gram is not None for gt in system.terms for t in gt.hterms) == gram
-        asm, _ = opt.linearize()
-        s, rhs, _, _ = system.reduce(asm, 1e-3, diagonal=True)
+        system = opt.linear_system
+        assert [t.name for t in system.reduction.strategies] == ["gram" if gram else "sparse"]
+        assert (system.assembler.u_gram_terms > 0) == gram
+        asm, _ = opt.problem.linearize()
+        s, rhs, _ = system.reduce(asm, 1e-3, system.damping(asm, True))
         return asm.h_data, s, rhs
 
     for ref, got in zip(reduced(False), reduced(True), strict=True):

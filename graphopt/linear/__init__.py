@@ -1,13 +1,9 @@
-"""TEMPORARY shim until the graphopt/linear package lands (replaced at merge)."""
+"""The normal equations in three tiers: the block *structure* (built once per graph
+structure), the *assembly* (once per linearisation) and the *Schur reduction* (once per λ),
+behind the :class:`LinearSystem` facade. See ``docs/architecture.md``."""
 
-from dataclasses import dataclass
+from graphopt.linear.assembly import Assembly
+from graphopt.linear.schur_config import SchurConfig, SchurCostModel
+from graphopt.linear.system import LinearSystem
 
-from graphopt.linear_system import Assembly, LinearSystem
-
-
-@dataclass(frozen=True)
-class SchurConfig:
-    strategy: str = "auto"
-
-
-__all__ = ["Assembly", "LinearSystem", "SchurConfig"]
+__all__ = ["Assembly", "LinearSystem", "SchurConfig", "SchurCostModel"]

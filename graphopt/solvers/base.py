@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from graphopt.linear.pattern import with_data
+
 
 class LinearSolver:
     """Solves ``A x = b`` for symmetric positive definite ``A`` in a fixed sparsity pattern.
@@ -31,8 +33,7 @@ class LinearSolver:
         Args:
             data: Values, ``(nnz,)``.
         """
-        p = self.pattern
-        return sp.csc_matrix((data, p.indices, p.indptr), shape=p.shape)
+        return with_data(self.pattern, data)
 
     def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """Solve with the given values.

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from graphopt.block_ops import batched_cholesky_inverses
 from graphopt.errors import NotPositiveDefiniteError
+from graphopt.linear.block_ops import batched_cholesky_inverses
 from graphopt.solvers.base import LinearSolver
 
 

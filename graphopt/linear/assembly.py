@@ -1,0 +1,281 @@
+"""Assembly of the normal equations, once per linearisation, into the fixed block structure.
+
+Every edge group's Hessian and gradient terms — which edges, which contraction, which target
+— are built once by :class:`Assembler`; :meth:`Assembler.assemble` then only computes numbers.
+Every scatter-add is a constant-structure sparse product (see ``block_ops.py``); a U term on
+diagonal blocks with many edges per block (a camera's observations) may instead be summed by
+gathered Gram products when the cost model prefers them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.sparse as sp
+
+from graphopt.linear.block_ops import EdgeContraction, GatheredGram
+from graphopt.linear.indexing import unique_ints
+from graphopt.linear.schur_config import SchurCostModel
+
+if TYPE_CHECKING:
+    from graphopt.linear.structure import BlockIndex
+    from graphopt.storage import EdgeGroup
+
+
+#: Per edge group, one array per vertex position.
+GroupArrays = list[tuple[np.ndarray, ...]]
+
+
+@dataclass
+class Assembly:
+    """The numbers of one linearisation.
+
+    Args:
+        h_data: Data of the U part in the S pattern (undamped, without Schur terms).
+        bu: Right-hand side (``−Jᵀ ρ' Ω e``) of the U part.
+        v: Per V class ``(n, d, d)`` blocks.
+        bv: Per V class ``(n, d)``.
+        wt: Per W class ``(n, dv, du)`` transposed W blocks.
+    """
+
+    h_data: np.ndarray
+    bu: np.ndarray
+    v: list[np.ndarray]
+    bv: list[np.ndarray]
+    wt: list[np.ndarray]
+
+
+@dataclass
+class _HTerm:
+    """Hessian blocks ``Lᵀ (ρ'ΩR)`` of one edge group's positions into one destination.
+
+    ``left``/``right`` name the positions whose Jacobian (left) and weighted Jacobian (right)
+    form the block.
+    """
+
+    left: int
+    right: int
+    kind: str  # "U", "V" or "W"
+    contraction: EdgeContraction
+    dest: np.ndarray | None  # U: (t, dl·dr) data positions (None with a Gram); V/W: (t,) blocks
+    dest_t: np.ndarray | None = None  # U off-diagonal: positions of the transposed entries
+    cls: int = -1  # V class or W class
+    mirror: bool = False  # V term with left != right on the same vertex: add the transpose too
+    identity: bool = False  # V/W term whose targets are all blocks of its class, in order
+    # U term on diagonal blocks summed by gathered Gram products (outputs in ``out``, added to
+    # S's data by ``to_h``) instead of the contraction.
+    gram: GatheredGram | None = None
+    out: np.ndarray | None = None
+    to_h: sp.csr_matrix | None = None
+
+
+@dataclass
+class _GTerm:
+    """Gradient ``−Jᵀ ρ'Ω e`` of position ``a`` of one edge group into U or a V class."""
+
+    a: int
+    kind: str
+    contraction: EdgeContraction
+    dest: np.ndarray  # U: (t, d) vector positions; V: (t,) block index
+    cls: int = -1
+    shared: int = -1  # index of an H term with the same contraction
+    identity: bool = False  # V term whose targets are all V blocks of its class, in order
+
+
+@dataclass
+class _GroupTerms:
+    hterms: list[_HTerm] = field(default_factory=list)
+    gterms: list[_GTerm] = field(default_factory=list)
+
+
+def _add_blocks(acc: list[np.ndarray | None], k: int, dest: np.ndarray, blk: np.ndarray,
+                whole: bool, shape: tuple[int, ...]) -> None:
+    """``acc[k][dest] += blk``, allocating ``acc[k]`` on first use — or taking ``blk`` itself
+    when it is the first contribution and covers every block in order (``whole``)."""
+    if acc[k] is None:
+        if whole:
+            acc[k] = blk
+            return
+        acc[k] = np.zeros(shape)
+    acc[k][dest] += blk  # type: ignore[index]
+
+
+class Assembler:
+    """The terms of every edge group, built once, and the per-linearisation assembly.
+
+    Args:
+        index: The block index.
+        cost: Decides where gathered Gram products sum U diagonal blocks.
+    """
+
+    def __init__(self, index: BlockIndex, cost: SchurCostModel) -> None:
+        self.index, self.cost = index, cost
+        self.terms = [self._group_terms(gi) for gi in range(len(index.groups))]
+
+    @property
+    def u_gram_terms(self) -> int:
+        """U terms summed by gathered Gram products rather than by their contraction."""
+        return sum(t.gram is not None for gt in self.terms for t in gt.hterms)
+
+    # --- structure ---------------------------------------------------------------------------
+
+    def _group_terms(self, gi: int) -> _GroupTerms:
+        ix = self.index
+        g, pos = ix.groups[gi], ix.positions[gi]
+        nb = max(ix.n_ublocks, 1)
+        gt = _GroupTerms()
+        ub, vb = ix.blocks_of(gi)
+        isu = [u >= 0 for u in ub]
+        isv = [v >= 0 for v in vb]
+        dims = [ix.stores[s].vtype.dimension for s, _ in pos]
+        for a in range(g.k):
+            for b in range(a, g.k):
+                mask = isu[a] & isu[b]
+                if mask.any():
+                    gt.hterms.append(self._u_term(g, a, b, np.flatnonzero(mask), ub, dims[a]))
+                mask = isv[a] & isv[b]
+                if mask.any():
+                    sel = np.flatnonzero(mask)
+                    cls = ix.vclass_of_store[pos[a][0]]
+                    nvc = len(ix.vclasses[cls].slots)
+                    uniq, inv = unique_ints(vb[a][sel], nvc, True)
+                    gt.hterms.append(_HTerm(
+                        a, b, "V", self._contraction(g, sel, inv, len(uniq), dims[a]), uniq,
+                        cls=cls, mirror=a != b, identity=len(uniq) == nvc))
+        for a, b in combinations(range(g.k), 2):
+            for ui, vi in ((a, b), (b, a)):
+                mask = isu[ui] & isv[vi]
+                if mask.any():
+                    sel = np.flatnonzero(mask)
+                    k = ix.wclass_of[(pos[ui][0], ix.vclass_of_store[pos[vi][0]])]
+                    keys = ix.wclasses[k].keys
+                    widx = np.searchsorted(keys, vb[vi][sel] * nb + ub[ui][sel])
+                    uniq, inv = unique_ints(widx, len(keys), True)
+                    # Wᵀ block = J_vᵀ Ω J_u: the V position's Jacobian on the left.
+                    con = self._contraction(g, sel, inv, len(uniq), ix.wclasses[k].dv)
+                    ident = len(uniq) == len(keys) and len(inv) == len(uniq)
+                    gt.hterms.append(_HTerm(vi, ui, "W", con, uniq, cls=k, identity=ident))
+        for a in range(g.k):
+            for kind, isx, xb in (("U", isu[a], ub[a]), ("V", isv[a], vb[a])):
+                if not isx.any():
+                    continue
+                sel = np.flatnonzero(isx)
+                cls = ix.vclass_of_store[pos[a][0]] if kind == "V" else -1
+                size = nb if kind == "U" else len(ix.vclasses[cls].slots)
+                uniq, inv = unique_ints(xb[sel], size, True)
+                shared = next((i for i, t in enumerate(gt.hterms)
+                               if t.left == a and t.right == a and t.kind == kind), -1)
+                con = (gt.hterms[shared].contraction if shared >= 0 else
+                       self._contraction(g, sel, inv, len(uniq), dims[a]))
+                dest = uniq if kind == "V" else ix.uoffset[uniq][:, None] + np.arange(dims[a])
+                gt.gterms.append(_GTerm(a, kind, con, dest, cls, shared,
+                                        kind == "V" and len(uniq) == size))
+        return gt
+
+    @staticmethod
+    def _contraction(g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int, d_out: int
+                     ) -> EdgeContraction:
+        """Σ over edges ``sel`` of ``Jᵀ · (ρ'ΩJ)`` blocks with ``d_out`` rows into ``n_t``
+        targets."""
+        return EdgeContraction(sel, target, n_t, g.size, g.etype.jacobian_rows(), d_out)
+
+    def _u_term(self, g: EdgeGroup, a: int, b: int, sel: np.ndarray, ub: list[np.ndarray],
+                d: int) -> _HTerm:
+        """The U-U term of positions ``(a, b)`` over edges ``sel``."""
+        nb = max(self.index.n_ublocks, 1)
+        pattern = self.index.pattern
+        uniq, inv = unique_ints(ub[a][sel] * nb + ub[b][sel], nb * nb, True)
+        con = self._contraction(g, sel, inv, len(uniq), d)
+        br, bc = uniq // nb, uniq % nb
+        gram = self._u_gram(g, sel, inv, len(uniq), d) if a == b else None
+        if gram is not None:  # diagonal blocks: (u, u) per output
+            ub_out = br[gram.targets]
+            return _HTerm(a, b, "U", con, None, gram=gram, out=np.zeros((gram.n_out, d, d)),
+                          to_h=pattern.to_s(ub_out, ub_out))
+        pos, post = pattern.dest(br, bc)
+        return _HTerm(a, b, "U", con, pos, post if a != b else None)
+
+    def _u_gram(self, g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int, d: int
+                ) -> GatheredGram | None:
+        """Gathered Gram products for a U term on diagonal blocks, if the cost model prefers
+        them to the sparse contraction (many edges per U block: a camera's observations)."""
+        cost = self.cost
+        if not cost.gram_enabled or len(sel) == 0:
+            return None
+        r = g.etype.jacobian_rows()
+        sparse = cost.sparse_mac * len(sel) * r * d * d
+        # Lower bound (one gather, no padding or overheads): spares building a hopeless Gram.
+        if (cost.gram_gather * r * d + cost.gemm_mac * r * d * d) * len(sel) >= sparse:
+            return None
+        gram = GatheredGram(target, sel, sel, n_t, r, d)
+        seconds = cost.gram_seconds(gram, 2 * gram.padded)  # J and ρ'ΩJ (once if equal)
+        return gram if seconds < sparse else None
+
+    # --- numbers -----------------------------------------------------------------------------
+
+    def assemble(self, jacobians: GroupArrays, weighted: GroupArrays,
+                 weighted_errors: list[np.ndarray]) -> Assembly:
+        """Accumulate ``JᵀΩJ`` and ``−JᵀΩe`` of every edge group into the fixed structure.
+
+        Args:
+            jacobians: Per group, per position ``(m, e, d)`` (C-contiguous).
+            weighted: Per group, per position ``ρ' Ω J`` ``(m, e, d)`` (C-contiguous).
+            weighted_errors: Per group ``ρ' Ω e`` ``(m, e)``.
+        """
+        ix = self.index
+        h = np.zeros(ix.pattern.nnz)
+        bu = np.zeros(ix.n)
+        # V and W classes are allocated on first use: a first term that covers every block of
+        # its class in order is used as it is (no zero fill, no scatter-add).
+        v: list[np.ndarray | None] = [None] * len(ix.vclasses)
+        bv: list[np.ndarray | None] = [None] * len(ix.vclasses)
+        wt: list[np.ndarray | None] = [None] * len(ix.wclasses)
+        for gt, J, WJ, we in zip(self.terms, jacobians, weighted, weighted_errors, strict=True):
+            mats: list[sp.csc_matrix | None] = []
+            for t in gt.hterms:
+                if t.gram is not None:  # diagonal U blocks by gathered Gram products
+                    assert t.out is not None and t.to_h is not None
+                    ja, wjb = J[t.left], WJ[t.right]
+                    m = len(ja)
+                    t.gram(np.ascontiguousarray(ja).reshape(m, -1), t.out,
+                           None if wjb is ja else np.ascontiguousarray(wjb).reshape(m, -1))
+                    h += t.to_h @ t.out.reshape(-1)
+                    mats.append(None)
+                    continue
+                M = t.contraction.matrix(np.ascontiguousarray(J[t.left]))
+                mats.append(M)
+                blk = t.contraction.apply(M, WJ[t.right])
+                if t.kind == "U":
+                    flat = blk.reshape(len(blk), -1)
+                    h[t.dest] += flat
+                    if t.dest_t is not None:
+                        h[t.dest_t] += flat
+                elif t.kind == "V":
+                    if t.mirror:
+                        blk = blk + np.swapaxes(blk, 1, 2)
+                    c = ix.vclasses[t.cls]
+                    _add_blocks(v, t.cls, t.dest, blk, t.identity, (len(c.slots), c.dim, c.dim))
+                else:
+                    w = ix.wclasses[t.cls]
+                    _add_blocks(wt, t.cls, t.dest, blk, t.identity, (len(w.ublock), w.dv, w.du))
+            we3 = we[:, :, None]
+            for g in gt.gterms:
+                M = mats[g.shared] if g.shared >= 0 else None
+                if M is None:
+                    M = g.contraction.matrix(np.ascontiguousarray(J[g.a]))
+                gb = -g.contraction.apply(M, we3)[:, :, 0]
+                if g.kind == "U":
+                    bu[g.dest] += gb
+                else:
+                    c = ix.vclasses[g.cls]
+                    _add_blocks(bv, g.cls, g.dest, gb, g.identity, (len(c.slots), c.dim))
+        vfull = [x if x is not None else np.zeros((len(c.slots), c.dim, c.dim))
+                 for x, c in zip(v, ix.vclasses, strict=True)]
+        bvfull = [x if x is not None else np.zeros((len(c.slots), c.dim))
+                  for x, c in zip(bv, ix.vclasses, strict=True)]
+        wfull = [x if x is not None else np.zeros((len(c.ublock), c.dv, c.du))
+                 for x, c in zip(wt, ix.wclasses, strict=True)]
+        return Assembly(h, bu, vfull, bvfull, wfull)

@@ -1,0 +1,48 @@
+"""Integer index helpers used while the structure is built (never per iteration)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def unique_ints(x: np.ndarray, size: int, return_inverse: bool = False
+                ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """``np.unique`` for non-negative integers below ``size``.
+
+    A bitmap and a cumulative sum (linear time) when ``size`` is small against ``len(x)``,
+    NumPy's sort otherwise; both give NumPy's result.
+
+    Args:
+        x: Non-negative integers below ``size``.
+        size: Bound on the values.
+        return_inverse: Also return the index of every ``x`` in the unique values.
+    """
+    x = np.asarray(x, dtype=np.int64)
+    if size > 16 * len(x) + 65536:
+        return np.unique(x, return_inverse=return_inverse)
+    present = np.zeros(size, dtype=bool)
+    present[x] = True
+    uniq = np.flatnonzero(present)
+    if not return_inverse:
+        return uniq
+    rank = np.cumsum(present, dtype=np.int64) - 1
+    return uniq, rank[x]
+
+
+def pairs_sharing_key(k1: np.ndarray, k2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All index pairs ``(i, j)`` with ``k1[i] == k2[j]``, by key, then ``i``, then ``j``.
+
+    Args:
+        k1: Sorted non-negative keys (V blocks of one list of W blocks).
+        k2: Sorted non-negative keys (V blocks of another, or the same, list).
+    """
+    nv = int(max(k1.max(initial=-1), k2.max(initial=-1))) + 1
+    c1 = np.bincount(k1, minlength=nv)
+    c2 = np.bincount(k2, minlength=nv)
+    s1 = np.concatenate([[0], np.cumsum(c1)[:-1]])
+    s2 = np.concatenate([[0], np.cumsum(c2)[:-1]])
+    per = c1 * c2
+    vv = np.repeat(np.arange(nv), per)
+    k = np.arange(int(per.sum())) - np.repeat(np.cumsum(per) - per, per)
+    c2v = np.maximum(c2[vv], 1)
+    return s1[vv] + k // c2v, s2[vv] + k % c2v

@@ -1,0 +1,58 @@
+"""The co-visibility order of a V class's blocks, chosen once.
+
+Vertices seen by the same U blocks become neighbours, which keeps the dense Schur panels
+narrow and lets vertices with identical U sets share a panel (``schur_dense.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def co_visibility_order(v: np.ndarray, u: np.ndarray, n_v: int, n_u: int,
+                        spectral_max: int) -> np.ndarray:
+    """The new order of a V class's blocks: new block ``b`` is old block ``order[b]``.
+
+    U blocks are first put in a 1-D order that follows their co-visibility (the Fiedler vector
+    of the co-visibility graph for up to ``spectral_max`` U blocks). V blocks are then sorted by
+    the last and first U block they meet in that order, and by a hash of their whole U set
+    (identical sets become runs).
+
+    Args:
+        v: V block of every (V block, U block) pair linked by an edge, unique pairs sorted by
+            V, then U block.
+        u: U block of every pair.
+        n_v: Blocks in the V class.
+        n_u: U blocks of the whole system.
+        spectral_max: Most U blocks ordered by the Fiedler vector (else their own order).
+    """
+    rng = np.random.default_rng(0x5EED)
+    tag = rng.integers(0, 2**62, size=max(n_u, 1), dtype=np.int64)  # per U block: set hashes
+    lo = np.full(n_v, n_u, dtype=np.int64)
+    hi = np.full(n_v, -1, dtype=np.int64)
+    h = np.zeros(n_v, dtype=np.int64)
+    if len(v):
+        ru = _u_rank(v, u, n_v, n_u, spectral_max)[u]
+        first = np.flatnonzero(np.r_[True, v[1:] != v[:-1]])
+        lo[v[first]] = np.minimum.reduceat(ru, first)
+        hi[v[first]] = np.maximum.reduceat(ru, first)
+        with np.errstate(over="ignore"):
+            h[v[first]] = np.add.reduceat(tag[u], first)  # wraps: a set hash
+    return np.lexsort((h, lo, hi))
+
+
+def _u_rank(v: np.ndarray, u: np.ndarray, n_v: int, n_u: int, spectral_max: int
+            ) -> np.ndarray:
+    """Position of every U block in a 1-D order that keeps co-visible U blocks close."""
+    if n_u < 3 or n_u > spectral_max:
+        return np.arange(n_u)
+    inc = sp.csr_matrix((np.ones(len(v)), (v, u)), shape=(n_v, n_u))
+    c = (inc.T @ inc).toarray()
+    np.fill_diagonal(c, 0.0)
+    lap = np.diag(c.sum(axis=1)) - c
+    _, vec = np.linalg.eigh(lap)
+    order = np.argsort(vec[:, 1], kind="stable")
+    rank = np.empty(n_u, dtype=np.int64)
+    rank[order] = np.arange(n_u)
+    return rank

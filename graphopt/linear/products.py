@@ -1,0 +1,136 @@
+"""Products of one assembled linearisation that do not depend on the damping λ.
+
+The W blocks enter as a SciPy BSR matrix whose data *is* the ``Wᵀ`` array (``wt_product``) or
+as each W class's constant contraction (``WClass.rhs``): no gather, no segment sum.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.sparse as sp
+
+from graphopt.linear.pattern import with_data
+
+if TYPE_CHECKING:
+    from graphopt.linear.assembly import Assembly
+    from graphopt.linear.structure import BlockIndex
+
+
+def is_finite(asm: Assembly) -> bool:
+    """Whether the U part, the V blocks and both right-hand sides are finite.
+
+    Args:
+        asm: The assembled system.
+    """
+    total = asm.h_data.sum() + asm.bu.sum()
+    total += sum(float(v.sum()) for v in asm.v) + sum(float(b.sum()) for b in asm.bv)
+    return bool(np.isfinite(total))
+
+
+def damping(index: BlockIndex, asm: Assembly, diagonal: bool
+            ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The damping matrix ``D`` (a diagonal) as ``(u part, [v parts])``.
+
+    Args:
+        index: The block index.
+        asm: The assembled system.
+        diagonal: ``False``: the identity (g2o's LM). ``True``: ``diag(H)`` clipped to
+            ``[1e-6, 1e32]`` (Marquardt's scaling, as Ceres does).
+    """
+    if not diagonal:
+        return np.ones(index.n), [np.ones(b.shape) for b in asm.bv]
+    du = np.clip(asm.h_data[index.pattern.diag_pos], 1e-6, 1e32)
+    return du, [np.clip(np.einsum("nii->ni", v), 1e-6, 1e32) for v in asm.v]
+
+
+def max_diagonal(index: BlockIndex, asm: Assembly) -> float:
+    """Largest diagonal entry of the full (undamped) Hessian (for LM's initial λ).
+
+    Args:
+        index: The block index.
+        asm: The assembled system.
+    """
+    vals = [asm.h_data[index.pattern.diag_pos]]
+    vals += [np.einsum("nii->ni", vb).ravel() for vb in asm.v]
+    vals = [x for x in vals if x.size]
+    return float(max(x.max() for x in vals)) if vals else 0.0
+
+
+def class_y_transposed(index: BlockIndex, asm: Assembly, vinv: list[np.ndarray], k: int
+                       ) -> np.ndarray:
+    """``Yᵀ = V⁻¹ Wᵀ`` of every W block of class ``k``, ``(n, dv, du)``.
+
+    Args:
+        index: The block index.
+        asm: The assembled system.
+        vinv: Inverted (damped) V blocks per class.
+        k: The W class.
+    """
+    wc = index.wclasses[k]
+    return np.matmul(vinv[wc.vclass][wc.vblock], asm.wt[k])
+
+
+def wt_product(index: BlockIndex, asm: Assembly, k: int, xu: np.ndarray) -> np.ndarray:
+    """``Σ_w Wᵀ_w x_u[u_w]`` per V block of W class ``k``, as ``(n_v, dv)``.
+
+    Args:
+        index: The block index.
+        asm: The assembled system.
+        k: The W class.
+        xu: A vector over the U part.
+    """
+    wc = index.wclasses[k]
+    n_v = len(wc.bsr_indptr) - 1
+    n_u = (wc.ucols.stop - wc.ucols.start) // wc.du
+    m = sp.bsr_matrix((asm.wt[k], wc.bsr_cols, wc.bsr_indptr),
+                      shape=(n_v * wc.dv, n_u * wc.du))
+    return (m @ xu[wc.ucols]).reshape(n_v, wc.dv)
+
+
+def w_product(index: BlockIndex, asm: Assembly, k: int, xv: np.ndarray) -> np.ndarray:
+    """``Σ_w W_w xv[w]`` per U block of W class ``k``, as ``(n_u, du)`` (rows
+    ``WClass.rhs_dest``).
+
+    Args:
+        index: The block index.
+        asm: The assembled system.
+        k: The W class.
+        xv: ``(n_w, dv)``: a V-side vector taken per W block.
+    """
+    return index.wclasses[k].rhs(asm.wt[k], xv[:, :, None])[:, :, 0]
+
+
+def back_substitute(index: BlockIndex, asm: Assembly, du: np.ndarray, vinv: list[np.ndarray]
+                    ) -> list[np.ndarray]:
+    """``Δv = V⁻¹ (b_v − Wᵀ Δu)`` per V class.
+
+    Args:
+        index: The block index.
+        asm: The assembled system.
+        du: Solution of the reduced system.
+        vinv: Inverted damped V blocks per class.
+    """
+    r = [b.copy() for b in asm.bv]
+    for k, wc in enumerate(index.wclasses):
+        r[wc.vclass] -= wt_product(index, asm, k, du)
+    return [np.matmul(vi, ri[:, :, None])[:, :, 0] for vi, ri in zip(vinv, r, strict=True)]
+
+
+def hessian_product(index: BlockIndex, asm: Assembly, xu: np.ndarray, xv: list[np.ndarray]
+                    ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The undamped full Hessian times a vector ``[xu, xv]``.
+
+    Args:
+        index: The block index.
+        asm: The assembled system.
+        xu: U part of the vector.
+        xv: V parts per class.
+    """
+    hu = with_data(index.pattern.csc, asm.h_data) @ xu
+    hv = [np.matmul(vb, x[:, :, None])[:, :, 0] for vb, x in zip(asm.v, xv, strict=True)]
+    for k, wc in enumerate(index.wclasses):
+        hu[wc.rhs_dest] += w_product(index, asm, k, xv[wc.vclass][wc.vblock])
+        hv[wc.vclass] += wt_product(index, asm, k, xu)
+    return hu, hv

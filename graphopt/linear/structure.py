@@ -1,0 +1,274 @@
+"""The block index of the normal equations, built once per graph structure.
+
+Vertices that are neither fixed nor marginalised are *U* blocks (numbered across the stores);
+marginalised ones are *V* blocks (numbered within their store's *V class*, in co-visibility
+order); *W* blocks couple a U and a V block that share an edge, grouped into *W classes* by (U
+store, V class). The reduced matrix ``S = U − W V⁻¹ Wᵀ`` has the U blocks, the U-U blocks of
+the edges and the *fill* (pairs of U blocks that share a V block); its scalar pattern is
+:class:`~graphopt.linear.pattern.ReducedPattern`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.sparse as sp
+
+from graphopt.errors import GraphError
+from graphopt.linear.block_ops import EdgeContraction
+from graphopt.linear.indexing import pairs_sharing_key, unique_ints
+from graphopt.linear.ordering import co_visibility_order
+from graphopt.linear.pattern import ReducedPattern
+
+if TYPE_CHECKING:
+    from graphopt.storage import EdgeGroup, VertexStore
+
+#: Per edge group, per vertex position: ``(store index, slots (m,))``.
+Positions = list[list[tuple[int, np.ndarray]]]
+
+
+@dataclass
+class VClass:
+    """All marginalised vertices of one store.
+
+    Args:
+        store: The store.
+        dim: Their tangent dimension.
+        slots: ``(n,)`` store slot of every V block, by V block index.
+    """
+
+    store: int
+    dim: int
+    slots: np.ndarray
+
+
+@dataclass
+class WClass:
+    """The W blocks between the U vertices of one store and one V class.
+
+    Blocks are stored transposed (``Wᵀ``, ``(dv, du)``, the layout every product wants) and
+    sorted by V block, then U block.
+
+    Args:
+        ustore: The U vertices' store.
+        vclass: The V class.
+        du: U block dimension.
+        dv: V block dimension.
+        ublock: ``(n,)`` global U block of every W block.
+        vblock: ``(n,)`` block within the V class of every W block.
+        upos: ``(n, du)`` scalar rows of every W block's U block.
+        keys: ``(n,)`` sorted ``vblock · n_ublocks + ublock``.
+        rhs: ``Σ_w W_w x[w]`` into the U blocks of the class (``Wᵀ`` used in place).
+        rhs_dest: ``(n_u, du)`` scalar rows of those U blocks.
+        bsr_cols: ``(n,)`` column block of every W block among the store's U blocks: ``Wᵀ``
+            of the class is a BSR matrix whose data is the W array as it is.
+        bsr_indptr: ``(n_v + 1,)`` W blocks of every V block.
+        ucols: The store's scalar U entries.
+    """
+
+    ustore: int
+    vclass: int
+    du: int
+    dv: int
+    ublock: np.ndarray
+    vblock: np.ndarray
+    upos: np.ndarray
+    keys: np.ndarray
+    rhs: EdgeContraction
+    rhs_dest: np.ndarray
+    bsr_cols: np.ndarray
+    bsr_indptr: np.ndarray
+    ucols: slice
+
+
+class BlockIndex:
+    """U, V and W blocks of a graph, their numbering, and the reduced pattern.
+
+    Args:
+        stores: The vertex stores.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+        spectral_max: Most U blocks ordered by co-visibility (see
+            :func:`~graphopt.linear.ordering.co_visibility_order`).
+
+    Attributes:
+        stores: The vertex stores (as given).
+        groups: The edge groups (as given).
+        positions: The groups' positions (as given).
+        ublock: Per store, ``(n_store,)`` global U block of every slot (−1: not a U block).
+        vblock: Per store, ``(n_store,)`` V block of every slot within its V class (−1: none).
+        vclass_of_store: Per store, its V class (−1: none).
+        vclasses: The V classes.
+        wclasses: The W classes, in the order edges first reveal them.
+        wclass_of: The W class of every ``(U store, V class)``.
+        n_ublocks: Number of U blocks.
+        udims: ``(n_ublocks,)`` dimension of every U block.
+        ustore: ``(n_ublocks,)`` store of every U block.
+        uoffset: ``(n_ublocks + 1,)`` scalar offset of every U block, then ``n``.
+        n: Size of the reduced system.
+        pattern: The scalar pattern of ``S``.
+
+    Raises:
+        GraphError: if an edge joins two different marginalised vertices.
+    """
+
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+                 spectral_max: int = 600) -> None:
+        self.stores, self.groups, self.positions = stores, groups, positions
+        self._number_blocks()
+        nb = max(self.n_ublocks, 1)
+        u_keys, w_found = self._scan_edges()
+        keys = [u_keys]
+        for vc in range(len(self.vclasses)):
+            v, u = self._incidence(vc, w_found)
+            # The fill: pairs of U blocks that share a V block, the structure of IncᵀInc.
+            inc = sp.csr_matrix((np.ones(len(v)), (v, u)), shape=(len(self.vclasses[vc].slots), nb))
+            fill = (inc.T @ inc).tocoo()
+            keys.append(fill.col.astype(np.int64) * nb + fill.row)
+            self._order_v_blocks(vc, v, u, w_found, spectral_max)
+        self.wclass_of: dict[tuple[int, int], int] = {}
+        self.wclasses: list[WClass] = []
+        for key, found in w_found.items():
+            self.wclass_of[key] = len(self.wclasses)
+            self.wclasses.append(self._wclass(*key, found))
+        self.pattern = ReducedPattern(self.uoffset, self.udims,
+                                      unique_ints(np.concatenate(keys), nb * nb))
+
+    def blocks_of(self, gi: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """U and V blocks of every edge of group ``gi``, per position (−1: none).
+
+        Args:
+            gi: The group.
+        """
+        pos = self.positions[gi]
+        return ([self.ublock[s][slots] for s, slots in pos],
+                [self.vblock[s][slots] for s, slots in pos])
+
+    def w_pairs(self, k1: int, k2: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs of W blocks ``(w1, w2)`` of classes ``k1`` and ``k2`` that share a V block.
+
+        For a class with itself only the pairs with ``u(w1) < u(w2)`` (``S`` is symmetric;
+        the diagonal pairs ``(w, w)`` are summed apart).
+
+        Args:
+            k1: A W class.
+            k2: A W class of the same V class.
+        """
+        c1, c2 = self.wclasses[k1], self.wclasses[k2]
+        w1, w2 = pairs_sharing_key(c1.vblock, c2.vblock)
+        if k1 == k2:
+            keep = c1.ublock[w1] < c2.ublock[w2]
+            w1, w2 = w1[keep], w2[keep]
+        return w1, w2
+
+    # --- construction ------------------------------------------------------------------------
+
+    def _number_blocks(self) -> None:
+        self.ublock: list[np.ndarray] = []
+        self.vblock: list[np.ndarray] = []
+        self.vclass_of_store: list[int] = []
+        self.vclasses: list[VClass] = []
+        udims, ustore_of = [], []
+        nu = 0
+        for si, st in enumerate(self.stores):
+            active = ~st.fixed
+            umask = active & ~st.marginalized
+            vmask = active & st.marginalized
+            nuh = int(umask.sum())
+            ub = np.full(len(st), -1, dtype=np.int64)
+            ub[umask] = nu + np.arange(nuh)
+            nu += nuh
+            self.ublock.append(ub)
+            udims.append(np.full(nuh, st.vtype.dimension, dtype=np.int64))
+            ustore_of.append(np.full(nuh, si, dtype=np.int64))
+            vb = np.full(len(st), -1, dtype=np.int64)
+            if vmask.any():
+                vb[vmask] = np.arange(int(vmask.sum()))
+                self.vclass_of_store.append(len(self.vclasses))
+                self.vclasses.append(VClass(si, st.vtype.dimension, np.flatnonzero(vmask)))
+            else:
+                self.vclass_of_store.append(-1)
+            self.vblock.append(vb)
+        self.n_ublocks = nu
+        self.udims = np.concatenate(udims) if udims else np.zeros(0, dtype=np.int64)
+        self.ustore = np.concatenate(ustore_of) if ustore_of else np.zeros(0, dtype=np.int64)
+        self.uoffset = np.concatenate([[0], np.cumsum(self.udims)]).astype(np.int64)
+        self.n = int(self.uoffset[-1])
+
+    def _scan_edges(self) -> tuple[np.ndarray, dict[tuple[int, int], list[np.ndarray]]]:
+        """U-U block keys (``col · n_ublocks + row``, with the diagonal) and, per W class key
+        ``(U store, V class)`` in the order edges reveal them, the ``(U block, V block)`` pairs
+        of its edges."""
+        nb = max(self.n_ublocks, 1)
+        u_keys = [np.arange(self.n_ublocks) * (nb + 1)]
+        w_found: dict[tuple[int, int], list[np.ndarray]] = {}
+        for gi, pos in enumerate(self.positions):
+            ub, vb = self.blocks_of(gi)
+            for a, b in combinations(range(len(pos)), 2):
+                both_v = (vb[a] >= 0) & (vb[b] >= 0)
+                if both_v.any() and (pos[a][0] != pos[b][0]
+                                     or np.any(vb[a][both_v] != vb[b][both_v])):
+                    raise GraphError(
+                        f"{self.groups[gi].etype.__name__}: an edge connects two different "
+                        "marginalised vertices; the Schur complement needs marginalised "
+                        "vertices that are independent given the others"
+                    )
+                for x, y in ((a, b), (b, a)):
+                    ok = (ub[x] >= 0) & (ub[y] >= 0)
+                    u_keys.append(ub[y][ok] * nb + ub[x][ok])
+                    ok = (ub[x] >= 0) & (vb[y] >= 0)
+                    if ok.any():
+                        key = (pos[x][0], self.vclass_of_store[pos[y][0]])
+                        w_found.setdefault(key, []).append(np.stack([ub[x][ok], vb[y][ok]], 1))
+        return np.concatenate(u_keys), w_found
+
+    def _incidence(self, vc: int, w_found: dict[tuple[int, int], list[np.ndarray]]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Unique ``(V block, U block)`` pairs of V class ``vc`` linked by an edge, sorted by V,
+        then U block."""
+        nb = max(self.n_ublocks, 1)
+        keys = [p[:, 1] * nb + p[:, 0]
+                for (_, c), found in w_found.items() if c == vc for p in found]
+        if not keys:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        k = unique_ints(np.concatenate(keys), len(self.vclasses[vc].slots) * nb)
+        return k // nb, k % nb
+
+    def _order_v_blocks(self, vc: int, v: np.ndarray, u: np.ndarray,
+                        w_found: dict[tuple[int, int], list[np.ndarray]],
+                        spectral_max: int) -> None:
+        """Renumber V class ``vc``'s blocks in co-visibility order (in ``vblock``, the class's
+        slots and the scanned pairs), given its incidence ``(v, u)``."""
+        c = self.vclasses[vc]
+        nv = len(c.slots)
+        order = co_visibility_order(v, u, nv, self.n_ublocks, spectral_max)
+        new_id = np.empty(nv, dtype=np.int64)
+        new_id[order] = np.arange(nv)
+        vb = self.vblock[c.store]
+        vb[vb >= 0] = new_id[vb[vb >= 0]]
+        c.slots = c.slots[order]
+        for (_, cls), found in w_found.items():
+            if cls == vc:
+                for p in found:
+                    p[:, 1] = new_id[p[:, 1]]
+
+    def _wclass(self, ustore: int, vclass: int, found: list[np.ndarray]) -> WClass:
+        nb = max(self.n_ublocks, 1)
+        du = self.stores[ustore].vtype.dimension
+        dv = self.vclasses[vclass].dim
+        n_v = len(self.vclasses[vclass].slots)
+        allp = np.concatenate(found)
+        keys = unique_ints(allp[:, 1] * nb + allp[:, 0], n_v * nb)
+        vblock, ublock = keys // nb, keys % nb
+        upos = (self.uoffset[ublock][:, None] + np.arange(du)).astype(np.int64)
+        # rhs: Σ_w W_w y[w] per U block is Σ_w (Wᵀ_w)ᵀ y[w]: Wᵀ used in place.
+        uu, inv = unique_ints(ublock, nb, True)
+        rhs = EdgeContraction(np.arange(len(keys)), inv, len(uu), len(keys), dv, du)
+        rhs_dest = self.uoffset[uu][:, None] + np.arange(du)
+        ub_store = np.flatnonzero(self.ustore == ustore)  # a store's U blocks are contiguous
+        ucols = slice(int(self.uoffset[ub_store[0]]), int(self.uoffset[ub_store[-1] + 1]))
+        return WClass(ustore, vclass, du, dv, ublock, vblock, upos, keys, rhs, rhs_dest,
+                      ublock - ub_store[0], np.searchsorted(vblock, np.arange(n_v + 1)), ucols)

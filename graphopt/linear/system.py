@@ -1,0 +1,153 @@
+"""``LinearSystem``: the facade over the three tiers of the (Schur-reduced) normal equations.
+
+* *structure*, once per graph structure: :class:`~graphopt.linear.structure.BlockIndex`
+  (U/V/W blocks, V order, the pattern of ``S``);
+* *assembly*, once per linearisation: :class:`~graphopt.linear.assembly.Assembler` and the
+  λ-free products of ``products.py``;
+* *Schur reduction*, once per λ: :class:`~graphopt.linear.schur.SchurComplement`, one
+  strategy per W class.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+import graphopt.linear.products as products
+from graphopt.linear.assembly import Assembler, Assembly, GroupArrays
+from graphopt.linear.schur import SchurComplement
+from graphopt.linear.schur_config import SchurConfig
+from graphopt.linear.structure import BlockIndex, Positions
+
+if TYPE_CHECKING:
+    from graphopt.storage import EdgeGroup, VertexStore
+
+
+class LinearSystem:
+    """Structure, assembly and Schur reduction of the normal equations.
+
+    Args:
+        stores: The vertex stores.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+        config: How ``W V⁻¹ Wᵀ`` is formed (default: the cheapest per W class).
+
+    Attributes:
+        index: The block index (U/V/W blocks, numbering, pattern).
+        assembler: The edge groups' terms.
+        reduction: The Schur strategies.
+        n: Size of the reduced system.
+        udims: ``(n_ublocks,)`` dimension of every U block.
+        pattern: The reduced matrix's CSC pattern (both triangles).
+        schur: Whether there is anything to eliminate (a V class).
+
+    Raises:
+        GraphError: if an edge joins two different marginalised vertices.
+        ValueError: if a forced dense strategy exceeds its limit.
+    """
+
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+                 config: SchurConfig | None = None) -> None:
+        self.config = config if config is not None else SchurConfig()
+        self.index = BlockIndex(stores, groups, positions, self.config.cost.spectral_max)
+        self.assembler = Assembler(self.index, self.config.cost)
+        self.reduction = SchurComplement(self.index, self.config)
+        self.n = self.index.n
+        self.udims = self.index.udims
+        self.pattern = self.index.pattern.csc
+        self.schur = bool(self.index.vclasses)
+
+    def assemble(self, jacobians: GroupArrays, weighted: GroupArrays,
+                 weighted_errors: list[np.ndarray]) -> Assembly:
+        """The numbers of one linearisation (:meth:`Assembler.assemble`).
+
+        Args:
+            jacobians: The Jacobians, per group and position.
+            weighted: ``ρ'ΩJ``, per group and position.
+            weighted_errors: ``ρ'Ωe``, per group.
+        """
+        return self.assembler.assemble(jacobians, weighted, weighted_errors)
+
+    @staticmethod
+    def is_finite(asm: Assembly) -> bool:
+        """See :func:`~graphopt.linear.products.is_finite`.
+
+        Args:
+            asm: The assembled system.
+        """
+        return products.is_finite(asm)
+
+    def damping(self, asm: Assembly, diagonal: bool) -> tuple[np.ndarray, list[np.ndarray]]:
+        """See :func:`~graphopt.linear.products.damping`.
+
+        Args:
+            asm: The assembled system.
+            diagonal: ``diag(H)`` (clipped) instead of the identity.
+        """
+        return products.damping(self.index, asm, diagonal)
+
+    def max_diagonal(self, asm: Assembly) -> float:
+        """See :func:`~graphopt.linear.products.max_diagonal`.
+
+        Args:
+            asm: The assembled system.
+        """
+        return products.max_diagonal(self.index, asm)
+
+    def reduce(self, asm: Assembly, lam: float,
+               damp: tuple[np.ndarray, list[np.ndarray]] | None = None
+               ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        """See :meth:`SchurComplement.reduce`: ``(s_data, rhs, vinv)``.
+
+        Args:
+            asm: The assembled system.
+            lam: Levenberg damping (0 for none).
+            damp: The diagonal ``D`` from :meth:`damping` (``None``: the identity).
+
+        Raises:
+            NotPositiveDefiniteError: if a V block is not positive definite.
+        """
+        return self.reduction.reduce(asm, lam, damp)
+
+    def back_substitute(self, asm: Assembly, du: np.ndarray, vinv: list[np.ndarray]
+                        ) -> list[np.ndarray]:
+        """See :func:`~graphopt.linear.products.back_substitute`.
+
+        Args:
+            asm: The assembled system.
+            du: Solution of the reduced system.
+            vinv: Inverted damped V blocks per class.
+        """
+        return products.back_substitute(self.index, asm, du, vinv)
+
+    def hessian_product(self, asm: Assembly, xu: np.ndarray, xv: list[np.ndarray]
+                        ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """See :func:`~graphopt.linear.products.hessian_product`.
+
+        Args:
+            asm: The assembled system.
+            xu: U part of the vector.
+            xv: V parts per class.
+        """
+        return products.hessian_product(self.index, asm, xu, xv)
+
+    def wt_product(self, asm: Assembly, k: int, xu: np.ndarray) -> np.ndarray:
+        """See :func:`~graphopt.linear.products.wt_product`.
+
+        Args:
+            asm: The assembled system.
+            k: The W class.
+            xu: A vector over the U part.
+        """
+        return products.wt_product(self.index, asm, k, xu)
+
+    def y_transposed(self, asm: Assembly, vinv: list[np.ndarray]) -> list[np.ndarray]:
+        """``Yᵀ = V⁻¹ Wᵀ`` per W class, ``(n, dv, du)`` each (for marginal covariances).
+
+        Args:
+            asm: The assembled system.
+            vinv: Inverted V blocks per class (from :meth:`reduce`).
+        """
+        return [products.class_y_transposed(self.index, asm, vinv, k)
+                for k in range(len(self.index.wclasses))]
