@@ -1,0 +1,498 @@
+"""g2o and TORO graph files: :func:`read_graph`, :func:`write_g2o` and :class:`GraphFormatError`.
+
+Read tags (plain, ``.gz`` or ``.bz2``; blank lines and ``#`` comments skipped), each converted to
+its canonical g2o tag (see :mod:`graphopt.io.g2o_records`):
+
+- g2o: ``VERTEX_SE2``, ``EDGE_SE2``, ``VERTEX_XY``, ``EDGE_SE2_XY``, ``VERTEX_SE3:QUAT``,
+  ``EDGE_SE3:QUAT``, ``VERTEX_TRACKXYZ``, ``EDGE_SE3_TRACKXYZ``, ``PARAMS_SE3OFFSET``, ``FIX``.
+- GTSAM: ``LANDMARK2 pose landmark x y Ixx Ixy Iyy`` → ``EDGE_SE2_XY`` (same columns).
+- TORO: ``VERTEX2``/``EDGE2`` → ``VERTEX_SE2``/``EDGE_SE2``; ``VERTEX3``/``EDGE3`` (roll, pitch,
+  yaw with ``R = Rz(yaw) Ry(pitch) Rx(roll)``) → ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``;
+  ``EQUIV a b`` → :attr:`GraphFile.equiv` (merging is the builder's job).
+
+Conventions that differ between the formats:
+
+- ``EDGE2`` information comes in TORO's order ``I11 I12 I22 I33 I13 I23`` in some files and in
+  g2o's ``I11 I12 I13 I22 I23 I33`` in others. Per file, the order that makes every ``EDGE2``
+  matrix positive definite is used (TORO's when both do) and named once in
+  :attr:`GraphFile.notes`; when neither does, the first failing line is an error.
+- ``EDGE3`` information weighs the roll-pitch-yaw error, which is the rotation angle to first
+  order, whereas g2o's ``EDGE_SE3:QUAT`` weighs the quaternion's vector part, half the angle:
+  ``Ω_g2o = D Ω_toro D`` with ``D = diag(1, 1, 1, 2, 2, 2)`` (rotation block ×4, mixed ×2), so
+  chi2 is g2o's. An ``EDGE3`` without information gets the identity in roll-pitch-yaw space.
+
+Vertex ids are per tag, as GTSAM keeps them (g2o's own ``known_landmark`` files number
+``VERTEX_TRACKXYZ`` from 0 beside ``VERTEX_SE3:QUAT`` 0…): an id may appear once per tag. An edge
+naming an id of a vertex tag that has lines in the file must name one of them; a file without
+lines of that tag (GTSAM's Victoria Park) is legal, its estimates are for the builder to guess.
+
+The reader groups the lines by tag and converts each tag with a few numpy calls; every error is a
+one-line :class:`GraphFormatError` naming the file and the 1-based line.
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import os
+import warnings
+import zlib
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from graphopt.io.atomic import atomic_path
+from graphopt.io.bal import _WHITESPACE, _token_layout
+from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
+
+__all__ = ["GraphFormatError", "read_graph", "write_g2o"]
+
+
+class GraphFormatError(ValueError):
+    """A graph file that cannot be read; the message is one line naming the file and line.
+
+    Args:
+        path: The file.
+        message: What is wrong.
+        line: 1-based line number, if the problem is on a line.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], message: str, line: int | None = None):
+        self.path = str(path)
+        self.line = None if line is None else int(line)
+        where = f"{self.path}:{self.line}" if line is not None else self.path
+        super().__init__(f"{where}: {message}")
+
+
+# Tag → (canonical tag, allowed numbers of values after the tag (empty: one or more), layout).
+_TAGS: dict[str, tuple[str, tuple[int, ...], str]] = {
+    "VERTEX_SE2": ("VERTEX_SE2", (4,), "id x y theta"),
+    "VERTEX2": ("VERTEX_SE2", (4,), "id x y theta"),
+    "VERTEX_XY": ("VERTEX_XY", (3,), "id x y"),
+    "VERTEX_SE3:QUAT": ("VERTEX_SE3:QUAT", (8,), "id x y z qx qy qz qw"),
+    "VERTEX3": ("VERTEX_SE3:QUAT", (7,), "id x y z roll pitch yaw"),
+    "VERTEX_TRACKXYZ": ("VERTEX_TRACKXYZ", (4,), "id x y z"),
+    "EDGE_SE2": ("EDGE_SE2", (11,), "i j x y theta and 6 information values"),
+    "EDGE2": ("EDGE_SE2", (11,), "i j x y theta and 6 information values"),
+    "EDGE_SE2_XY": ("EDGE_SE2_XY", (7,), "i j x y and 3 information values"),
+    "LANDMARK2": ("EDGE_SE2_XY", (7,), "pose landmark x y Ixx Ixy Iyy"),
+    "EDGE_SE3:QUAT": ("EDGE_SE3:QUAT", (30,), "i j x y z qx qy qz qw and 21 information values"),
+    "EDGE3": ("EDGE_SE3:QUAT", (8, 29), "i j x y z roll pitch yaw [and 21 information values]"),
+    "EDGE_SE3_TRACKXYZ": ("EDGE_SE3_TRACKXYZ", (12,), "i j param x y z and 6 information values"),
+    "PARAMS_SE3OFFSET": ("PARAMS_SE3OFFSET", (8,), "id x y z qx qy qz qw"),
+    "FIX": ("FIX", (), "one or more vertex ids"),
+    "EQUIV": ("EQUIV", (2,), "id id"),
+}
+_VERTEX_TAGS = ("VERTEX_SE2", "VERTEX_XY", "VERTEX_SE3:QUAT", "VERTEX_TRACKXYZ")
+# Canonical edge tag → (vertex tags of its two ends, measurement columns, information size).
+_EDGES = {
+    "EDGE_SE2": (("VERTEX_SE2", "VERTEX_SE2"), 3, 3),
+    "EDGE_SE2_XY": (("VERTEX_SE2", "VERTEX_XY"), 2, 2),
+    "EDGE_SE3:QUAT": (("VERTEX_SE3:QUAT", "VERTEX_SE3:QUAT"), 7, 6),
+    "EDGE_SE3_TRACKXYZ": (("VERTEX_SE3:QUAT", "VERTEX_TRACKXYZ"), 3, 3),
+}
+_TORO_EDGE2 = ([0, 0, 1, 2, 0, 1], [0, 1, 1, 2, 2, 2])  # I11 I12 I22 I33 I13 I23
+_RPY_TO_QVEC = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])  # error scale: rpy ≈ 2 q_vec
+_MAX_ID = 2.0**53  # ids are read as doubles: exact below this
+
+
+def _symmetric(values: np.ndarray, rows: Sequence[int], cols: Sequence[int]) -> np.ndarray:
+    """``(m, d, d)`` symmetric matrices with ``values[:, k]`` at ``(rows[k], cols[k])``."""
+    d = max(cols) + 1
+    out = np.zeros((len(values), d, d))
+    out[:, rows, cols] = values
+    out[:, cols, rows] = values
+    return out
+
+
+def _positive_definite(info: np.ndarray) -> np.ndarray:
+    """``(m,)`` whether each symmetric matrix is positive definite (all Cholesky pivots > 0)."""
+    a = np.array(info, dtype=float)
+    ok = np.ones(len(a), dtype=bool)
+    for k in range(a.shape[-1]):
+        pivot = a[:, k, k]
+        ok &= pivot > 0
+        col = a[:, k + 1:, k] / np.where(ok, pivot, 1.0)[:, None]
+        a[:, k + 1:, k + 1:] -= col[:, :, None] * a[:, None, k, k + 1:]
+    return ok
+
+
+def _rpy_to_quat(rpy: np.ndarray) -> np.ndarray:
+    """Quaternions ``[qx, qy, qz, qw]`` (``qw >= 0``) of ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    c, s = np.cos(0.5 * rpy).T, np.sin(0.5 * rpy).T
+    q = np.stack([
+        s[0] * c[1] * c[2] - c[0] * s[1] * s[2],
+        c[0] * s[1] * c[2] + s[0] * c[1] * s[2],
+        c[0] * c[1] * s[2] - s[0] * s[1] * c[2],
+        c[0] * c[1] * c[2] + s[0] * s[1] * s[2],
+    ], axis=1)
+    return np.where(q[:, 3:] < 0, -q, q)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+
+def _read_bytes(path: Path) -> bytes:
+    """The file's content, decompressed when its magic bytes say gzip or bzip2."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise GraphFormatError(path, "file not found") from None
+    except IsADirectoryError:
+        raise GraphFormatError(path, "is a directory, not a graph file") from None
+    except OSError as exc:
+        raise GraphFormatError(path, f"cannot read file: {exc.strerror or exc}") from None
+    decompress: Callable[[bytes], bytes] | None = (
+        gzip.decompress if raw[:2] == b"\x1f\x8b" else bz2.decompress if raw[:3] == b"BZh"
+        else None)
+    if decompress is None:
+        return raw
+    try:
+        return decompress(raw)
+    except (OSError, EOFError, ValueError, zlib.error) as exc:
+        raise GraphFormatError(path, f"corrupt or truncated compressed file ({exc})") from None
+
+
+_TAG_WIDTH = 32  # no known tag is longer
+
+
+def _scan(path: Path, data: bytes, skip_unknown: bool
+          ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], dict[str, int]]:
+    """Known tag → ``(values (flat), value count per line, line numbers)``; unknown → count.
+
+    One pass over the whole file: the tag of every line from a fixed-width window, then the tags
+    (and skipped or comment lines) blanked out and every remaining token parsed by one C call.
+    """
+    a = np.frombuffer(data, dtype=np.uint8)
+    starts, token_line = _token_layout(data)
+    first = np.ones(len(starts), dtype=bool)
+    first[1:] = token_line[1:] != token_line[:-1]
+    line_of = np.cumsum(first) - 1  # token → index of its (non-blank) line
+    heads, numbers = starts[first], token_line[first]
+    window = np.minimum(heads[:, None] + np.arange(_TAG_WIDTH + 1), max(len(a) - 1, 0))
+    chars = a[window] if len(a) else np.zeros((0, _TAG_WIDTH + 1), np.uint8)
+    space = _WHITESPACE[chars] | (heads[:, None] + np.arange(_TAG_WIDTH + 1) >= len(a))
+    space[:, -1] = True
+    width = np.argmax(space, axis=1)
+    chars = np.where(np.arange(_TAG_WIDTH + 1) < width[:, None], chars, 0)[:, :_TAG_WIDTH]
+    names, code = np.unique(np.ascontiguousarray(chars).view(f"S{_TAG_WIDTH}").ravel(),
+                            return_inverse=True)
+    tags = [n.decode("utf-8", errors="replace") for n in names]
+    known = np.array([t in _TAGS for t in tags], dtype=bool)
+    keep = known[code] if len(code) else first[:0]
+    unknown = np.array([not (t in _TAGS or t.startswith("#")) for t in tags], dtype=bool)
+    if unknown.any() and not skip_unknown:
+        k = int(np.argmax(unknown[code]))  # the first line with an unknown tag
+        shown = tags[code[k]] + ("..." if width[k] >= _TAG_WIDTH else "")
+        raise GraphFormatError(
+            path, f"unknown tag {shown!r} (known: {' '.join(_TAGS)}; --skip-unknown / "
+            f"skip_unknown=True skips such lines)", numbers[k])
+    skipped = {tags[u]: int(np.count_nonzero(code == u)) for u in np.flatnonzero(unknown)}
+    counts = np.bincount(line_of, minlength=len(heads)) - 1
+    bad = np.zeros(len(heads), dtype=bool)
+    for u in np.flatnonzero(known):
+        allowed = _TAGS[tags[u]][1]
+        lines_u = code == u
+        bad |= lines_u & (~np.isin(counts, allowed) if allowed else counts < 1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        tag, (_, allowed, layout) = tags[code[k]], _TAGS[tags[code[k]]]
+        expect = " or ".join(map(str, allowed)) or "at least 1"
+        raise GraphFormatError(path, f"{tag} needs {expect} values ({layout}), found "
+                                     f"{counts[k]}", numbers[k])
+    # Blank every tag and every skipped or comment line, then parse what is left in one call.
+    newlines = np.flatnonzero(a == 10)
+    line_end = np.append(newlines, len(a))[np.searchsorted(newlines, heads)]
+    size = np.where(keep, width, line_end - heads)
+    blanked = a.copy()
+    blanked[np.repeat(heads - np.cumsum(size) + size, size) + np.arange(size.sum())] = 32
+    numeric = keep[line_of] & ~first
+    values = _numbers(path, blanked.tobytes(), numbers[line_of[numeric]])
+    value_code = code[line_of[numeric]]
+    groups = {tags[u]: (values[value_code == u], counts[code == u], numbers[code == u])
+              for u in np.flatnonzero(known)}
+    return groups, skipped
+
+
+def _numbers(path: Path, blanked: bytes, lines: np.ndarray) -> np.ndarray:
+    """Every token of ``blanked`` as a float; an error on the first non-numeric or non-finite."""
+    if len(lines) == 0:
+        return np.zeros(0)
+    values = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        try:
+            values = np.fromstring(blanked, dtype=float, sep=" ")
+        except (ValueError, DeprecationWarning):
+            pass
+    if values is not None and len(values) == len(lines):
+        bad = np.flatnonzero(~np.isfinite(values))
+        if not len(bad):
+            return values
+    tokens = blanked.split()  # only for broken files: find the culprit
+    for k, token in enumerate(tokens):
+        text = token.decode("utf-8", errors="replace")[:40]
+        try:
+            number = float(token.replace(b"_", b"#"))  # Python reads 1_0, the C parser does not
+        except ValueError:
+            raise GraphFormatError(path, f"not a number: {text!r}", lines[k]) from None
+        if not np.isfinite(number):
+            raise GraphFormatError(path, f"non-finite value {text!r}", lines[k])
+    raise GraphFormatError(path, "could not parse the numbers")  # pragma: no cover
+
+
+def _table(path: Path, tag: str, values: np.ndarray, counts: np.ndarray, numbers: np.ndarray
+          ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Value count → ``(values (n, count), line numbers (n,))`` for one tag's lines."""
+    allowed = _TAGS[tag][1]
+    if not allowed:  # FIX: any number of ids per line, one row per id
+        return {1: (values[:, None], np.repeat(numbers, counts))}
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    out = {}
+    for count in allowed:
+        sel = counts == count
+        if sel.any():
+            out[count] = (values[offsets[sel][:, None] + np.arange(count)], numbers[sel])
+    return out
+
+
+def _ids(path: Path, tag: str, values: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """Id columns as int64; an error on a negative, fractional or huge one."""
+    bad = (values < 0) | (values != np.floor(values)) | (values >= _MAX_ID)
+    if bad.any():
+        k = int(np.flatnonzero(bad.any(axis=1))[0])
+        v = values[k][bad[k]][0]
+        raise GraphFormatError(path, f"{tag}: id {v:g} is not a non-negative integer",
+                               int(lines[k]))
+    return values.astype(np.int64)
+
+
+def _edge2_information(path: Path, values: np.ndarray, lines: np.ndarray,
+                       notes: list[str]) -> np.ndarray:
+    """EDGE2 information in whichever order (TORO's or g2o's) makes all of it positive definite."""
+    orders = {"TORO's (I11 I12 I22 I33 I13 I23)": _symmetric(values, *_TORO_EDGE2),
+              "g2o's (I11 I12 I13 I22 I23 I33)": _symmetric(values, *np.triu_indices(3))}
+    fits = {name: _positive_definite(info) for name, info in orders.items()}
+    score = {name: int(ok.sum()) for name, ok in fits.items()}
+    (toro, g2o), m = orders, len(values)
+    name = toro if score[toro] >= score[g2o] else g2o
+    if score[name] < m:
+        k = int(np.flatnonzero(~fits[name])[0])
+        raise GraphFormatError(
+            path, f"EDGE2: information matrix is not positive definite in either order "
+                  f"(TORO's fits {score[toro]} of {m} EDGE2 lines, g2o's {score[g2o]})",
+            int(lines[k]))
+    other = g2o if name == toro else toro
+    notes.append(f"EDGE2 information read in {name} order: positive definite on all {m} lines "
+                 f"(the other order on {score[other]})")
+    return orders[name]
+
+
+def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]],
+             out: GraphFile, pieces: dict[str, list[tuple]]) -> None:
+    """Append one tag's rows, converted to the canonical tag, to ``pieces`` (offsets: ``out``)."""
+    canonical = _TAGS[tag][0]
+    for count, (v, lines) in rows.items():
+        if tag in ("FIX", "EQUIV"):
+            pieces[tag].append((_ids(path, tag, v, lines), lines))
+        elif tag == "PARAMS_SE3OFFSET":
+            for pid, values, line in zip(_ids(path, tag, v[:, :1], lines)[:, 0].tolist(),
+                                         v[:, 1:], lines.tolist(), strict=True):
+                if pid in out.offsets:
+                    raise GraphFormatError(path, f"duplicate PARAMS_SE3OFFSET id {pid}", line)
+                out.offsets[pid] = values
+        elif canonical in _VERTEX_TAGS:
+            values = v[:, 1:]
+            if tag == "VERTEX3":
+                values = np.column_stack([values[:, :3], _rpy_to_quat(values[:, 3:])])
+            pieces[canonical].append((_ids(path, tag, v[:, :1], lines)[:, 0], values, lines))
+        else:
+            nid = 3 if tag == "EDGE_SE3_TRACKXYZ" else 2
+            ids = _ids(path, tag, v[:, :nid], lines)
+            _, cols, dim = _EDGES[canonical]
+            cols = 6 if tag == "EDGE3" else cols
+            meas, tail = v[:, nid:nid + cols], v[:, nid + cols:]
+            if tag == "EDGE2":
+                info = _edge2_information(path, tail, lines, out.notes)
+            elif tag == "EDGE3":
+                meas = np.column_stack([meas[:, :3], _rpy_to_quat(meas[:, 3:])])
+                info = _symmetric(tail, *np.triu_indices(6)) if count == 29 else np.eye(6)[None]
+                info = info * _RPY_TO_QVEC[:, None] * _RPY_TO_QVEC + np.zeros((len(v), 1, 1))
+            else:
+                info = _symmetric(tail, *np.triu_indices(dim))
+            loops = np.flatnonzero(ids[:, 0] == ids[:, 1])
+            if len(loops) and canonical in ("EDGE_SE2", "EDGE_SE3:QUAT"):
+                raise GraphFormatError(path, f"{tag}: edge from vertex {ids[loops[0], 0]} to "
+                                             "itself", lines[loops[0]])
+            bad = np.flatnonzero(~_positive_definite(info))
+            if len(bad):
+                raise GraphFormatError(path, f"{tag}: information matrix is not positive "
+                                             "definite", lines[bad[0]])
+            pieces[canonical].append((ids[:, :2], meas, info, lines, ids[:, 2:]))
+    if tag == "EDGE3":
+        out.notes.append(
+            f"EDGE3 information converted from roll-pitch-yaw errors to g2o's quaternion-vector "
+            f"errors (rotation block x4, mixed x2; chi2 is g2o's); {len(rows.get(8, [[]])[-1])} "
+            f"of {sum(len(r[1]) for r in rows.values())} EDGE3 lines had none: identity in rpy")
+    elif tag == "LANDMARK2":
+        out.notes.append("LANDMARK2 (GTSAM: pose landmark x y Ixx Ixy Iyy) read as EDGE_SE2_XY")
+
+
+def _earliest(bad: np.ndarray, lines: np.ndarray) -> int | None:
+    """Index of the earliest line where ``bad`` holds, or ``None``."""
+    if not bad.any():
+        return None
+    return int(np.flatnonzero(bad)[np.argmin(lines[bad])])
+
+
+def _check_references(path: Path, graph: GraphFile, fix_lines: np.ndarray,
+                      equiv_lines: np.ndarray) -> None:
+    """Duplicate vertex ids, edges naming missing vertices or parameters, FIX/EQUIV ids."""
+    for tag, block in graph.vertices.items():
+        order = np.lexsort((block.lines, block.ids))
+        ids, lines = block.ids[order], block.lines[order]
+        dup = np.zeros(len(ids), dtype=bool)
+        dup[1:] = ids[1:] == ids[:-1]
+        if (k := _earliest(dup, lines)) is not None:
+            first = lines[np.maximum.accumulate(np.where(dup, 0, np.arange(len(ids))))[k]]
+            raise GraphFormatError(
+                path, f"duplicate {tag} id {ids[k]} (first defined on line {first})", lines[k])
+    for tag, edges in graph.edges.items():
+        for end, vtag in enumerate(_EDGES[tag][0]):
+            if vtag not in graph.vertices:
+                continue
+            missing = ~np.isin(edges.ids[:, end], graph.vertices[vtag].ids)
+            if (k := _earliest(missing, edges.lines)) is not None:
+                raise GraphFormatError(path, f"{tag} names vertex {edges.ids[k, end]}, which has "
+                                             f"no {vtag} line in this file", edges.lines[k])
+        if edges.params is not None:
+            missing = ~np.isin(edges.params, list(graph.offsets))
+            if (k := _earliest(missing, edges.lines)) is not None:
+                raise GraphFormatError(path, f"{tag} names parameter {edges.params[k]}, which no "
+                                             "PARAMS_SE3OFFSET line defines", edges.lines[k])
+    blocks = [b.ids for b in graph.vertices.values()] or [
+        e.ids.ravel() for e in graph.edges.values()]
+    known = np.concatenate(blocks + [np.zeros(0, np.int64)])
+    for name, ids, lines in (("FIX", graph.fixed[:, None], fix_lines),
+                             ("EQUIV", graph.equiv, equiv_lines)):
+        unknown = ~np.isin(ids, known)
+        if (k := _earliest(unknown.any(axis=1), lines)) is not None:
+            raise GraphFormatError(path, f"{name} names vertex {ids[k][unknown[k]][0]}, which "
+                                         "the file never defines", lines[k])
+
+
+def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> GraphFile:
+    """Read a g2o, TORO or GTSAM graph file, every line converted to its canonical g2o tag.
+
+    Args:
+        path: The file (plain, ``.gz`` or ``.bz2``; detected from the content).
+        skip_unknown: Skip lines with unknown tags (counted per tag in
+            :attr:`GraphFile.skipped` and noted) instead of failing on the first.
+
+    Returns:
+        The contents; blocks keep the file's line order and line numbers.
+
+    Raises:
+        GraphFormatError: Missing or corrupt file, no graph lines, an unknown tag, a wrong value
+            count, a non-numeric or non-finite value, a bad or duplicate id, an information
+            matrix that is not positive definite, an edge naming a vertex the file's vertex
+            lines lack or a parameter it never defines, ``FIX``/``EQUIV`` naming an unknown
+            vertex, an edge from a vertex to itself. One line naming the file and line.
+    """
+    path = Path(path)
+    groups, skipped = _scan(path, _read_bytes(path), skip_unknown)
+    if not groups:
+        raise GraphFormatError(path, "no vertex or edge lines" + (
+            f" (skipped {sum(skipped.values())} lines with unknown tags)" if skipped else ""))
+    graph = GraphFile(path=str(path), skipped=skipped)
+    pieces: dict[str, list[tuple]] = {t: [] for t in (*_VERTEX_TAGS, *_EDGES, "FIX", "EQUIV")}
+    for tag, group in groups.items():
+        _convert(path, tag, _table(path, tag, *group), graph, pieces)
+    merged = {}
+    for tag, parts in pieces.items():  # each canonical tag's lines in file order
+        if not parts:
+            merged[tag] = [np.zeros((0, 2), np.int64), np.zeros(0, np.int64)]
+            continue
+        parts = [np.concatenate(p) for p in zip(*parts, strict=True)]
+        order = np.argsort(parts[3 if tag in _EDGES else -1], kind="stable")
+        merged[tag] = [p[order] for p in parts]
+        if tag in _VERTEX_TAGS:
+            graph.vertices[tag] = VertexBlock(*merged[tag])
+        elif tag in _EDGES:
+            ids, meas, info, lines, extra = merged[tag]
+            graph.edges[tag] = EdgeBlock(ids, meas, info, lines, extra[:, 0] if extra.shape[1]
+                                         else None)
+    (fixed, fix_lines), (equiv, equiv_lines) = merged["FIX"], merged["EQUIV"]
+    graph.fixed, graph.equiv = fixed[:, 0].astype(np.int64), equiv.astype(np.int64)
+    _check_references(path, graph, fix_lines, equiv_lines)
+    if skipped:
+        graph.notes.append("skipped lines with unknown tags: " + ", ".join(
+            f"{t} x{n}" for t, n in sorted(skipped.items())))
+    return graph
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------
+
+
+def _lines_of(tag: str, columns: list[np.ndarray], n_ids: int) -> str:
+    """``tag id… v…`` lines, ids as integers and values with ``%.17g``."""
+    if len(columns[0]) == 0:
+        return ""
+    table = np.column_stack([np.asarray(c, dtype=float).reshape(len(c), -1) for c in columns])
+    if not np.isfinite(table).all():
+        raise ValueError(f"write_g2o: {tag} contains NaN or inf")
+    fmt = " ".join([tag] + ["%d"] * n_ids + ["%.17g"] * (table.shape[1] - n_ids))
+    return "\n".join(fmt % tuple(row) for row in table.tolist()) + "\n"
+
+
+def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool = False) -> None:
+    """Write ``graph`` as a g2o file (canonical tags, ``%.17g``), atomically.
+
+    Parameters come first, then vertices, edges and ``FIX`` lines. A ``.gz``/``.bz2`` suffix
+    compresses. g2o itself wants vertex ids unique across tags; GTSAM keeps landmarks apart.
+
+    Args:
+        path: Destination; never the file ``graph`` was read from.
+        graph: The contents (canonical tags only).
+        drop_equiv: Leave out ``EQUIV`` pairs (g2o has no such line) instead of refusing.
+
+    Raises:
+        ValueError: ``path`` is ``graph``'s input file, a block has an unknown tag or NaN/inf,
+            or the graph has ``EQUIV`` pairs and ``drop_equiv`` is false. ``path`` is then
+            untouched and no temporary file is left.
+    """
+    source, target = Path(graph.path), Path(path)
+    same = source.exists() and target.exists() and os.path.samefile(target, source)
+    if same or target.resolve() == source.resolve():
+        raise ValueError(f"write_g2o: refusing to overwrite the input file {graph.path}")
+    if len(graph.equiv) and not drop_equiv:
+        raise ValueError(f"write_g2o: {len(graph.equiv)} EQUIV pairs, which g2o cannot store; "
+                         "merge them first or pass drop_equiv=True")
+    unknown = (set(graph.vertices) - set(_VERTEX_TAGS)) | (set(graph.edges) - set(_EDGES))
+    if unknown:
+        raise ValueError(f"write_g2o: no g2o line for {', '.join(sorted(unknown))}")
+    track = graph.edges.get("EDGE_SE3_TRACKXYZ")
+    if track is not None and track.params is None:
+        raise ValueError("write_g2o: EDGE_SE3_TRACKXYZ edges need parameter ids (params)")
+    name = str(path)
+    opener: Callable = gzip.open if name.endswith(".gz") else (
+        bz2.open if name.endswith(".bz2") else open)
+    with atomic_path(path) as tmp, opener(tmp, "wt", encoding="ascii") as f:
+        for pid, offset in sorted(graph.offsets.items()):
+            f.write(_lines_of("PARAMS_SE3OFFSET", [np.array([pid]), np.reshape(offset, (1, 7))], 1))
+        for tag in _VERTEX_TAGS:
+            if tag in graph.vertices:
+                block = graph.vertices[tag]
+                f.write(_lines_of(tag, [block.ids, block.values], 1))
+        for tag, (_, _, dim) in _EDGES.items():
+            if tag in graph.edges:
+                e = graph.edges[tag]
+                ids = [e.ids] + ([e.params] if e.params is not None else [])
+                upper = e.information[:, *np.triu_indices(dim)]
+                f.write(_lines_of(tag, [*ids, e.measurements, upper], len(ids) + 1))
+        f.write(_lines_of("FIX", [np.asarray(graph.fixed)], 1))
