@@ -117,11 +117,15 @@ def _pose_frame(
     return c * dx + s * dy, c * dy - s * dx, c, s, dx, dy
 
 
-def _rows(*entries: np.ndarray) -> np.ndarray:
-    """Stack per-edge matrix entries, row-major, into ``(m, r, c)`` (``r`` = 2 for 4 or 6
-    entries, 3 for 9): one allocation, filled column by column."""
-    rows = 3 if len(entries) == 9 else 2
-    return np.stack(entries, axis=1).reshape(len(entries[0]), rows, len(entries) // rows)
+def _rows(rows: int, *entries: np.ndarray | float | None) -> np.ndarray:
+    """Per-edge matrices ``(m, rows, len(entries) // rows)`` from their entries, row-major
+    (``None`` for a zero): one zeroed allocation, the non-zero columns written into it."""
+    m = next(len(e) for e in entries if isinstance(e, np.ndarray))
+    out = np.zeros((m, len(entries)))
+    for k, e in enumerate(entries):
+        if e is not None:
+            out[:, k] = e
+    return out.reshape(m, rows, len(entries) // rows)
 
 
 def _rotate_back(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -208,9 +212,8 @@ class EdgeSE2(EdgeFromParts):
             ``(e (m, 3), (J_i (m, 3, 3), J_j (m, 3, 3)))``.
         """
         e, c, s, dx, dy = cls._parts(x, measurement, ctx)
-        zero, one = np.zeros(len(e)), np.ones(len(e))
-        Jj = _rows(c, s, zero, -s, c, zero, zero, zero, one)
-        Ji = _rows(-c, -s, c * dy - s * dx, s, -c, -s * dy - c * dx, zero, zero, -one)
+        Jj = _rows(3, c, s, None, -s, c, None, None, None, 1.0)
+        Ji = _rows(3, -c, -s, c * dy - s * dx, s, -c, -s * dy - c * dx, None, None, -1.0)
         return Linearization(e, (Ji, Jj))
 
 
@@ -254,8 +257,8 @@ class EdgeSE2PointXY(EdgeFromParts):
             ``(e (m, 2), (J_pose (m, 2, 3), J_point (m, 2, 2)))``.
         """
         e, c, s, dx, dy = cls._parts(x, measurement, ctx)
-        Ji = _rows(-c, -s, c * dy - s * dx, s, -c, -s * dy - c * dx)
-        return Linearization(e, (Ji, _rows(c, s, -s, c)))
+        Ji = _rows(2, -c, -s, c * dy - s * dx, s, -c, -s * dy - c * dx)
+        return Linearization(e, (Ji, _rows(2, c, s, -s, c)))
 
 
 class EdgeSE2Prior(EdgeFromParts):
@@ -300,5 +303,4 @@ class EdgeSE2Prior(EdgeFromParts):
             ``(e (m, 3), (J (m, 3, 3),))``.
         """
         e, c, s = cls._parts(x, measurement, ctx)
-        zero = np.zeros(len(e))
-        return Linearization(e, (_rows(c, s, zero, -s, c, zero, zero, zero, np.ones(len(e))),))
+        return Linearization(e, (_rows(3, c, s, None, -s, c, None, None, None, 1.0),))
