@@ -260,6 +260,12 @@ def _offsets(graph: GraphFile) -> dict[int, ParameterSE3Offset]:
     return out
 
 
+def _index_of(ids: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Positions in ``ids`` (unsorted, unique) of the ``query`` ids (all present)."""
+    order = np.argsort(ids)
+    return order[np.searchsorted(ids, query, sorter=order)]
+
+
 def _guess(graph: GraphFile, verts: _Vertices, eids: dict[str, np.ndarray],
            fixed: dict[int, str], offsets: dict[int, ParameterSE3Offset]) -> np.ndarray:
     """Fill the estimates by BFS propagation; return the ids that were set."""
@@ -275,11 +281,9 @@ def _guess(graph: GraphFile, verts: _Vertices, eids: dict[str, np.ndarray],
         reached = np.zeros(len(ids), bool)
         reached[roots] = True
         if etag in eids:
-            src, dst = (np.searchsorted(ids, eids[etag][:, c], sorter=np.argsort(ids))
-                        for c in (0, 1))
-            order = np.argsort(ids)
             meas = _to_estimates(ptag, graph.edges[etag].measurements)
-            reached = sg.propagate_poses(group, est, roots, order[src], order[dst], meas)
+            reached = sg.propagate_poses(group, est, roots, _index_of(ids, eids[etag][:, 0]),
+                                         _index_of(ids, eids[etag][:, 1]), meas)
         set_ids.append(ids[reached & ~np.isin(ids, list(fixed))])
         for ltag, letag in _POINT_EDGES.items():
             if EDGE_TYPES[letag][1][0] == ptag and ltag in verts.ids and letag in eids:
@@ -298,10 +302,9 @@ def _guess(graph: GraphFile, verts: _Vertices, eids: dict[str, np.ndarray],
 def _guess_points(graph: GraphFile, verts: _Vertices, eids: dict[str, np.ndarray], ltag: str,
                   letag: str, ptag: str, reached: np.ndarray, fixed: dict[int, str],
                   offsets: dict[int, ParameterSE3Offset]) -> np.ndarray:
-    pids, lids = verts.ids[ptag], verts.ids[ltag]
-    po, lo = np.argsort(pids), np.argsort(lids)
-    pose_idx = po[np.searchsorted(pids, eids[letag][:, 0], sorter=po)]
-    lm_idx = lo[np.searchsorted(lids, eids[letag][:, 1], sorter=lo)]
+    lids = verts.ids[ltag]
+    pose_idx = _index_of(verts.ids[ptag], eids[letag][:, 0])
+    lm_idx = _index_of(lids, eids[letag][:, 1])
     block = graph.edges[letag]
     if letag == "EDGE_SE2_XY":
         def observe(X: np.ndarray, z: np.ndarray, e: np.ndarray) -> np.ndarray:
@@ -449,8 +452,7 @@ def graph_file(slam: SlamGraph) -> GraphFile:
     fixed = []
     for tag, ids in slam.vertex_ids.items():
         store = opt.graph.stores[VERTEX_TYPES[tag]]
-        order = np.argsort(store.ids)
-        rows = order[np.searchsorted(store.ids, ids, sorter=order)]
+        rows = _index_of(store.ids, ids)
         est = store.estimates[rows]
         values = pose_to_qt(est) if tag == "VERTEX_SE3:QUAT" else est.copy()
         file_ids = ids - (slam.point_id_offset if tag in _POINT_EDGES else 0)
