@@ -1,0 +1,57 @@
+"""graphopt's vertex and edge types, installed as ``graphopt.types``.
+
+Every type is available at the package level (``from graphopt.types import EdgeSE2``); the
+modules are imported on first use, so ``import graphopt.types`` stays as quick as
+``import graphopt``.
+
+=====================  ==========================================================================
+module                 types
+=====================  ==========================================================================
+``vertices``           ``VertexSE3Expmap``, ``VertexPointXYZ``, ``VertexPointInverseDepth``
+``bal``                ``VertexCameraBAL``, ``EdgeBALProjection``
+``projection``         ``CameraParameters``, ``EdgeSE3ProjectXYZ``, ``EdgeProjectXYZ2UV``,
+                       ``EdgeInverseDepthProjection``
+``photometric``        ``PhotometricParams``, ``EdgePhotometricPatch``,
+                       ``EdgePhotometricPatchInverseDepth``,
+                       ``EdgePhotometricPatchInverseDepthHost``
+``slam2d``             ``VertexSE2``, ``VertexPointXY``, ``EdgeSE2``, ``EdgeSE2PointXY``,
+                       ``EdgeSE2Prior``
+``slam3d``             ``VertexSE3``, ``ParameterSE3Offset``, ``EdgeSE3``, ``EdgeSE3PointXYZ``,
+                       ``EdgeSE3Prior``
+``slam_graph``         ``SlamGraph``, ``build_graph``, ``graph_file`` (g2o/TORO records ↔ optimizer)
+=====================  ==========================================================================
+"""
+
+from importlib import import_module as _import_module
+from typing import Any as _Any
+
+_WHERE = {
+    "VertexSE3Expmap": "vertices", "VertexPointXYZ": "vertices",
+    "VertexPointInverseDepth": "vertices",
+    "VertexCameraBAL": "bal", "EdgeBALProjection": "bal",
+    "CameraParameters": "projection", "EdgeSE3ProjectXYZ": "projection",
+    "EdgeProjectXYZ2UV": "projection", "EdgeInverseDepthProjection": "projection",
+    "PhotometricParams": "photometric", "EdgePhotometricPatch": "photometric",
+    "EdgePhotometricPatchInverseDepth": "photometric",
+    "EdgePhotometricPatchInverseDepthHost": "photometric",
+    "VertexSE2": "slam2d", "VertexPointXY": "slam2d", "EdgeSE2": "slam2d",
+    "EdgeSE2PointXY": "slam2d", "EdgeSE2Prior": "slam2d",
+    "VertexSE3": "slam3d", "ParameterSE3Offset": "slam3d", "EdgeSE3": "slam3d",
+    "EdgeSE3PointXYZ": "slam3d", "EdgeSE3Prior": "slam3d",
+    "SlamGraph": "slam_graph", "build_graph": "slam_graph", "graph_file": "slam_graph",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> _Any:
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(_import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return __all__
