@@ -39,6 +39,11 @@ class LevenbergConfig:
         max_trials: Damped solves per iteration before giving up (g2o: 10).
         diagonal_damping: Damp with ``λ·diag(H)`` (Marquardt, Ceres) instead of g2o's ``λ I``;
             invariant to the scaling of the parameters (focal lengths next to distortions).
+        schedule: How λ changes. ``"g2o"`` (Nielsen's rule, as g2o and Ceres): after a
+            success ``λ ← λ·max(1/3, 1 − (2ρ − 1)³)``, after a failure ``λ ← λν, ν ← 2ν``.
+            ``"gtsam"`` (GTSAM's fixed factor): ``λ ← λ/factor`` after a success,
+            ``λ ← λ·factor`` after a failure, starting from ``initial_lambda`` or 1e-5.
+        factor: The ``"gtsam"`` schedule's factor (GTSAM: 10).
         name: Algorithm name used in messages.
     """
 
@@ -46,7 +51,15 @@ class LevenbergConfig:
     initial_lambda: float | None = None
     max_trials: int = 10
     diagonal_damping: bool = False
+    schedule: str = "g2o"
+    factor: float = 10.0
     name: str = "lm"
+
+    def __post_init__(self) -> None:
+        if self.schedule not in ("g2o", "gtsam"):
+            raise ValueError(f"unknown LM schedule {self.schedule!r}; choose g2o or gtsam")
+        if not self.factor > 1.0:
+            raise ValueError(f"LM factor must be > 1, got {self.factor!r}")
 
 
 @dataclass(frozen=True)
@@ -154,6 +167,14 @@ class LevenbergMarquardt(Algorithm):
         self.lam = 0.0
         self.nu = 2.0
 
+    def _failed(self) -> None:
+        """More damping after a rejected or failed trial."""
+        if self.config.schedule == "gtsam":
+            self.lam *= self.config.factor
+        else:
+            self.lam *= self.nu
+            self.nu *= 2.0
+
     def line_fields(self, info: IterationInfo) -> str:
         """g2o's ``lambda`` and ``levenbergIter`` fields.
 
@@ -174,6 +195,8 @@ class LevenbergMarquardt(Algorithm):
         if self.lam <= 0.0:
             if cfg.initial_lambda is not None:
                 self.lam = cfg.initial_lambda
+            elif cfg.schedule == "gtsam":
+                self.lam = 1e-5
             elif cfg.diagonal_damping:
                 self.lam = 1e-4
             else:
@@ -187,8 +210,7 @@ class LevenbergMarquardt(Algorithm):
                 step = p.solve(asm, self.lam, damp)
             except NotPositiveDefiniteError:
                 not_pd += 1
-                self.lam *= self.nu
-                self.nu *= 2.0
+                self._failed()
                 continue
             p.push()
             p.apply(step)
@@ -199,13 +221,15 @@ class LevenbergMarquardt(Algorithm):
             rho = (chi - new_chi) / scale
             if rho > 0 and math.isfinite(new_chi):
                 lam_used = self.lam
-                alpha = min(1.0 - (2.0 * rho - 1.0) ** 3, 2.0 / 3.0)
-                self.lam *= max(1.0 / 3.0, alpha)
-                self.nu = 2.0
+                if cfg.schedule == "gtsam":
+                    self.lam /= cfg.factor
+                else:
+                    alpha = min(1.0 - (2.0 * rho - 1.0) ** 3, 2.0 / 3.0)
+                    self.lam *= max(1.0 / 3.0, alpha)
+                    self.nu = 2.0
                 return IterationInfo(iteration, new_chi, lam=lam_used, trials=trial, not_pd=not_pd)
             p.pop()
-            self.lam *= self.nu
-            self.nu *= 2.0
+            self._failed()
         return IterationInfo(iteration, chi, lam=self.lam, trials=cfg.max_trials, not_pd=not_pd,
                              failed=True)
 

@@ -14,8 +14,11 @@ LOG="$VENV/bootstrap.log"
 
 say() { echo "bootstrap: $*"; }
 
-# CHOLMOD comes from scikit-sparse, which compiles against SuiteSparse's headers.
+# CHOLMOD comes from scikit-sparse, which compiles against SuiteSparse's headers. It calls the
+# system's libblas.so.3: Debian's reference BLAS makes its supernodal factorisations several
+# times slower than OpenBLAS, which registers itself as that library's provider.
 have_suitesparse() { [ -f /usr/include/suitesparse/cholmod.h ]; }
+have_openblas() { compgen -G "/usr/lib/*/openblas-pthread/libblas.so.3" >/dev/null; }
 
 # What the installation depends on. The stamp is written only after a complete set-up.
 stamp() {
@@ -23,14 +26,15 @@ stamp() {
     echo "pyproject $(sha256sum pyproject.toml | cut -d' ' -f1)"
     echo "bootstrap $(sha256sum scripts/bootstrap.sh | cut -d' ' -f1)"
     echo "suitesparse $(have_suitesparse && echo yes || echo no)"
+    echo "openblas $(have_openblas && echo yes || echo no)"
 }
 
 # -P: never put the checkout on sys.path, where types/ would shadow the standard library.
 if [ -f "$STAMP" ] && [ "$(stamp)" = "$(cat "$STAMP")" ] \
         && "$VENV/bin/python" -P -c "import graphopt" 2>/dev/null; then
-    cholmod=$("$VENV/bin/python" -P -c \
-        "from graphopt.solvers import CHOLMOD_AVAILABLE as a; print('with' if a else 'without')")
-    say "$VENV is up to date ($cholmod CHOLMOD); nothing to do"
+    cholmod=$("$VENV/bin/python" -P -c "from graphopt.solvers import CHOLMOD_AVAILABLE as a, \
+cholmod_blas as b; print(('with CHOLMOD on ' + (b().split('/')[-2] or 'BLAS')) if a else 'without CHOLMOD')")
+    say "$VENV is up to date ($cholmod); nothing to do"
     exit 0
 fi
 
@@ -48,17 +52,19 @@ run_logged() {
 
 start=$SECONDS
 rm -f "$STAMP"  # written again only after a complete set-up
-if ! have_suitesparse && command -v apt-get >/dev/null 2>&1; then
-    if [ "$(id -u)" = 0 ]; then
-        say "installing libsuitesparse-dev (for CHOLMOD)"
-        (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libsuitesparse-dev >/dev/null) \
-            || say "could not install libsuitesparse-dev; graphopt will use another linear solver"
-    elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
-        say "installing libsuitesparse-dev with sudo (for CHOLMOD)"
-        (sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libsuitesparse-dev >/dev/null) \
-            || say "could not install libsuitesparse-dev; graphopt will use another linear solver"
+packages=""
+have_suitesparse || packages="libsuitesparse-dev"
+have_openblas || packages="$packages libopenblas0-pthread"
+packages=${packages# }
+if [ -n "$packages" ] && command -v apt-get >/dev/null 2>&1; then
+    sudo=""
+    [ "$(id -u)" = 0 ] || { command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null && sudo="sudo"; }
+    if [ "$(id -u)" = 0 ] || [ -n "$sudo" ]; then
+        say "installing $packages (CHOLMOD and an optimised BLAS for it)"
+        ($sudo apt-get update -qq && $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null) \
+            || say "could not install $packages; graphopt falls back to another linear solver or a slower BLAS"
     else
-        say "libsuitesparse-dev is missing and cannot be installed without root; CHOLMOD will be unavailable"
+        say "$packages missing and cannot be installed without root; CHOLMOD may be unavailable or slower"
     fi
 fi
 

@@ -174,3 +174,19 @@ def test_dogleg_reports_the_trials_it_made() -> None:
     res = opt.optimize(200)
     assert res.stop_reason == "converged" and res.info[-1].failed
     assert 1 <= res.info[-1].trials < 100
+
+
+def test_gtsam_schedule_divides_and_multiplies_lambda_by_its_factor() -> None:
+    opt, _, _ = build_pose_graph(LevenbergConfig(schedule="gtsam", factor=10.0))
+    res = opt.optimize(30)
+    lams, trials = res.lambda_history, res.trials
+    assert lams[0] == 1e-5  # GTSAM's initial λ, absolute
+    for a, b, t in zip(lams, lams[1:], trials[1:], strict=False):
+        # after an accepted step λ/10, then ×10 for every rejected trial before the next one
+        assert b == pytest.approx(a / 10.0 * 10.0 ** (t - 1), rel=1e-12)
+    assert res.final_chi2 == pytest.approx(build_pose_graph("gn")[0].optimize(30).final_chi2,
+                                           rel=1e-9)
+    with pytest.raises(ValueError, match="unknown LM schedule"):
+        LevenbergConfig(schedule="ceres")
+    with pytest.raises(ValueError, match="factor must be > 1"):
+        LevenbergConfig(schedule="gtsam", factor=1.0)

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 from graphs import SOLVERS, build_pose_graph
 
+from graphopt.solvers import CHOLMOD_AVAILABLE
+
 
 @pytest.mark.parametrize("solver", SOLVERS)
 def test_solvers_give_the_same_step(solver: str) -> None:
@@ -64,3 +66,11 @@ def test_auto_solver_chooses_by_size_and_fill() -> None:
     opt2.initialize_optimization()
     assert opt2.solver.chosen.name in ("cholmod", "scipy")
     assert opt.optimize(20).final_chi2 == pytest.approx(opt2.optimize(20).final_chi2, rel=1e-9)
+
+
+@pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
+def test_cholmod_names_the_blas_it_runs_on() -> None:
+    from graphopt.solvers import cholmod_blas
+
+    path = cholmod_blas()  # e.g. /usr/lib/x86_64-linux-gnu/openblas-pthread/libblas.so.3
+    assert "blas" in path.lower() and ".so" in path, path

@@ -8,7 +8,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from graphopt.solvers.base import LinearSolver
-from graphopt.solvers.cholmod import CHOLMOD_AVAILABLE, CHOLMOD_IMPORT_ERROR, LinearSolverCholmod
+from graphopt.solvers.cholmod import (
+    CHOLMOD_AVAILABLE,
+    CHOLMOD_IMPORT_ERROR,
+    LinearSolverCholmod,
+    cholmod_blas,
+)
 from graphopt.solvers.dense import LinearSolverDense
 from graphopt.solvers.pcg import LinearSolverPCG, PCGConfig
 from graphopt.solvers.scipy_sparse import LinearSolverScipy
@@ -105,5 +110,6 @@ __all__ = [
     "LinearSolverScipy",
     "PCGConfig",
     "SOLVERS",
+    "cholmod_blas",
     "make_solver",
 ]

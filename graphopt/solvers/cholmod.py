@@ -3,6 +3,8 @@ every iteration."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -18,6 +20,24 @@ try:  # scikit-sparse is optional: it needs SuiteSparse headers to build.
 except ImportError as _exc:  # pragma: no cover - depends on the machine
     CHOLMOD_AVAILABLE = False
     CHOLMOD_IMPORT_ERROR = str(_exc)
+
+
+def cholmod_blas() -> str:
+    """The BLAS that CHOLMOD runs on, as the file the process mapped for it (Linux), e.g.
+    ``".../openblas-pthread/libblas.so.3"`` or Debian's reference ``".../blas/libblas.so.3"``;
+    ``""`` when CHOLMOD is not loaded or the process's maps cannot be read.
+
+    Supernodal factorisations spend their time in BLAS: on the reference BLAS they are several
+    times slower (``scripts/bootstrap.sh`` installs OpenBLAS as the system BLAS).
+    """
+    if not CHOLMOD_AVAILABLE:
+        return ""
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "libblas" in line or "openblas" in line}
+    except OSError:
+        return ""
+    return os.path.realpath(sorted(paths)[0]) if paths else ""
 
 
 class LinearSolverCholmod(LinearSolver):
