@@ -19,24 +19,19 @@ from __future__ import annotations
 import bz2
 import dataclasses
 import gzip
-import lzma
 import os
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from graphopt.io.atomic import atomic_path
+from graphopt.io.text import WHITESPACE, FileFormatError, read_bytes, token_layout
 from graphopt.lie import angle_axis_rotate
 
 __all__ = ["BALFormatError", "BALProblem", "read_bal", "write_bal"]
 
-_WHITESPACE = np.zeros(256, dtype=bool)
-_WHITESPACE[[9, 10, 11, 12, 13, 32]] = True  # exactly what bytes.split() splits on
-
-
-class BALFormatError(ValueError):
+class BALFormatError(FileFormatError):
     """A BAL file that cannot be read; the message is one line naming the file and line.
 
     Args:
@@ -45,11 +40,7 @@ class BALFormatError(ValueError):
         line: 1-based line number, if the problem is on a line.
     """
 
-    def __init__(self, path: str | os.PathLike[str], message: str, line: int | None = None):
-        self.path = str(path)
-        self.line = line
-        where = f"{self.path}:{line}" if line is not None else self.path
-        super().__init__(f"{where}: {message}")
+    kind = "BAL file"
 
 
 @dataclass
@@ -111,47 +102,9 @@ class BALProblem:
 # --------------------------------------------------------------------------------------------
 
 
-def _read_bytes(path: Path) -> bytes:
-    """The decompressed content; compression is detected from the magic bytes, not the name."""
-    try:
-        with open(path, "rb") as f:
-            raw = f.read()
-    except FileNotFoundError:
-        raise BALFormatError(path, "file not found") from None
-    except IsADirectoryError:
-        raise BALFormatError(path, "is a directory, not a BAL file") from None
-    except OSError as exc:
-        raise BALFormatError(path, f"cannot read file: {exc.strerror or exc}") from None
-    try:
-        if raw[:3] == b"BZh":
-            return bz2.decompress(raw)
-        if raw[:2] == b"\x1f\x8b":
-            return gzip.decompress(raw)
-        if raw[:6] == b"\xfd7zXZ\x00":
-            return lzma.decompress(raw)
-    except (OSError, EOFError, ValueError, zlib.error, lzma.LZMAError) as exc:
-        raise BALFormatError(path, f"corrupt or truncated compressed file ({exc})") from None
-    return raw
-
-
-def _token_layout(data: bytes) -> tuple[np.ndarray, np.ndarray]:
-    """Start offsets of whitespace-separated tokens and their 1-based line numbers."""
-    a = np.frombuffer(data, dtype=np.uint8)
-    if len(a) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    ws = _WHITESPACE[a]
-    prev_ws = np.empty_like(ws)
-    prev_ws[0] = True
-    prev_ws[1:] = ws[:-1]
-    starts = np.flatnonzero(~ws & prev_ws)
-    newlines = np.flatnonzero(a == 10)
-    lines = np.searchsorted(newlines, starts, side="right") + 1
-    return starts, lines
-
-
 def _token_text(data: bytes, start: int) -> str:
     end = start
-    while end < len(data) and not _WHITESPACE[data[end]]:
+    while end < len(data) and not WHITESPACE[data[end]]:
         end += 1
     text = data[start:end].decode("ascii", errors="replace")
     return text if len(text) <= 40 else text[:37] + "..."
@@ -204,8 +157,8 @@ def read_bal(path: str | os.PathLike[str]) -> BALProblem:
             message names the file and (where it applies) the line.
     """
     path = Path(path)
-    data = _read_bytes(path)
-    starts, lines = _token_layout(data)
+    data = read_bytes(path, BALFormatError)
+    starts, lines = token_layout(data)
     if len(starts) == 0:
         raise BALFormatError(path, "file is empty")
 

@@ -36,20 +36,19 @@ import bz2
 import gzip
 import os
 import warnings
-import zlib
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from graphopt.io.atomic import atomic_path
-from graphopt.io.bal import _WHITESPACE, _token_layout
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
+from graphopt.io.text import WHITESPACE, FileFormatError, read_bytes, token_layout
 
 __all__ = ["GraphFormatError", "read_graph", "write_g2o"]
 
 
-class GraphFormatError(ValueError):
+class GraphFormatError(FileFormatError):
     """A graph file that cannot be read; the message is one line naming the file and line.
 
     Args:
@@ -58,11 +57,7 @@ class GraphFormatError(ValueError):
         line: 1-based line number, if the problem is on a line.
     """
 
-    def __init__(self, path: str | os.PathLike[str], message: str, line: int | None = None):
-        self.path = str(path)
-        self.line = None if line is None else int(line)
-        where = f"{self.path}:{self.line}" if line is not None else self.path
-        super().__init__(f"{where}: {message}")
+    kind = "graph file"
 
 
 # Tag → (canonical tag, allowed numbers of values after the tag (empty: one or more), layout).
@@ -135,27 +130,6 @@ def _rpy_to_quat(rpy: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _read_bytes(path: Path) -> bytes:
-    """The file's content, decompressed when its magic bytes say gzip or bzip2."""
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise GraphFormatError(path, "file not found") from None
-    except IsADirectoryError:
-        raise GraphFormatError(path, "is a directory, not a graph file") from None
-    except OSError as exc:
-        raise GraphFormatError(path, f"cannot read file: {exc.strerror or exc}") from None
-    decompress: Callable[[bytes], bytes] | None = (
-        gzip.decompress if raw[:2] == b"\x1f\x8b" else bz2.decompress if raw[:3] == b"BZh"
-        else None)
-    if decompress is None:
-        return raw
-    try:
-        return decompress(raw)
-    except (OSError, EOFError, ValueError, zlib.error) as exc:
-        raise GraphFormatError(path, f"corrupt or truncated compressed file ({exc})") from None
-
-
 _TAG_WIDTH = 32  # no known tag is longer
 
 
@@ -167,14 +141,14 @@ def _scan(path: Path, data: bytes, skip_unknown: bool
     (and skipped or comment lines) blanked out and every remaining token parsed by one C call.
     """
     a = np.frombuffer(data, dtype=np.uint8)
-    starts, token_line = _token_layout(data)
+    starts, token_line = token_layout(data)
     first = np.ones(len(starts), dtype=bool)
     first[1:] = token_line[1:] != token_line[:-1]
     line_of = np.cumsum(first) - 1  # token → index of its (non-blank) line
     heads, numbers = starts[first], token_line[first]
     window = np.minimum(heads[:, None] + np.arange(_TAG_WIDTH + 1), max(len(a) - 1, 0))
     chars = a[window] if len(a) else np.zeros((0, _TAG_WIDTH + 1), np.uint8)
-    space = _WHITESPACE[chars] | (heads[:, None] + np.arange(_TAG_WIDTH + 1) >= len(a))
+    space = WHITESPACE[chars] | (heads[:, None] + np.arange(_TAG_WIDTH + 1) >= len(a))
     space[:, -1] = True
     width = np.argmax(space, axis=1)
     chars = np.where(np.arange(_TAG_WIDTH + 1) < width[:, None], chars, 0)[:, :_TAG_WIDTH]
@@ -403,7 +377,7 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
             vertex, an edge from a vertex to itself. One line naming the file and line.
     """
     path = Path(path)
-    groups, skipped = _scan(path, _read_bytes(path), skip_unknown)
+    groups, skipped = _scan(path, read_bytes(path, GraphFormatError), skip_unknown)
     if not groups:
         raise GraphFormatError(path, "no vertex or edge lines" + (
             f" (skipped {sum(skipped.values())} lines with unknown tags)" if skipped else ""))
