@@ -88,8 +88,8 @@ def check_outputs(outputs: Mapping[str, str | None], inputs: Sequence[str | None
         inputs: Input files or folders that no output may overwrite.
 
     Raises:
-        AppError: An output's folder does not exist, an output is a directory or an input, or
-            two outputs name the same file.
+        AppError: An output's folder does not exist or is not writable, an output is a
+            directory or an input, or two outputs name the same file.
     """
     given = {opt: Path(p) for opt, p in outputs.items() if p is not None}
     protected = {Path(p).resolve() for p in inputs if p is not None}
@@ -97,6 +97,8 @@ def check_outputs(outputs: Mapping[str, str | None], inputs: Sequence[str | None
         folder = path.resolve().parent
         if not folder.is_dir():
             raise AppError(f"{opt} {path}: folder {folder} does not exist")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise AppError(f"{opt} {path}: folder {folder} is not writable")
         if path.is_dir():
             raise AppError(f"{opt} {path}: is a directory")
         if path.resolve() in protected:
