@@ -377,13 +377,13 @@ def format_summary(s: dict[str, Any], solver_text: str | None = None) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``graphopt-g2o``.
+    """``graphopt-g2o`` and ``python -m graphopt.apps.g2o``.
 
     Args:
-        argv: Arguments (``sys.argv[1:]`` if None).
+        argv: Command-line arguments; None reads ``sys.argv[1:]``.
 
     Returns:
-        Exit status: 0 on success, 1 on an input/processing error, 2 on bad options.
+        0, or 1 after a one-line error (file and line for a bad input), 2 for a bad option.
     """
     return _cli.run_main(PROG, build_parser(), run, argv, user_errors=(GraphFormatError,))
 

@@ -16,8 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graphopt.apps._cli import RunRecording
-from graphopt.io.atomic import atomic_path
+from graphopt.apps._cli import RunRecording, write_png_image
 from graphopt.optimizer import SparseOptimizer
 from graphopt.types.slam_graph import VERTEX_TYPES, SlamGraph
 
@@ -267,11 +266,7 @@ def write_png(
         cv2.putText(head, text, (x + 30, 24), font, 0.55, _BLACK, 1, cv2.LINE_AA)
         x += 30 + cv2.getTextSize(text, font, 0.55, 1)[0][0] + 24
     canvas = np.vstack([head, np.hstack(panels)])
-    with atomic_path(path) as tmp:
-        ok, buf = cv2.imencode(".png", canvas)
-        if not ok:
-            raise OSError(f"{path}: PNG encoding failed")
-        tmp.write_bytes(buf.tobytes())
+    write_png_image(path, canvas)
 
 
 # --------------------------------------------------------------------------------------------
