@@ -297,8 +297,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "initial_robust_chi2": float(res.initial_chi2),
         "final_robust_chi2": float(res.final_chi2),
         "iterations": int(res.iterations),
+        "iterations_run": len(res.info),
         "seconds": float(seconds),
-        "seconds_per_iteration": float(seconds / res.iterations) if res.iterations else 0.0,
+        "seconds_per_iteration": float(seconds / len(res.info)) if res.info else 0.0,
         "read_seconds": t1 - t0,
         "build_seconds": t2 - t1,
         "setup_seconds": t3 - t2,
@@ -350,7 +351,10 @@ def format_summary(s: dict[str, Any], solver_text: str | None = None) -> str:
         "   (g2o's chi2: sum e'Omega e"
         + (f"; with the kernel {s['initial_robust_chi2']:.6f} -> {s['final_robust_chi2']:.6f})"
            if s["robust_kernel"] else ")"),
-        f"  iterations {s['iterations']} (stop: {s['stop_reason']}), {s['seconds']:.3f} s, "
+        f"  iterations {s['iterations']}" + (
+            f" (+{s['iterations_run'] - s['iterations']} without an acceptable step)"
+            if s["iterations_run"] > s["iterations"] else "")
+        + f", stop: {s['stop_reason']}; {s['seconds']:.3f} s, "
         f"{s['seconds_per_iteration']:.4f} s/iteration; read {s['read_seconds']:.3f} s, "
         f"build {s['build_seconds']:.3f} s, setup {s['setup_seconds']:.3f} s",
     ]

@@ -23,8 +23,8 @@ KEYS = {
     "input", "vertices", "edges", "vertex_types", "edge_types", "loop_closures", "fixed",
     "guessed", "skipped", "notes", "algorithm", "solver", "solver_requested", "robust_kernel",
     "initial_chi2", "final_chi2", "initial_robust_chi2", "final_robust_chi2", "iterations",
-    "seconds", "seconds_per_iteration", "read_seconds", "build_seconds", "setup_seconds",
-    "stop_reason", "ground_truth", "marginals", "output", "equiv",
+    "iterations_run", "seconds", "seconds_per_iteration", "read_seconds", "build_seconds",
+    "setup_seconds", "stop_reason", "ground_truth", "marginals", "output", "equiv",
 }
 MARGINAL_KEYS = {"poses", "free_poses", "sampled", "max_position_sigma",
                  "max_position_sigma_vertex", "median_position_sigma", "max_rotation_sigma_rad",
@@ -71,7 +71,9 @@ def test_generated_run_reports_truth_and_g2o_lines(tmp_path: Path,
     assert g["rms_position"] < 0.2 * g0["rms_position"] and g["rms_position"] < 0.1
     assert g["rms_heading"] < g0["rms_heading"]
     assert s["marginals"] is None and s["output"] is None
-    assert 0 < s["iterations"] <= 20
+    assert 0 < s["iterations"] <= s["iterations_run"] <= 20
+    assert s["seconds_per_iteration"] == pytest.approx(s["seconds"] / s["iterations_run"])
+    assert err.count("iteration= ") == s["iterations_run"]
     # g2o's iteration lines on stderr, the notes and the summary on stdout, each note once.
     assert err.startswith("iteration= 0\t chi2= ") and "\t levenbergIter= " in err
     assert out.count("note: Manhattan world: 150 poses") == 1
