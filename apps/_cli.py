@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from graphopt.io.atomic import atomic_write
+from graphopt.io.atomic import atomic_path, atomic_write
 from graphopt.solvers import SOLVERS
 
 __all__ = [
@@ -32,6 +32,7 @@ __all__ = [
     "optimize_recorded",
     "run_main",
     "write_json",
+    "write_png_image",
 ]
 
 
@@ -88,8 +89,8 @@ def check_outputs(outputs: Mapping[str, str | None], inputs: Sequence[str | None
         inputs: Input files or folders that no output may overwrite.
 
     Raises:
-        AppError: An output's folder does not exist, an output is a directory or an input, or
-            two outputs name the same file.
+        AppError: An output's folder does not exist or is not writable, an output is a
+            directory or an input, or two outputs name the same file.
     """
     given = {opt: Path(p) for opt, p in outputs.items() if p is not None}
     protected = {Path(p).resolve() for p in inputs if p is not None}
@@ -97,6 +98,8 @@ def check_outputs(outputs: Mapping[str, str | None], inputs: Sequence[str | None
         folder = path.resolve().parent
         if not folder.is_dir():
             raise AppError(f"{opt} {path}: folder {folder} does not exist")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise AppError(f"{opt} {path}: folder {folder} is not writable")
         if path.is_dir():
             raise AppError(f"{opt} {path}: is a directory")
         if path.resolve() in protected:
@@ -128,6 +131,25 @@ def write_json(path: str | os.PathLike[str], data: Mapping[str, Any]) -> None:
     with atomic_write(path) as f:
         json.dump(_finite_or_none(data), f, indent=2, allow_nan=False)
         f.write("\n")
+
+
+def write_png_image(path: str | os.PathLike[str], image: Any) -> None:
+    """Encode an OpenCV image (BGR ``uint8``) as PNG and write it atomically.
+
+    Args:
+        path: Destination ``.png`` file.
+        image: ``(h, w, 3)`` BGR or ``(h, w)`` grey ``uint8`` array.
+
+    Raises:
+        OSError: The encoding failed (the destination is then untouched).
+    """
+    import cv2  # only the apps that draw need OpenCV
+
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.tobytes())
 
 
 class RunRecording:

@@ -8,9 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graphopt.apps._cli import RunRecording
+from graphopt.apps._cli import RunRecording, write_png_image
 from graphopt.apps.direct_ba_problem import DirectBAProblem
-from graphopt.io.atomic import atomic_path
 from graphopt.lie import so3_log, transform_inverse
 
 __all__ = ["DirectBARecording", "pose_errors", "truth_report", "write_png"]
@@ -123,11 +122,7 @@ def write_png(path: str | Path, problem: DirectBAProblem, before: tuple[np.ndarr
     cv2.putText(canvas, f"top view: x right, z up; largest camera shift {shift_c:.4g}, median "
                 f"point shift {shift_p:.4g}", (12, size - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
                 (0, 0, 0), 1, cv2.LINE_AA)
-    with atomic_path(path) as tmp:
-        ok, buf = cv2.imencode(".png", canvas)
-        if not ok:
-            raise OSError(f"{path}: PNG encoding failed")
-        tmp.write_bytes(buf.tobytes())
+    write_png_image(path, canvas)
 
 
 class DirectBARecording(RunRecording):

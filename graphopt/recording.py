@@ -186,14 +186,39 @@ class Recorder:
         if trajectory and c > 1:
             self._rec.log("world/trajectory", rr.LineStrips3D([centers]))
 
-    def log_trajectory(self, centers: Any, *, entity: str = "world/trajectory") -> None:
+    def log_trajectory(
+        self, centers: Any, *, entity: str = "world/trajectory", color: Any = None,
+        radius: float | None = None,
+    ) -> None:
         """Log a trajectory (e.g. camera centres in order) as one line strip.
 
         Args:
             centers: ``(c, 3)`` positions.
             entity: Entity path.
+            color: ``(3,)`` uint8 colour (the viewer's default if None).
+            radius: Line radius in scene units (viewer default if None).
         """
-        self._rec.log(entity, self._rr.LineStrips3D([np.asarray(centers, dtype=float)]))
+        self._rec.log(entity, self._rr.LineStrips3D(
+            [np.asarray(centers, dtype=float)], colors=None if color is None else [color],
+            radii=None if radius is None else [radius]))
+
+    def log_segments(
+        self, starts: Any, ends: Any, *, entity: str, color: Any = None,
+        radius: float | None = None,
+    ) -> None:
+        """Log line segments (e.g. the loop closures of a pose graph) as one entity.
+
+        Args:
+            starts: ``(m, 3)`` first end of each segment.
+            ends: ``(m, 3)`` second end.
+            entity: Entity path.
+            color: ``(3,)`` uint8 colour for all segments (the viewer's default if None).
+            radius: Line radius in scene units (viewer default if None).
+        """
+        strips = np.stack([np.asarray(starts, dtype=float), np.asarray(ends, dtype=float)], 1)
+        self._rec.log(entity, self._rr.LineStrips3D(
+            strips, colors=None if color is None else [color],
+            radii=None if radius is None else [radius]))
 
     def log_scalar(self, name: str, value: float) -> None:
         """Log one value of a scalar time series (e.g. the cost) at the current iteration.

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from graphopt.apps import bal, direct_ba
+from graphopt.apps import bal, direct_ba, g2o
 from graphopt.apps._cli import (
     AppError,
     OneLineParser,
@@ -36,7 +36,7 @@ def test_one_line_parser_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert err == "tool: error: argument --n: invalid int value: 'x' (see --help)\n"
 
 
-@pytest.mark.parametrize("parser", [bal.build_parser, direct_ba.build_parser])
+@pytest.mark.parametrize("parser", [bal.build_parser, direct_ba.build_parser, g2o.build_parser])
 def test_both_apps_take_the_library_solver_names(parser) -> None:
     p = parser()
     assert p.parse_args([]).solver == "auto"

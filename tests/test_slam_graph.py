@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
-from slam_files import DATA, read_graph
 
 from graphopt.errors import GraphError
+from graphopt.io.g2o import read_graph
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
 from graphopt.lie import so3_exp
 from graphopt.types import (
@@ -21,6 +23,8 @@ from graphopt.types import (
 from graphopt.types.isometry3 import pose_from_qt, pose_to_qt
 from graphopt.types.slam_guess import SE2_GROUP, SE3_GROUP
 
+#: The pose-graph data sets (``shared/data/posegraph`` beside the checkout).
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "posegraph"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"data folder {DATA} is absent")
 
 # g2o's chi2, computed with g2opy 2.3.0 by benchmarks/g2o_slam_reference.py (load,
@@ -106,6 +110,30 @@ def test_landmark_namespace_and_offset_groups() -> None:
     assert groups["EdgeSE3PointXYZ"].params is slam.offsets[0]
     back = graph_file(slam)
     np.testing.assert_array_equal(back.vertices["VERTEX_TRACKXYZ"].ids, [0, 1, 2, 3])
+
+
+@needs_data
+@pytest.mark.parametrize(("name", "note", "vertices", "edges", "equiv"), [
+    ("sphere_smallnoise.graph", "EDGE3 information converted", ("VERTEX_SE3:QUAT", 2200),
+     ("EDGE_SE3:QUAT", 8647), 0),
+    ("w10000.graph", "TORO's (I11 I12 I22 I33 I13 I23) order", ("VERTEX_SE2", 10000),
+     ("EDGE_SE2", 64311), 5875),
+])
+def test_large_toro_files_build(name: str, note: str, vertices: tuple[str, int],
+                                edges: tuple[str, int], equiv: int) -> None:
+    """sphere_smallnoise (TORO 3D) is also evaluated; w10000 is only built (evaluating it
+    first sets up the solver for 10,000 poses, about 1.5 s here)."""
+    graph = read_graph(DATA / name)
+    assert any(note in n for n in graph.notes)
+    slam = build_graph(graph)
+    assert slam.vertex_counts == dict([vertices]) and slam.edge_counts == dict([edges])
+    assert slam.equiv.shape == (equiv, 2)
+    assert slam.fixed == {0: "first pose fixed for the gauge"}
+    assert slam.optimizer.num_edges() == edges[1]
+    if name.startswith("sphere"):
+        chi2 = _chi2(slam)
+        assert np.isfinite(chi2) and chi2 > 0
+        assert slam.optimizer.active_edge_count() == edges[1]
 
 
 @needs_data

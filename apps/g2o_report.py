@@ -1,0 +1,322 @@
+"""What ``graphopt-g2o`` shows of a SLAM graph: the poses and landmarks in id order
+(:class:`GraphView`), a top-down before/after PNG (:func:`write_png`) and a rerun recording
+(:class:`SlamRecording`).
+
+Poses are drawn as one trajectory in id order (the order of odometry in every data set here);
+pose-pose edges between poses that are not neighbours in that order are loop closures. 3D graphs
+are projected onto the x–y plane in the PNG; 2D graphs lie in the plane ``z = 0`` of the
+recording.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from graphopt.apps._cli import RunRecording, write_png_image
+from graphopt.optimizer import SparseOptimizer
+from graphopt.types.slam_graph import VERTEX_TYPES, SlamGraph
+
+__all__ = ["GraphView", "SlamRecording", "graph_view", "write_png"]
+
+_POSE_TAGS = ("VERTEX_SE2", "VERTEX_SE3:QUAT")
+_POINT_TAGS = ("VERTEX_XY", "VERTEX_TRACKXYZ")
+_POSE_EDGES = ("EDGE_SE2", "EDGE_SE3:QUAT")
+
+
+def _xyz(tag: str, est: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` positions of a tag's estimates (``z = 0`` for 2D)."""
+    if tag == "VERTEX_SE3:QUAT":
+        return est[:, :, 3].copy()
+    if tag == "VERTEX_TRACKXYZ":
+        return np.array(est[:, :3], dtype=float)
+    out = np.zeros((len(est), 3))
+    out[:, :2] = est[:, :2]
+    return out
+
+
+@dataclass
+class GraphView:
+    """The positions of a built graph's poses and landmarks, in id order.
+
+    Args:
+        optimizer: The optimizer holding the graph.
+        pose_ids: ``(n,)`` pose ids, sorted.
+        closures: ``(c, 2)`` indices into the poses of the pose-pose edges that do not join
+            neighbours in id order (loop closures).
+        dimension: 2 or 3 (3 if any pose is 3D).
+        parts: Per vertex tag present: ``(tag, order)``, the permutation that sorts the
+            optimizer's estimates of that tag by id.
+    """
+
+    optimizer: SparseOptimizer
+    pose_ids: np.ndarray
+    closures: np.ndarray
+    dimension: int
+    parts: list[tuple[str, np.ndarray]]
+
+    def _gather(self, tags: tuple[str, ...]) -> np.ndarray:
+        blocks = [_xyz(tag, self.optimizer.estimates_of(VERTEX_TYPES[tag])[order])
+                  for tag, order in self.parts if tag in tags]
+        return np.concatenate(blocks) if blocks else np.zeros((0, 3))
+
+    def poses(self) -> np.ndarray:
+        """``(n, 3)`` pose positions in id order (``z = 0`` for 2D poses)."""
+        return self._gather(_POSE_TAGS)
+
+    def landmarks(self) -> np.ndarray:
+        """``(k, 3)`` landmark positions in id order (``z = 0`` for 2D points)."""
+        return self._gather(_POINT_TAGS)
+
+    def headings(self) -> np.ndarray:
+        """``(n,)`` headings of 2D poses in id order (empty for 3D graphs)."""
+        blocks = [self.optimizer.estimates_of(VERTEX_TYPES[tag])[order][:, 2]
+                  for tag, order in self.parts if tag == "VERTEX_SE2"]
+        return np.concatenate(blocks) if blocks else np.zeros(0)
+
+
+def graph_view(slam: SlamGraph) -> GraphView:
+    """The view of a graph built by :func:`graphopt.types.slam_graph.build_graph`.
+
+    Args:
+        slam: The built graph.
+
+    Returns:
+        The :class:`GraphView`.
+    """
+    opt = slam.optimizer
+    parts = []
+    for tag in (*_POSE_TAGS, *_POINT_TAGS):
+        if tag in slam.vertex_ids:
+            parts.append((tag, np.argsort(opt.ids_of(VERTEX_TYPES[tag]), kind="stable")))
+    pose_ids = np.concatenate([np.sort(opt.ids_of(VERTEX_TYPES[t])) for t, _ in parts
+                               if t in _POSE_TAGS] or [np.zeros(0, np.int64)])
+    pairs = [slam.edges[t].ids for t in _POSE_EDGES if t in slam.edges]
+    ids = np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
+    order = np.argsort(pose_ids)
+    index = order[np.searchsorted(pose_ids, ids, sorter=order)] if len(ids) else ids
+    closures = index[np.abs(index[:, 0] - index[:, 1]) != 1]
+    return GraphView(opt, pose_ids, closures.reshape(-1, 2),
+                     3 if "VERTEX_SE3:QUAT" in slam.vertex_ids else 2, parts)
+
+
+# --------------------------------------------------------------------------------------------
+# PNG
+# --------------------------------------------------------------------------------------------
+
+_PANEL, _PAD, _HEAD = 720, 64, 36
+_BEFORE, _AFTER, _TRUTH = (40, 40, 215), (190, 100, 20), (150, 150, 150)  # BGR
+_BLACK = (0, 0, 0)
+#: The after panel also shows the start (faint) when its extent is at most this times the result's.
+_OVERLAY_SPAN = 1.5
+
+
+def _faint(colour: tuple[int, int, int], alpha: float = 0.2) -> tuple[int, int, int]:
+    """``colour`` blended with white."""
+    return tuple(int(round(255 - alpha * (255 - c))) for c in colour)  # type: ignore[return-value]
+
+
+def _nice_step(span: float) -> float:
+    """A 1-2-5 tick step giving about 5 ticks over ``span``."""
+    raw = span / 5.0
+    base = 10.0 ** math.floor(math.log10(raw))
+    return next(m * base for m in (1.0, 2.0, 5.0, 10.0) if m * base >= raw)
+
+
+def _span(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper x–y corner of the finite ``points``."""
+    xy = np.concatenate([p[:, :2] for p in points])
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    return (xy.min(0), xy.max(0)) if len(xy) else (np.zeros(2), np.ones(2))
+
+
+@dataclass
+class _Frame:
+    """Maps x–y world coordinates into a square panel, equal scales, 3 % margins."""
+
+    lo: np.ndarray
+    scale: float
+
+    @classmethod
+    def around(cls, points: list[np.ndarray]) -> _Frame:
+        lo, hi = _span(points)
+        span = 1.06 * max(float((hi - lo).max()), 1e-9)
+        return cls((lo + hi) / 2 - span / 2, (_PANEL - 2 * _PAD) / span)
+
+    def px(self, xy: np.ndarray) -> np.ndarray:
+        u = _PAD + (xy[:, 0] - self.lo[0]) * self.scale
+        v = _PANEL - _PAD - (xy[:, 1] - self.lo[1]) * self.scale
+        return np.round(np.column_stack([u, v]).clip(-1e5, 1e5)).astype(np.int32)
+
+
+def _axes(panel: np.ndarray, f: _Frame, units: str) -> None:
+    """Frame, ticks with values and axis labels of one panel."""
+    import cv2
+
+    x0, y0, x1, y1 = _PAD, _PAD, _PANEL - _PAD, _PANEL - _PAD
+    panel[:y0 - 1] = panel[y1 + 1:] = 255  # clip what was drawn outside the frame
+    panel[:, :x0 - 1] = panel[:, x1 + 1:] = 255
+    cv2.rectangle(panel, (x0, y0), (x1, y1), _BLACK, 1)
+    span = (_PANEL - 2 * _PAD) / f.scale
+    step = _nice_step(span)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for axis in (0, 1):
+        first = math.ceil(f.lo[axis] / step) * step
+        for value in np.arange(first, f.lo[axis] + span + 1e-9 * step, step):
+            label = f"{value:g}"
+            width = cv2.getTextSize(label, font, 0.4, 1)[0][0]
+            if axis == 0:
+                u = int(round(x0 + (value - f.lo[0]) * f.scale))
+                cv2.line(panel, (u, y1), (u, y1 + 5), _BLACK, 1)
+                cv2.putText(panel, label, (u - width // 2, y1 + 20), font, 0.4, _BLACK, 1,
+                            cv2.LINE_AA)
+            else:
+                v = int(round(y1 - (value - f.lo[1]) * f.scale))
+                cv2.line(panel, (x0 - 5, v), (x0, v), _BLACK, 1)
+                cv2.putText(panel, label, (x0 - 9 - width, v + 4), font, 0.4, _BLACK, 1,
+                            cv2.LINE_AA)
+    cv2.putText(panel, f"x [{units}]", ((x0 + x1) // 2 - 30, y1 + 42), font, 0.5, _BLACK, 1,
+                cv2.LINE_AA)
+    cv2.putText(panel, f"y [{units}]", (4, y0 - 10), font, 0.5, _BLACK, 1, cv2.LINE_AA)
+
+
+def _draw_graph(panel: np.ndarray, f: _Frame, poses: np.ndarray, landmarks: np.ndarray,
+                closures: np.ndarray, colour: tuple[int, int, int], faint: bool = False) -> None:
+    """Loop closures (faint), the trajectory and the landmarks (crosses) in ``colour``; all
+    faint if ``faint``."""
+    import cv2
+
+    q = f.px(poses[:, :2])
+    if len(closures) and not faint:
+        segs = q[closures].reshape(-1, 2, 1, 2)
+        cv2.polylines(panel, list(segs), False, _faint(colour), 1, cv2.LINE_AA)
+    line = _faint(colour, 0.45) if faint else colour
+    if len(q) > 1:
+        cv2.polylines(panel, [q.reshape(-1, 1, 2)], False, line, 1, cv2.LINE_AA)
+    for p in f.px(landmarks[:, :2])[:5000]:
+        cv2.drawMarker(panel, (int(p[0]), int(p[1])), line, cv2.MARKER_CROSS, 7, 1)
+
+
+def write_png(
+    path: str | Path,
+    view: GraphView,
+    before: tuple[np.ndarray, np.ndarray],
+    after: tuple[np.ndarray, np.ndarray],
+    *,
+    titles: tuple[str, str],
+    truth: np.ndarray | None = None,
+    units: str = "file units",
+) -> None:
+    """Two top-down (x–y) panels: the graph before (red) and after (blue) optimisation.
+
+    Each panel has its own scale (a drifting start can span far more than the result), equal
+    for x and y, with ticks in the graph's units; loop closures are drawn faint, landmarks as
+    crosses and the true trajectory (generated graphs) in grey beneath both. Where the start
+    spans at most 1.5 times the result, the after panel shows it faint too, on one scale.
+
+    Args:
+        path: Destination ``.png`` (replaced atomically).
+        view: The graph's view (loop closures, dimension).
+        before: ``(poses (n, 3), landmarks (k, 3))`` positions before optimisation.
+        after: The same after optimisation.
+        titles: One line above each panel.
+        truth: ``(n, 3)`` true pose positions, if known.
+        units: Name of the length unit on the axes.
+    """
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    extra = [truth] if truth is not None else []
+    sizes = [float((hi - lo).max()) for lo, hi in (_span([*before, *extra]),
+                                                    _span([*after, *extra]))]
+    overlay = sizes[0] <= _OVERLAY_SPAN * max(sizes[1], 1e-12)
+    panels = []
+    for k, ((poses, marks), colour, title) in enumerate(
+            ((before, _BEFORE, titles[0]), (after, _AFTER, titles[1]))):
+        panel = np.full((_PANEL, _PANEL, 3), 255, np.uint8)
+        shown = [poses, marks, *extra] + ([*before] if k == 1 and overlay else [])
+        f = _Frame.around(shown)
+        if truth is not None and len(truth) > 1:
+            cv2.polylines(panel, [f.px(truth[:, :2]).reshape(-1, 1, 2)], False, _TRUTH, 3,
+                          cv2.LINE_AA)
+        if k == 1 and overlay:
+            _draw_graph(panel, f, *before, view.closures, _BEFORE, faint=True)
+        _draw_graph(panel, f, poses, marks, view.closures, colour)
+        _axes(panel, f, units)
+        cv2.putText(panel, title, (_PAD, _PAD - 28), font, 0.5, colour, 1, cv2.LINE_AA)
+        panels.append(panel)
+    head = np.full((_HEAD, 2 * _PANEL, 3), 255, np.uint8)
+    legend = [("before", _BEFORE), ("after", _AFTER)]
+    if overlay:
+        legend[0] = ("before (faint in the after panel)", _BEFORE)
+    if len(view.closures):
+        legend.append(("loop closures (faint)", _faint(_AFTER, 0.5)))
+    if len(before[1]):
+        legend.append(("landmarks (+)", _BLACK))
+    if truth is not None:
+        legend.append(("ground truth", _TRUTH))
+    view_name = "3D graph projected onto x-y:" if view.dimension == 3 else "top view:"
+    cv2.putText(head, view_name, (12, 24), font, 0.55, _BLACK, 1, cv2.LINE_AA)
+    x = 12 + cv2.getTextSize(view_name, font, 0.55, 1)[0][0] + 24
+    for text, colour in legend:
+        cv2.line(head, (x, 19), (x + 24, 19), colour, 3)
+        cv2.putText(head, text, (x + 30, 24), font, 0.55, _BLACK, 1, cv2.LINE_AA)
+        x += 30 + cv2.getTextSize(text, font, 0.55, 1)[0][0] + 24
+    canvas = np.vstack([head, np.hstack(panels)])
+    write_png_image(path, canvas)
+
+
+# --------------------------------------------------------------------------------------------
+# rerun
+# --------------------------------------------------------------------------------------------
+
+
+class SlamRecording(RunRecording):
+    """The optimisation as a rerun recording on the ``iteration`` timeline.
+
+    ``world/trajectory`` (line strip) and ``world/landmarks`` (points) at every iteration,
+    ``world/loop_closures`` (segments) at the start and the end, ``world/initial/trajectory``
+    and ``world/truth/trajectory`` (generated graphs) once, and ``metrics/chi2``.
+
+    Args:
+        path: Destination ``.rrd`` file.
+        prog: The app's name (rerun application id).
+        view: The graph's view.
+    """
+
+    def __init__(self, path: str, prog: str, view: GraphView) -> None:
+        super().__init__(path, prog, camera_xyz="RDF")
+        self.view = view
+
+    def log_state(self, iteration: int, chi2: float, *, closures: bool = False,
+                  truth: np.ndarray | None = None) -> None:
+        """Log the current estimates and chi2.
+
+        Args:
+            iteration: Iteration number (0 = before optimisation).
+            chi2: chi2 at this iteration.
+            closures: Also log the loop closures at the current positions.
+            truth: True pose positions to log (once, at the start).
+        """
+        rec, view = self.rec, self.view
+        rec.set_iteration(iteration)
+        poses, marks = view.poses(), view.landmarks()
+        if iteration == 0:
+            rec.log_trajectory(poses, entity="world/initial/trajectory", color=_RGB_BEFORE)
+            if truth is not None:
+                rec.log_trajectory(truth, entity="world/truth/trajectory", color=_RGB_TRUTH)
+        rec.log_trajectory(poses, entity="world/trajectory", color=_RGB_AFTER)
+        if len(marks):
+            rec.log_points(marks, np.array(_RGB_AFTER, np.uint8), entity="world/landmarks")
+        if closures and len(view.closures):
+            c = view.closures
+            rec.log_segments(poses[c[:, 0]], poses[c[:, 1]], entity="world/loop_closures",
+                             color=_RGB_CLOSURE)
+        rec.log_scalar("chi2", chi2)
+
+
+_RGB_BEFORE, _RGB_AFTER, _RGB_TRUTH = (215, 40, 40), (20, 100, 190), (150, 150, 150)
+_RGB_CLOSURE = (190, 210, 235)
