@@ -29,7 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from graphopt import GraphError, NotPositiveDefiniteError, SparseOptimizer, make_kernel
+from graphopt import (
+    GraphError,
+    LevenbergConfig,
+    NotPositiveDefiniteError,
+    SparseOptimizer,
+    make_kernel,
+)
 from graphopt.apps import _cli
 from graphopt.apps.g2o_report import GraphView, SlamRecording, graph_view, write_png
 from graphopt.apps.slam_scene import manhattan_world, trajectory_error
@@ -63,6 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="maximum iterations (default 20)")
     p.add_argument("--algorithm", choices=("gn", "lm", "dogleg"), default="lm",
                    help="Gauss-Newton, Levenberg-Marquardt (default) or Powell's dogleg")
+    p.add_argument("--lm-schedule", choices=("gtsam", "g2o"), default="gtsam",
+                   help="LM damping schedule: GTSAM's lambda/10 after a success, x10 after a "
+                        "failure (default: converges in 8 iterations on w10000 where g2o's "
+                        "rule needs over 100), or g2o's")
     _cli.add_solver_option(p)
     p.add_argument("--robust-kernel", metavar="NAME", default=None,
                    help="robust kernel on every edge (huber, cauchy, pseudohuber, tukey, ...)")
@@ -138,7 +148,10 @@ class _KernelOptimizer(SparseOptimizer):
 def _build(args: argparse.Namespace, graph: GraphFile, kernel: RobustKernel | None
            ) -> SlamGraph:
     """The optimizer with the graph's vertices and edges (one-line errors naming the line)."""
-    options: dict[str, Any] = {"algorithm": args.algorithm, "solver": args.solver,
+    algorithm: Any = args.algorithm
+    if algorithm == "lm":
+        algorithm = LevenbergConfig(schedule=args.lm_schedule)
+    options: dict[str, Any] = {"algorithm": algorithm, "solver": args.solver,
                                "verbose": not args.quiet, "stream": sys.stderr}
     opt = SparseOptimizer(**options) if kernel is None else _KernelOptimizer(kernel, **options)
     try:
@@ -289,6 +302,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "skipped": dict(graph.skipped),
         "notes": notes,
         "algorithm": args.algorithm,
+        "lm_schedule": args.lm_schedule if args.algorithm == "lm" else None,
         "solver": solver,
         "solver_requested": args.solver,
         "robust_kernel": None if kernel is None else f"{args.robust_kernel}:{args.robust_delta:g}",

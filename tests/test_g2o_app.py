@@ -21,7 +21,8 @@ needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"data folder {DATA} i
 #: The summary's keys (``--json``), always all present (``None`` where they do not apply).
 KEYS = {
     "input", "vertices", "edges", "vertex_types", "edge_types", "loop_closures", "fixed",
-    "guessed", "skipped", "notes", "algorithm", "solver", "solver_requested", "robust_kernel",
+    "guessed", "skipped", "notes", "algorithm", "lm_schedule", "solver", "solver_requested",
+    "robust_kernel",
     "initial_chi2", "final_chi2", "initial_robust_chi2", "final_robust_chi2", "iterations",
     "iterations_run", "seconds", "seconds_per_iteration", "read_seconds", "build_seconds",
     "setup_seconds", "stop_reason", "ground_truth", "marginals", "output", "equiv",

@@ -203,3 +203,22 @@ def test_index_helpers() -> None:
         np.testing.assert_array_equal(uniq[inv], x)
     i, j = pairs_sharing_key(np.array([0, 0, 2]), np.array([0, 1, 2, 2]))
     assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(0, 0), (1, 0), (2, 2), (2, 3)]
+
+
+@pytest.mark.parametrize("size", [0, 1, 7, 5000])
+def test_sorted_unique_equals_numpy(size: int) -> None:
+    from graphopt.linear.indexing import sorted_unique, unique_ints
+
+    x = np.random.default_rng(size).integers(-3, 2 * size + 5, size=size) * 1_000_003
+    u, inv = sorted_unique(x, return_inverse=True)
+    ref, ref_inv = np.unique(x, return_inverse=True)
+    np.testing.assert_array_equal(u, ref)
+    np.testing.assert_array_equal(inv, ref_inv)
+    np.testing.assert_array_equal(sorted_unique(x), ref)
+    y = np.abs(x) // 1_000_003
+    big = 10**9  # the sort path of unique_ints
+    for got, want in ((unique_ints(y, big, True), np.unique(y, return_inverse=True)),
+                      (unique_ints(y, int(y.max(initial=0)) + 1, True),
+                       np.unique(y, return_inverse=True))):
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])

@@ -5,12 +5,38 @@ from __future__ import annotations
 import numpy as np
 
 
+def sorted_unique(x: np.ndarray, return_inverse: bool = False
+                  ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """``np.unique`` of integers by sort and mask (NumPy 2's ``np.unique`` hashes 1-D integer
+    arrays, about 20x slower on millions of int64 keys: 0.47 s against 0.024 s for 400k).
+
+    Args:
+        x: Integers.
+        return_inverse: Also return the index of every ``x`` in the unique values.
+    """
+    x = np.asarray(x, dtype=np.int64).ravel()
+    if not return_inverse:
+        s = np.sort(x)
+        keep = np.empty(len(s), dtype=bool)
+        keep[:1] = True
+        np.not_equal(s[1:], s[:-1], out=keep[1:])
+        return s[keep]
+    order = np.argsort(x, kind="stable")
+    s = x[order]
+    keep = np.empty(len(s), dtype=bool)
+    keep[:1] = True
+    np.not_equal(s[1:], s[:-1], out=keep[1:])
+    inverse = np.empty(len(x), dtype=np.int64)
+    inverse[order] = np.cumsum(keep) - 1
+    return s[keep], inverse
+
+
 def unique_ints(x: np.ndarray, size: int, return_inverse: bool = False
                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """``np.unique`` for non-negative integers below ``size``.
 
-    A bitmap and a cumulative sum (linear time) when ``size`` is small against ``len(x)``,
-    NumPy's sort otherwise; both give NumPy's result.
+    A bitmap and a cumulative sum (linear time) when ``size`` is small against ``len(x)``, a
+    sort (:func:`sorted_unique`) otherwise; both give NumPy's result.
 
     Args:
         x: Non-negative integers below ``size``.
@@ -19,7 +45,7 @@ def unique_ints(x: np.ndarray, size: int, return_inverse: bool = False
     """
     x = np.asarray(x, dtype=np.int64)
     if size > 16 * len(x) + 65536:
-        return np.unique(x, return_inverse=return_inverse)
+        return sorted_unique(x, return_inverse)
     present = np.zeros(size, dtype=bool)
     present[x] = True
     uniq = np.flatnonzero(present)

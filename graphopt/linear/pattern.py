@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from graphopt.linear.indexing import sorted_unique
+
 #: Largest ``n²`` for which data positions are looked up in a dense table.
 POSMAP_MAX = 4_000_000
 
@@ -54,7 +56,7 @@ class ReducedPattern:
                     cols_l.append(c.ravel())
         rows = np.concatenate(rows_l) if rows_l else np.zeros(0, np.int64)
         cols = np.concatenate(cols_l) if cols_l else np.zeros(0, np.int64)
-        keys = np.unique(cols.astype(np.int64) * n + rows)
+        keys = sorted_unique(cols.astype(np.int64) * n + rows)
         self._keys = keys
         # Small systems: a dense (col, row) → position table is faster than binary searches.
         self._posmap: np.ndarray | None = None
