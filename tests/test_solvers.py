@@ -74,3 +74,20 @@ def test_cholmod_names_the_blas_it_runs_on() -> None:
 
     path = cholmod_blas()  # e.g. /usr/lib/x86_64-linux-gnu/openblas-pthread/libblas.so.3
     assert "blas" in path.lower() and ".so" in path, path
+
+
+@pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
+def test_cholmod_modes_and_orderings_give_the_same_step() -> None:
+    from graphopt.solvers import LinearSolverCholmod
+
+    steps = []
+    for mode, ordering in (("auto", "default"), ("simplicial", "amd"), ("supernodal", "nesdis")):
+        opt, _, _ = build_pose_graph("lm", LinearSolverCholmod(mode, ordering))
+        opt.initialize_optimization()
+        asm, _ = opt.problem.linearize()
+        steps.append(opt.problem.solve(asm, 1e-2)[0])
+    for s in steps[1:]:
+        np.testing.assert_allclose(s, steps[0], rtol=1e-9, atol=1e-12)
+    assert np.abs(steps[0]).max() > 1e-3
+    with pytest.raises(ValueError, match="unknown CHOLMOD mode"):
+        LinearSolverCholmod("fast")
