@@ -5,7 +5,8 @@ Usage::
     graphopt-bal [INPUT] [--iterations N] [--algorithm lm|gn|dogleg]
                  [--solver auto|cholmod|dense|pcg|scipy] [--robust KERNEL --robust-delta D]
                  [--normalize] [--perturb R T P] [--seed S]
-                 [--ply-before FILE] [--ply-after FILE] [--rrd FILE] [--json FILE] [--quiet]
+                 [--ply-before FILE] [--ply-after FILE] [--ply-drop-far] [--rrd FILE] [--json FILE]
+                 [--quiet]
                  [--lm-damping diagonal|identity]
 
 Cameras are :class:`~graphopt.types.bal.VertexCameraBAL`, points
@@ -71,6 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed for --perturb and the synthetic scene")
     p.add_argument("--ply-before", metavar="FILE", help="PLY of the initial reconstruction")
     p.add_argument("--ply-after", metavar="FILE", help="PLY of the optimised reconstruction")
+    p.add_argument("--ply-drop-far", action="store_true",
+                   help=f"leave out of the PLY files the points farther than {FAR_FACTOR:g}x the "
+                        "median distance from the median point (see the summary's count)")
     p.add_argument("--rrd", metavar="FILE", help="rerun recording (.rrd) of the optimisation")
     p.add_argument("--json", metavar="FILE", help="write the summary as one JSON object")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
@@ -203,6 +207,34 @@ def _start_recording(
     return recording
 
 
+#: A point is *far* when its distance from the median point exceeds this many times the median
+#: distance (Ladybug-49 ends with 19 points beyond 1,000 units in a scene whose input spans 633).
+FAR_FACTOR = 100.0
+
+
+def far_points(points: np.ndarray, factor: float = FAR_FACTOR) -> np.ndarray:
+    """Mask of points far outside the scene: farther from the median point than ``factor``
+    times the median distance (robust to the outliers it looks for).
+
+    Args:
+        points: ``(n, 3)`` points.
+        factor: The multiple of the median distance.
+
+    Returns:
+        ``(n,)`` boolean mask.
+    """
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(pts) == 0:
+        return np.zeros(0, dtype=bool)
+    dist = np.linalg.norm(pts - np.median(pts, axis=0), axis=1)
+    return dist > factor * np.median(dist)
+
+
+def _write_ply(path: str, problem: BALProblem, drop_far: bool) -> None:
+    keep = ~far_points(problem.points) if drop_far else slice(None)
+    write_scene_ply(path, problem.points[keep], problem.camera_centers())
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run bundle adjustment as configured by parsed options.
 
@@ -226,7 +258,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise _cli.AppError(f"{source}: the initial reprojection error is not finite "
                        "(a point at depth 0 in its camera?)")
     if args.ply_before:
-        write_scene_ply(args.ply_before, problem.points, problem.camera_centers())
+        _write_ply(args.ply_before, problem, args.ply_drop_far)
 
     opt = _build_optimizer(args, problem, kernel, source)
     recording = _start_recording(args.rrd, opt, problem, initial_cost) if args.rrd else None
@@ -262,6 +294,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "stop_reason": res.stop_reason,
         "behind_camera_initial": behind0,
         "behind_camera_final": behind1,
+        "far_points_initial": int(far_points(problem.points).sum()),
+        "far_points_final": int(far_points(est.points).sum()),
+        "far_points_dropped_from_ply": bool(args.ply_drop_far),
     }
     if truth is not None:
         summary["ground_truth_initial"] = ground_truth_errors(problem, truth)
@@ -270,7 +305,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if recording is not None:
         recording.close()
     if args.ply_after:
-        write_scene_ply(args.ply_after, est.points, est.camera_centers())
+        _write_ply(args.ply_after, est, args.ply_drop_far)
     if args.json:
         _cli.write_json(args.json, summary)
     if not args.quiet:
@@ -303,6 +338,9 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{s['seconds_per_iteration']:.4f} s/iteration",
         f"  observations behind their camera: {s['behind_camera_initial']} initially, "
         f"{s['behind_camera_final']} at the end (kept, BAL's model)",
+        f"  points far outside the scene (> {FAR_FACTOR:g}x the median distance from the median "
+        f"point): {s['far_points_initial']} initially, {s['far_points_final']} at the end"
+        + (" (left out of the PLY files)" if s["far_points_dropped_from_ply"] else ""),
     ]
     if "ground_truth" in s:
         g0, g = s["ground_truth_initial"], s["ground_truth"]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from graphopt.apps.bal import main
+from graphopt.apps.bal import far_points, main
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bal"
 needs_data = pytest.mark.skipif(
@@ -196,8 +196,14 @@ def test_problem_16_22106(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
 
 @needs_data
 def test_problem_49_7776(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    s = _real("problem-49-7776-pre.txt.bz2", 8, tmp_path, capsys)
+    ply = tmp_path / "after.ply"
+    s = _real("problem-49-7776-pre.txt.bz2", 8, tmp_path, capsys, "--ply-after", str(ply),
+              "--ply-drop-far")
     assert (s["cameras"], s["points"], s["observations"]) == (49, 7776, 31843)
+    # Points beyond 100x the median distance from the median point: counted, left out of the PLY.
+    assert s["far_points_initial"] == 19 and s["far_points_final"] >= 19
+    header = ply.read_bytes().split(b"end_header")[0].decode()
+    assert f"element vertex {49 + 7776 - s['far_points_final']}" in header
     assert s["initial_cost"] == pytest.approx(8.509125e5, rel=1e-6)
     assert s["final_cost"] <= 1.3500e4  # Ceres and g2o: 1.331e4–1.349e4
     assert s["behind_camera_initial"] == 31  # reported, and BAL's model is kept
@@ -208,3 +214,12 @@ def test_problem_49_7776_g2o_damping(tmp_path: Path, capsys: pytest.CaptureFixtu
     s = _real("problem-49-7776-pre.txt.bz2", 24, tmp_path, capsys, "--lm-damping", "identity")
     assert s["lm_damping"] == "identity"
     assert s["final_cost"] <= 1.3500e4
+
+
+def test_far_points_are_counted_robustly() -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(1000, 3))
+    far = np.array([[1e3, 0, 0], [0, -5e2, 0], [0, 0, 90.0]])  # median distance ≈ 1.5
+    mask = far_points(np.vstack([pts, far]))
+    np.testing.assert_array_equal(np.flatnonzero(mask), [1000, 1001])
+    assert far_points(np.zeros((0, 3))).shape == (0,)
