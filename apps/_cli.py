@@ -15,12 +15,13 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
 from graphopt.io.atomic import atomic_path, atomic_write
-from graphopt.solvers import SOLVERS
+from graphopt.solvers import CHOLMOD_AVAILABLE, SOLVERS
 
 __all__ = [
     "AppError",
@@ -63,6 +64,42 @@ def add_solver_option(parser: argparse.ArgumentParser) -> None:
         help="linear solver of the reduced camera system (default auto: dense Cholesky for a "
              "small dense system, else CHOLMOD)",
     )
+
+
+def initialize(opt: Any, requested: str) -> tuple[str, str, list[str]]:
+    """Initialise an optimizer; name the linear solver that runs.
+
+    A missing CHOLMOD is said in the description (instead of Python's warning).
+
+    Args:
+        opt: The :class:`~graphopt.optimizer.SparseOptimizer`.
+        requested: The solver name the user asked for.
+
+    Returns:
+        ``(name, description, notes)``: the solver that runs (``auto``'s choice, or ``scipy``
+        for a missing CHOLMOD), how to say it in a summary, and other warnings' first lines.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        opt.initialize_optimization()
+    notes = [str(w.message).splitlines()[0] for w in caught if "CHOLMOD" not in str(w.message)]
+    chosen = getattr(opt.solver, "chosen", None) or opt.solver
+    name = str(chosen.name)
+    text = name
+    if name == "scipy" and requested in ("auto", "cholmod") and not CHOLMOD_AVAILABLE:
+        text += " (CHOLMOD's fallback: scikit-sparse is not installed)"
+    elif requested == "auto":
+        text += " (chosen by auto)"
+    return name, text, notes
+
+
+#: The JSON keys every app writes, with the same meaning: the input, the algorithm, the linear
+#: solver that ran and the one asked for, the robust kernel (``"name:delta"`` or ``None``),
+#: g2o's chi2 before and after, the iterations that changed the estimate, why the run stopped,
+#: and the optimisation's seconds.
+COMMON_KEYS = ("input", "algorithm", "solver", "solver_requested", "robust_kernel",
+               "initial_chi2", "final_chi2", "iterations", "stop_reason", "seconds",
+               "seconds_per_iteration")
 
 
 def check_run_options(iterations: int, robust_delta: float) -> None:

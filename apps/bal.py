@@ -261,6 +261,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         _write_ply(args.ply_before, problem, args.ply_drop_far)
 
     opt = _build_optimizer(args, problem, kernel, source)
+    solver, solver_text, _ = _cli.initialize(opt, args.solver)
     recording = _start_recording(args.rrd, opt, problem, initial_cost) if args.rrd else None
     res = _cli.optimize_recorded(opt, args.iterations, recording)
     est = BALProblem(opt.estimates_of(VertexCameraBAL), opt.estimates_of(VertexPointXYZ),
@@ -280,7 +281,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "observations": problem.num_observations,
         "algorithm": args.algorithm,
         "lm_damping": args.lm_damping if args.algorithm == "lm" else None,
-        "solver": args.solver,
+        "solver": solver,
+        "solver_requested": args.solver,
+        "solver_text": solver_text,
         "robust_kernel": None if kernel is None else f"{args.robust}:{args.robust_delta:g}",
         "initial_cost": initial_cost,
         "final_cost": final_cost,
@@ -328,7 +331,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"  cameras {s['cameras']}, points {s['points']}, observations {s['observations']}",
         f"  algorithm {s['algorithm']}"
         + (f" ({s['lm_damping']} damping)" if s.get("lm_damping") else "")
-        + f", solver {s['solver']}, robust kernel "
+        + f", linear solver {s['solver_text']}, robust kernel "
         f"{s['robust_kernel'] or 'none'}, points marginalised (Schur complement)",
         f"  initial cost {s['initial_cost']:.6e}   final cost {s['final_cost']:.6e}"
         "   (1/2 sum |r|^2, no kernel)",

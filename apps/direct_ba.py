@@ -101,13 +101,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     except (ValueError, GraphError) as exc:
         raise _cli.AppError(str(exc)) from None
     opt = problem.optimizer
+    solver, solver_text, _ = _cli.initialize(opt, args.solver)
     before = (problem.poses(), problem.points())
     opt.compute_active_errors()
     active0 = opt.active_edge_count()
     say(f"# {PROG}: {data.source}: {len(data.poses)} poses, {len(problem.point_index)} points "
         f"({problem.parametrization}), {problem.n_edges} edges, {active0} active, patch "
         f"{data.patch}x{data.patch}, robust {args.robust} {args.robust_delta:g}, "
-        f"solver {args.solver}; load {load_s:.2f} s")
+        f"linear solver {solver_text}; load {load_s:.2f} s")
     if problem.dropped_points:
         say(f"# {problem.dropped_points} points behind every camera were left out")
 
@@ -129,12 +130,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     per_iteration = seconds / res.iterations if res.iterations else 0.0
     opt.compute_active_errors()
     summary: dict[str, Any] = {
-        "source": data.source,
+        "input": data.source,
+        "algorithm": "lm",
+        "solver": solver,
+        "solver_requested": args.solver,
+        "robust_kernel": (None if args.robust in (None, "none", "")
+                          else f"{args.robust}:{args.robust_delta:g}"),
         "parametrization": problem.parametrization,
         "patch": data.patch,
-        "robust": args.robust,
-        "robust_delta": args.robust_delta,
-        "solver": args.solver,
         "poses": len(data.poses),
         "points": len(problem.point_index),
         "edges": problem.n_edges,

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -42,7 +41,6 @@ from graphopt.apps.slam_scene import manhattan_world, trajectory_error
 from graphopt.io.g2o import GraphFormatError, read_graph, write_g2o
 from graphopt.io.g2o_records import GraphFile
 from graphopt.robust_kernel import RobustKernel
-from graphopt.solvers import CHOLMOD_AVAILABLE
 from graphopt.types.slam_graph import SlamGraph, build_graph, graph_file
 
 PROG = "graphopt-g2o"
@@ -160,26 +158,6 @@ def _build(args: argparse.Namespace, graph: GraphFile, kernel: RobustKernel | No
         raise _cli.AppError(str(exc).replace("build with guess=True", "use --guess")) from None
 
 
-def _setup(opt: SparseOptimizer, requested: str) -> tuple[str, str, list[str]]:
-    """Initialise the optimizer; the linear solver that runs, a description and notes.
-
-    A missing CHOLMOD is said in the description (instead of Python's warning).
-    """
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        opt.initialize_optimization()
-    notes = [str(w.message).splitlines()[0] for w in caught if "CHOLMOD" not in str(w.message)]
-    solver = opt.solver
-    chosen = getattr(solver, "chosen", None) or solver
-    name = str(chosen.name)
-    text = name
-    if name == "scipy" and requested in ("auto", "cholmod") and not CHOLMOD_AVAILABLE:
-        text += " (CHOLMOD's fallback: scikit-sparse is not installed)"
-    elif requested == "auto":
-        text += " (chosen by auto)"
-    return name, text, notes
-
-
 def _marginals(slam: SlamGraph, view: GraphView) -> dict[str, Any]:
     """Marginal covariances of the free poses (or a sample of them), summarised."""
     t0 = time.perf_counter()
@@ -262,7 +240,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     slam = _build(args, graph, kernel)
     opt, view = slam.optimizer, graph_view(slam)
     t2 = time.perf_counter()
-    solver, solver_text, setup_notes = _setup(opt, args.solver)
+    solver, solver_text, setup_notes = _cli.initialize(opt, args.solver)
     t3 = time.perf_counter()
     notes = list(dict.fromkeys([*graph.notes, *slam.notes, *setup_notes]))
     for note in notes:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from graphopt.apps import bal, direct_ba, g2o
+from graphopt.apps import _cli, bal, direct_ba, g2o
 from graphopt.apps._cli import (
     AppError,
     OneLineParser,
@@ -177,3 +177,28 @@ def test_recording_is_timed_and_discarded_on_failure(tmp_path: Path) -> None:
     rec.close()
     assert path.stat().st_size > 0 and os.listdir(tmp_path) == ["run.rrd"]
     assert optimize_recorded(_Optimizer(fail=False), 2, None) == "done 2"
+
+
+def test_every_app_writes_the_common_json_keys(tmp_path: Path, monkeypatch) -> None:
+    """One schema: the same keys, with the same meaning, in all three apps' JSON."""
+    from graphopt.apps import bal, direct_ba, g2o
+
+    monkeypatch.setattr(direct_ba, "SYNTHETIC", {
+        "n_frames": 3, "n_points": 200, "size": (320, 240), "seed": 2,
+        "intrinsics": (140.0, 145.0, 160.0, 120.0)})
+    runs = {
+        "bal": (bal.main, ["--iterations", "2", "--robust", "huber"]),
+        "direct_ba": (direct_ba.main, ["--iterations", "2"]),
+        "g2o": (g2o.main, ["--iterations", "2", "--poses", "60", "--solver", "dense"]),
+    }
+    for name, (main, argv) in runs.items():
+        js = tmp_path / f"{name}.json"
+        assert main([*argv, "--quiet", "--json", str(js)]) == 0, name
+        s = json.loads(js.read_text())
+        assert set(_cli.COMMON_KEYS) <= set(s), (name, set(_cli.COMMON_KEYS) - set(s))
+        assert s["solver"] in ("dense", "cholmod", "scipy", "pcg"), (name, s["solver"])
+        assert s["algorithm"] == "lm" and s["iterations"] == 2 and s["stop_reason"] == "iterations"
+        assert s["final_chi2"] < s["initial_chi2"], name
+    assert json.loads((tmp_path / "bal.json").read_text())["robust_kernel"] == "huber:1"
+    assert json.loads((tmp_path / "direct_ba.json").read_text())["robust_kernel"] == "huber:0.5"
+    assert json.loads((tmp_path / "g2o.json").read_text())["solver_requested"] == "dense"

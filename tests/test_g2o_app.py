@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from test_slam_graph import DATA, G2O_GUESS_VICTORIA, G2O_INITIAL, G2O_LM
 
-from graphopt.apps import g2o
+from graphopt.apps import _cli, g2o
 from graphopt.apps.g2o import main
 from graphopt.io.g2o import read_graph
 
@@ -117,7 +117,7 @@ def test_cholmod_fallback_is_named(tmp_path: Path, capsys: pytest.CaptureFixture
 
     monkeypatch.setattr(solvers, "CHOLMOD_AVAILABLE", False)
     monkeypatch.setattr(solvers, "_warned", False)
-    monkeypatch.setattr(g2o, "CHOLMOD_AVAILABLE", False)
+    monkeypatch.setattr(_cli, "CHOLMOD_AVAILABLE", False)
     s, out, err = _summary(["--poses", "40", "--solver", "cholmod", "-i", "2"], tmp_path, capsys)
     assert s["solver"] == "scipy"
     assert "linear solver scipy (CHOLMOD's fallback: scikit-sparse is not installed)" in out
