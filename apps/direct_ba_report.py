@@ -65,9 +65,40 @@ def _intensity_colors(patches: np.ndarray) -> np.ndarray:
     return np.stack([g, g, g], axis=1)
 
 
+#: Length in pixels of the largest (magnified) camera shift arrow; points use their 90th
+#: percentile shift.
+ARROW_PX = 60.0
+#: About how many point shifts are drawn as arrows.
+ARROW_POINTS = 300
+
+
+def _magnification(shift_px: float) -> float:
+    """Factor that stretches a ``shift_px``-pixel shift to :data:`ARROW_PX` (never below 1)."""
+    return max(1.0, ARROW_PX / shift_px) if shift_px > 0 else 1.0
+
+
+def _nice_length(x: float) -> float:
+    """The largest of 1, 2, 5 × 10^k not above ``x``."""
+    k = 10.0 ** np.floor(np.log10(x))
+    return float(max(m * k for m in (1, 2, 5) if m * k <= x))
+
+
+def _arrows(canvas: np.ndarray, start: np.ndarray, end: np.ndarray, mag: float,
+            colour: tuple[int, int, int], width: int) -> None:
+    """Arrows from ``start`` along ``(end − start) · mag`` (pixel coordinates)."""
+    import cv2
+
+    tips = start + (end - start) * mag
+    for a, b in zip(start, tips, strict=True):
+        if np.isfinite(a).all() and np.isfinite(b).all():
+            cv2.arrowedLine(canvas, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), colour,
+                            width, cv2.LINE_AA, tipLength=0.25)
+
+
 def write_png(path: str | Path, problem: DirectBAProblem, before: tuple[np.ndarray, np.ndarray],
               after: tuple[np.ndarray, np.ndarray]) -> None:
-    """Top-down (x–z) picture of cameras and points before (red/grey) and after (green/blue).
+    """Top-down (x–z) picture of cameras and points before (red/grey) and after (green/blue),
+    with their shifts drawn as magnified arrows (factors in the legend) and a scale bar.
 
     Args:
         path: Destination ``.png`` (replaced atomically).
@@ -108,20 +139,35 @@ def write_png(path: str | Path, problem: DirectBAProblem, before: tuple[np.ndarr
         cv2.polylines(canvas, [q.reshape(-1, 1, 2)], False, colour, 1, cv2.LINE_AA)
         for p in q:
             cv2.circle(canvas, tuple(int(x) for x in p), 4, colour, -1, cv2.LINE_AA)
+    shift_c = float(np.linalg.norm(c_after - c_before, axis=1).max())
+    ok = np.isfinite(before[1]).all(axis=1) & np.isfinite(after[1]).all(axis=1)
+    moved = np.linalg.norm(after[1][ok] - before[1][ok], axis=1)
+    shift_p = float(np.median(moved)) if ok.any() else float("nan")
+    # The changes are far below a pixel at the scene's scale: draw them as arrows, magnified
+    # so that the largest camera shift spans ARROW_PX pixels (points: their 90th percentile).
+    mag_c = _magnification(shift_c * scale)
+    _arrows(canvas, px(c_before), px(c_after), mag_c, (0, 120, 0), 2)
+    idx = np.flatnonzero(ok)[:: max(1, int(ok.sum()) // ARROW_POINTS)]
+    mag_p = _magnification(float(np.percentile(moved, 90)) * scale if len(moved) else 0.0)
+    _arrows(canvas, px(before[1][idx]), px(after[1][idx]), mag_p, (200, 120, 40), 1)
     legend = [("cameras before", (0, 0, 220)), ("cameras after", (0, 160, 0)),
-              ("points before", (170, 170, 170)), ("points after", (200, 120, 40))]
+              ("points before", (170, 170, 170)), ("points after", (200, 120, 40)),
+              (f"camera shifts (arrows) x{mag_c:.3g}", (0, 120, 0)),
+              (f"point shifts (arrows, {len(idx)} points) x{mag_p:.3g}", (200, 120, 40))]
     if problem.data.true_poses is not None:
         legend.append(("true cameras", (0, 0, 0)))
     for i, (text, colour) in enumerate(legend):
         cv2.putText(canvas, text, (12, 22 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1,
                     cv2.LINE_AA)
-    shift_c = float(np.linalg.norm(c_after - c_before, axis=1).max())
-    ok = np.isfinite(before[1]).all(axis=1) & np.isfinite(after[1]).all(axis=1)
-    shift_p = float(np.median(np.linalg.norm(after[1][ok] - before[1][ok], axis=1))) if ok.any() \
-        else float("nan")
-    cv2.putText(canvas, f"top view: x right, z up; largest camera shift {shift_c:.4g}, median "
-                f"point shift {shift_p:.4g}", (12, size - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+    bar = _nice_length(100.0 / scale)  # about 100 px of world units
+    x1, y = size - pad, size - 40
+    x0 = int(round(x1 - bar * scale))
+    cv2.line(canvas, (x0, y), (x1, y), (0, 0, 0), 2)
+    cv2.putText(canvas, f"{bar:g} world units", (x0, y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
                 (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(canvas, f"top view: x right, z up (world units); largest camera shift "
+                f"{shift_c:.3g}, median point shift {shift_p:.3g}", (12, size - 12),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     write_png_image(path, canvas)
 
 

@@ -118,13 +118,19 @@ def test_cli_synthetic_quiet_json(tmp_path: Path, monkeypatch, capsys) -> None:
     small = {"n_frames": 3, "n_points": 300, "size": (320, 240), "seed": 2,
              "intrinsics": (140.0, 145.0, 160.0, 120.0)}
     monkeypatch.setattr(direct_ba, "SYNTHETIC", small)
-    js = tmp_path / "s.json"
-    assert main(["--iterations", "5", "--quiet", "--json", str(js),
+    js, png = tmp_path / "s.json", tmp_path / "s.png"
+    assert main(["--iterations", "5", "--quiet", "--json", str(js), "--png", str(png),
                  "--parametrization", "inverse-depth", "--patch", "6"]) == 0
     assert capsys.readouterr().out == ""
     summary = json.loads(js.read_text())
     assert summary["patch"] == 6 and summary["edges"] == 900
     assert "final_rotation_error_deg_mean" in summary
+    # The shifts are far below a pixel: they are drawn as magnified arrows (camera arrows in
+    # (0, 120, 0) BGR, thick enough to count), beside a scale bar.
+    import cv2
+
+    img = cv2.imread(str(png))
+    assert int(np.all(img == (0, 120, 0), axis=2).sum()) > 100
 
 
 @pytest.mark.parametrize(
