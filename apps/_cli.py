@@ -13,7 +13,9 @@ import contextlib
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -234,8 +236,46 @@ class RunRecording:
         self.rec.abort()
 
 
+#: The signal that interrupted the last optimisation (SIGINT or SIGTERM), else None.
+_interrupted: int | None = None
+
+
+class Terminated(BaseException):
+    """SIGTERM outside an optimisation, or a second signal during one: stop at once."""
+
+
+@contextlib.contextmanager
+def _interruptible(opt: Any) -> Iterator[None]:
+    """While the block runs, a first SIGINT/SIGTERM asks ``opt`` to stop at its next safe point
+    (the run then ends normally, with its outputs); a second one aborts at once."""
+    global _interrupted
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _interrupted = None
+
+    def handler(signum: int, frame: Any) -> None:
+        global _interrupted
+        if _interrupted is None:
+            _interrupted = signum
+            opt.stop()
+            return
+        raise KeyboardInterrupt if signum == signal.SIGINT else Terminated()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
 def optimize_recorded(opt: Any, iterations: int, recording: RunRecording | None) -> Any:
-    """``opt.optimize(iterations)``, discarding the recording if it raises.
+    """``opt.optimize(iterations)``, interruptible, discarding the recording if it raises.
+
+    A first Ctrl-C (or SIGTERM) ends the optimisation at the next safe point with the stop
+    reason ``interrupted``: the app then writes its outputs from the best estimate and
+    :func:`run_main` exits with 130 (143). A second one aborts at once.
 
     Args:
         opt: The :class:`graphopt.SparseOptimizer`.
@@ -246,7 +286,8 @@ def optimize_recorded(opt: Any, iterations: int, recording: RunRecording | None)
         The optimisation result.
     """
     try:
-        return opt.optimize(iterations)
+        with _interruptible(opt):
+            return opt.optimize(iterations)
     except BaseException:
         if recording is not None:
             recording.abort()
@@ -275,21 +316,42 @@ def run_main(
         parser's ``SystemExit``). With the environment variable ``GRAPHOPT_DEBUG`` set, an
         unexpected exception propagates with its traceback.
     """
+    global _interrupted
     args = parser.parse_args(argv)
+    _interrupted = None
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:
         run(args)
     except (AppError, OSError, *user_errors) as exc:
         print(f"{prog}: error: {_first_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted; no output written", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"{prog}: terminated; no output written", file=sys.stderr)
+        return 143
     except Exception as exc:  # noqa: BLE001 - the user gets one line, not a traceback
         if os.environ.get("GRAPHOPT_DEBUG"):
             raise
         print(f"{prog}: error: {type(exc).__name__}: {_first_line(exc)}", file=sys.stderr)
         return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if _interrupted is not None:
+        name = "interrupted" if _interrupted == signal.SIGINT else "terminated"
+        print(f"{prog}: {name}: the outputs were written from the best estimate",
+              file=sys.stderr)
+        return 128 + int(_interrupted)
     return 0
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    """SIGTERM outside an optimisation: stop at once (outputs are written atomically, so none
+    is left half-written)."""
+    raise Terminated()
 
 
 def _first_line(exc: BaseException) -> str:

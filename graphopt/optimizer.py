@@ -70,6 +70,7 @@ class SparseOptimizer:
         self._problem: Problem | None = None
         self._structure_key: tuple[Any, ...] | None = None
         self._stop = False
+        self._interrupt = False
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -112,6 +113,15 @@ class SparseOptimizer:
     def force_stop(self) -> None:
         """Ask ``optimize`` to stop after the current iteration (g2o's force-stop flag)."""
         self._stop = True
+
+    def stop(self) -> None:
+        """Ask a running ``optimize`` to end at the next safe point — the end of the current
+        iteration, whose estimate is kept only if it was accepted — with the stop reason
+        ``interrupted``.
+
+        Safe to call from a signal handler or another thread: it only sets a flag.
+        """
+        self._interrupt = True
 
     @property
     def solver(self) -> LinearSolver | None:
@@ -326,7 +336,7 @@ class SparseOptimizer:
             raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
         t_start = time.perf_counter()
         p = self._ensure_problem()
-        self._stop = False
+        self._stop = self._interrupt = False
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
         if not np.isfinite(initial):
@@ -334,6 +344,9 @@ class SparseOptimizer:
         cum = 0.0
         last = initial
         for it in range(int(iterations)):
+            if self._interrupt:
+                res.stop_reason = StopReason.INTERRUPTED
+                break
             for cb in self._callbacks["pre_iteration"]:
                 cb(self, IterationInfo(it, last))
             p.reset_timing()
@@ -369,6 +382,8 @@ class SparseOptimizer:
                 print(f"# {self.algorithm.config.name}: the system was not positive definite "
                       f"{info.not_pd} time(s); no acceptable step", file=self._out)
             return StopReason.FAILED if info.not_pd >= info.trials else StopReason.CONVERGED
+        if self._interrupt:
+            return StopReason.INTERRUPTED
         if self._stop:
             return StopReason.STOPPED
         if info.chi2 == 0.0:

@@ -17,8 +17,10 @@ class StopReason(StrEnum):
     ITERATIONS = "iterations"
     #: The relative chi2 decrease of an iteration fell below the gain threshold.
     GAIN = "gain"
-    #: :meth:`~graphopt.optimizer.SparseOptimizer.force_stop` was called.
+    #: :meth:`~graphopt.optimizer.SparseOptimizer.force_stop` was called (g2o's flag).
     STOPPED = "stopped"
+    #: :meth:`~graphopt.optimizer.SparseOptimizer.stop` was called (Ctrl-C, another thread).
+    INTERRUPTED = "interrupted"
     #: Zero chi2, or no trial step reduced chi2 although the solves worked.
     CONVERGED = "converged"
     #: Every solve of the last iteration met a system that is not positive definite.

@@ -122,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
          "tool: error: [Errno 2] No such file: 'x.txt'\n"),
         (LookupError("user-facing"), 1, "tool: error: user-facing\n"),
         (RuntimeError("boom\ntrace"), 1, "tool: error: RuntimeError: boom\n"),
-        (KeyboardInterrupt(), 130, "tool: interrupted\n"),
+        (KeyboardInterrupt(), 130, "tool: interrupted; no output written\n"),
     ],
 )
 def test_run_main_reports_one_line(monkeypatch: pytest.MonkeyPatch,
@@ -202,3 +202,71 @@ def test_every_app_writes_the_common_json_keys(tmp_path: Path, monkeypatch) -> N
     assert json.loads((tmp_path / "bal.json").read_text())["robust_kernel"] == "huber:1"
     assert json.loads((tmp_path / "direct_ba.json").read_text())["robust_kernel"] == "huber:0.5"
     assert json.loads((tmp_path / "g2o.json").read_text())["solver_requested"] == "dense"
+
+
+def _interrupt_run(tmp_path: Path, signals: list[int]) -> tuple[int, str]:
+    """Run graphopt-g2o on a large generated graph; send ``signals`` once it is iterating."""
+    import signal as _signal
+    import subprocess
+    import sys
+
+    js = tmp_path / "run.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-P", "-m", "graphopt.apps.g2o", "--poses", "5000", "-i", "500",
+         "--lm-schedule", "g2o", "--json", str(js)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    assert proc.stderr is not None
+    lines = []
+    for line in proc.stderr:  # g2o's iteration lines: the optimisation is under way
+        lines.append(line)
+        if line.startswith("iteration= 1\t"):
+            break
+    for sig in signals:
+        proc.send_signal(sig)
+        time.sleep(0.05)
+    _, err = proc.communicate(timeout=60)
+    assert sig in (_signal.SIGINT, _signal.SIGTERM)
+    return proc.returncode, "".join(lines) + err
+
+
+@pytest.mark.parametrize(("sig", "code", "word"),
+                         [(2, 130, "interrupted"), (15, 143, "terminated")])
+def test_a_signal_ends_the_run_with_its_outputs(tmp_path: Path, sig: int, code: int,
+                                                word: str) -> None:
+    rc, err = _interrupt_run(tmp_path, [sig])
+    assert rc == code, err
+    assert f"{word}: the outputs were written from the best estimate" in err
+    s = json.loads((tmp_path / "run.json").read_text())
+    assert s["stop_reason"] == "interrupted" and 2 <= s["iterations"] < 500
+    assert s["final_chi2"] < s["initial_chi2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json"]  # no temporary file
+
+
+def test_a_second_signal_aborts_at_once() -> None:
+    """The first signal asks the optimizer to stop at its next safe point; the second raises.
+
+    (Python runs signal handlers between bytecodes, so two signals that arrive during one long
+    C call — a factorisation — count as one: the run then ends with its outputs.)
+    """
+    import signal as _signal
+
+    class Opt:
+        stops = 0
+
+        def stop(self) -> None:
+            Opt.stops += 1
+
+    before = _signal.getsignal(_signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt), _cli._interruptible(Opt()):
+        os.kill(os.getpid(), _signal.SIGINT)
+        time.sleep(0.01)
+        assert Opt.stops == 1 and _cli._interrupted == _signal.SIGINT
+        os.kill(os.getpid(), _signal.SIGINT)
+        time.sleep(0.5)
+    assert _signal.getsignal(_signal.SIGINT) is before  # the handlers are restored
+    with pytest.raises(_cli.Terminated), _cli._interruptible(Opt()):
+        os.kill(os.getpid(), _signal.SIGTERM)
+        time.sleep(0.01)
+        os.kill(os.getpid(), _signal.SIGTERM)
+        time.sleep(0.5)
+    assert Opt.stops == 2

@@ -131,3 +131,21 @@ def test_problem_exists_after_initialisation_only() -> None:
     assert opt.linear_system is opt.problem.system and opt.linear_system.n == 39 * 3
     assert opt.solver is opt.problem.solver and opt.solver.name == "auto"
     assert SparseOptimizer().optimize(0).iterations == 0  # library default solver: auto
+
+
+def test_stop_ends_the_run_at_the_next_safe_point_as_interrupted() -> None:
+    import threading
+
+    opt, _, _ = build_pose_graph("lm")
+    ref = build_pose_graph("lm")[0].optimize(2)
+    opt.add_callback("post_iteration", lambda o, info: info.iteration == 1 and o.stop())
+    res = opt.optimize(50)
+    assert res.stop_reason is StopReason.INTERRUPTED and res.iterations == 2
+    assert res.final_chi2 == ref.final_chi2 == opt.active_robust_chi2()
+    # A request from another thread (here before the run) is cleared when a run starts.
+    other, _, _ = build_pose_graph("lm")
+    timer = threading.Timer(0.0, other.stop)
+    timer.start()
+    timer.join()
+    res = other.optimize(3)
+    assert res.stop_reason == "iterations" and res.iterations == 3
