@@ -19,7 +19,7 @@ from graphopt.result import IterationInfo
 
 @dataclass(frozen=True)
 class GaussNewtonConfig:
-    """Gauss–Newton: solve ``H Δ = b`` and always accept.
+    """Gauss–Newton: solve ``H Δ = b`` and accept unless the new chi2 is not finite.
 
     Args:
         name: Algorithm name used in messages.
@@ -127,7 +127,8 @@ class Algorithm:
 
 
 class GaussNewton(Algorithm):
-    """Gauss–Newton.
+    """Gauss–Newton. A step to a non-finite chi2 is undone and the iteration fails (the last
+    finite estimate is kept, as in LM).
 
     Args:
         config: :class:`GaussNewtonConfig`.
@@ -145,8 +146,13 @@ class GaussNewton(Algorithm):
             step = p.solve(asm, 0.0)
         except NotPositiveDefiniteError:
             return IterationInfo(iteration, chi, not_pd=1, failed=True)
+        p.push()
         p.apply(step)
-        return IterationInfo(iteration, p.robust_chi2())
+        new_chi = p.robust_chi2()
+        if not math.isfinite(new_chi):  # keep the last finite estimate, as LM does
+            p.pop()
+            return IterationInfo(iteration, chi, failed=True)
+        return IterationInfo(iteration, new_chi)
 
 
 class LevenbergMarquardt(Algorithm):

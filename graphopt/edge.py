@@ -202,7 +202,9 @@ class BaseEdge:
             jac = cls.jacobians(x, measurement, ctx)
         except NotImplementedError:
             jac = numeric_jacobians(cls, x, measurement, ctx)
-        return Linearization(ev.error, tuple(jac), active=ev.active)
+        # One array instead of a tuple stays one array: the linearizer reports it.
+        jac = jac if isinstance(jac, np.ndarray) else tuple(jac)
+        return Linearization(ev.error, jac, active=ev.active)
 
     @classmethod
     def jacobian_rows(cls) -> int:

@@ -127,11 +127,80 @@ class Linearizer:
         if hit is not None and hit[0] == key:
             return hit[1]
         g = self.groups[gi]
-        out = g.etype.linearize(self.gather(gi), g.measurements, self.context(gi))
-        if not isinstance(out, Linearization):  # a plain (error, jacobians[, ...]) tuple
-            out = Linearization(*out)
+        out = self._call(g, "linearize", self.gather(gi), self.context(gi))
         if g.etype.linearize_on_trial:
             self._lin_cache[gi] = (key, out)
+        return out
+
+    # --- checking what edge types return ------------------------------------------------------
+
+    def _call(self, g: EdgeGroup, method: str, x: tuple[np.ndarray, ...],
+              ctx: EdgeContext) -> Linearization:
+        """Call the type's ``evaluate`` or ``linearize`` on group ``g`` and check the result.
+
+        Raises:
+            GraphError: a result of the wrong kind or shape (naming the type and the group's
+                first edge), also when raised inside the call (numeric differences check
+                ``error`` and ``oplus``).
+        """
+        try:
+            out = getattr(g.etype, method)(x, g.measurements, ctx)
+        except GraphError as exc:
+            raise GraphError(f"{exc} ({self._where(g)})") from exc
+        return self._checked(g, out, method)
+
+    @staticmethod
+    def _where(g: EdgeGroup) -> str:
+        ids = g.vertex_ids[0].tolist() if g.size else []
+        return f"{g.size} edges of the group, the first on vertices {ids}"
+
+    def _checked(self, g: EdgeGroup, out: object, method: str) -> Linearization:
+        """``out`` as a :class:`Linearization` whose arrays have the documented shapes.
+
+        Shape and dtype comparisons only, once per group and call. An error that is not an
+        ndarray (a list) is converted with ``np.asarray`` and accepted if its shape is right;
+        integer errors become float. Jacobians must be ndarrays, one per vertex position.
+        """
+        et = g.etype
+        name = f"{et.__name__}.{method}"
+        if not isinstance(out, Linearization):
+            if not isinstance(out, tuple) or not 1 <= len(out) <= 4:
+                raise GraphError(f"{name} returned a {type(out).__name__}, expected a "
+                                 f"Linearization ({self._where(g)})")
+            out = Linearization(*out)  # a plain (error, jacobians[, ...]) tuple
+        m, dim = g.size, et.dimension
+        e = out.error
+        if type(e) is not np.ndarray or e.dtype.kind != "f":
+            try:
+                e = np.asarray(e, dtype=float)
+            except (TypeError, ValueError):
+                e = np.zeros(0)  # reported below with the original's type
+        if e.shape != (m, dim):
+            got = (f"shape {out.error.shape}" if isinstance(out.error, np.ndarray)
+                   else f"a {type(out.error).__name__}")
+            raise GraphError(f"{name} returned an error of {got}, expected ({m}, {dim}) "
+                             f"({self._where(g)})")
+        if e is not out.error:
+            out = out._replace(error=e)
+        if out.active is not None and np.shape(out.active) != (m,):
+            raise GraphError(f"{name} returned an active mask of shape {np.shape(out.active)}, "
+                             f"expected ({m},) ({self._where(g)})")
+        if method == "linearize":
+            J = out.jacobians
+            vts = et.vertex_types
+            if not isinstance(J, tuple | list) or len(J) != len(vts):
+                got = (f"{len(J)} Jacobians" if isinstance(J, tuple | list)
+                       else f"a {type(J).__name__}")
+                raise GraphError(f"{name} returned {got}, expected a tuple of {len(vts)} (one "
+                                 f"per vertex position) ({self._where(g)})")
+            rows = et.jacobian_rows()
+            for i, (j, vt) in enumerate(zip(J, vts, strict=True)):
+                if type(j) is not np.ndarray or j.shape != (m, rows, vt.dimension):
+                    got = (f"shape {j.shape}" if isinstance(j, np.ndarray)
+                           else f"a {type(j).__name__}")
+                    raise GraphError(f"{name} returned a Jacobian of {got} for position {i} "
+                                     f"({vt.__name__}), expected ({m}, {rows}, {vt.dimension}) "
+                                     f"({self._where(g)})")
         return out
 
     # --- weighting ---------------------------------------------------------------------------
@@ -203,13 +272,16 @@ class Linearizer:
 
         Types with ``linearize_on_trial`` linearise instead, and keep the result for the next
         :meth:`linearize` at the same state.
+
+        Raises:
+            GraphError: an error (or Jacobian) of the wrong shape, naming the type.
         """
         totals = [0.0, 0.0, 0.0]
         for gi, g in enumerate(self.groups):
             if g.etype.linearize_on_trial:
                 out = self._linearization(gi)
             else:
-                out = g.etype.evaluate(self.gather(gi), g.measurements, self.context(gi))
+                out = self._call(g, "evaluate", self.gather(gi), self.context(gi))
             _, s = self._sq(g, out.error)
             rho, _ = self._robustify(g, s)
             self._record(g, s, rho, out.active, totals)
@@ -223,7 +295,7 @@ class Linearizer:
 
         Raises:
             FloatingPointError: a non-finite error or Jacobian (naming the edge).
-            GraphError: a malformed reduced linearisation.
+            GraphError: an error, Jacobian or reduced linearisation of the wrong shape.
         """
         jac, wjac, wes = [], [], []
         totals = [0.0, 0.0, 0.0]

@@ -8,6 +8,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from graphopt.errors import GraphError
+
 
 class _VertexType(Protocol):
     dimension: int
@@ -48,24 +50,45 @@ def numeric_jacobians(
 
     Returns:
         One ``(m, dimension, vertex_dimension)`` array per vertex position.
+
+    Raises:
+        GraphError: an ``oplus`` or ``error`` result of the wrong shape (naming the type).
+
+    ``oplus`` gets a copy of the estimates each time: one that updates its input in place
+    (against its contract) would otherwise move ``x`` between the two sides of the difference
+    and halve the Jacobian. The copies cost little next to the ``error`` calls.
     """
     h = edge_type.numeric_step if step is None else step
     # Derived vertex values belong to the unperturbed x: the perturbed errors must not see them.
     ctx = replace(ctx, derived=None) if ctx is not None and ctx.derived is not None else ctx
     m = len(measurement)
+    shape = (m, edge_type.dimension)
     out = []
     for pos, vtype in enumerate(edge_type.vertex_types):
         d = vtype.dimension
         jac = np.zeros((m, edge_type.dimension, d))
         delta = np.zeros((m, d))
+        xi = x[pos]
         for k in range(d):
             delta[:, k] = h
             xp = list(x)
-            xp[pos] = vtype.oplus(x[pos], delta)
+            xp[pos] = _oplus(vtype, xi, delta)
             ep = edge_type.error(xp, measurement, ctx)
-            xp[pos] = vtype.oplus(x[pos], -delta)
+            xp[pos] = _oplus(vtype, xi, -delta)
             em = edge_type.error(xp, measurement, ctx)
+            if np.shape(ep) != shape or np.shape(em) != shape:
+                raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(ep)}, "
+                                 f"expected {shape}")
             jac[:, :, k] = (ep - em) / (2.0 * h)
             delta[:, k] = 0.0
         out.append(jac)
     return tuple(out)
+
+
+def _oplus(vtype: type[_VertexType], x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """``oplus`` on a copy of ``x``, its result checked to have ``x``'s shape."""
+    out = vtype.oplus(x.copy(), delta)
+    if np.shape(out) != x.shape:
+        raise GraphError(f"{getattr(vtype, '__name__', vtype)}.oplus returned shape "
+                         f"{np.shape(out)}, expected {x.shape}")
+    return out

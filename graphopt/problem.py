@@ -10,12 +10,13 @@ of the reduced system and, per class of marginalised vertices, their ``(n, d)`` 
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from graphopt.errors import NotPositiveDefiniteError
+from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linearizer import Evaluation, Linearizer, Positions
 from graphopt.solvers import LinearSolver
@@ -111,8 +112,29 @@ class Problem:
         return self.linearizer.evaluate()
 
     def robust_chi2(self) -> float:
-        """Robust chi2 at the current state (``inf`` if any error is not finite)."""
-        return self.linearizer.evaluate().robust_chi2
+        """Robust chi2 at the current state (``inf`` if any error is not finite).
+
+        Raises:
+            GraphError: the chi2 is not finite because a vertex type's ``oplus`` returned
+                non-finite estimates (naming the type and ids); the estimates saved by
+                :meth:`push` are restored first.
+        """
+        chi = self.linearizer.evaluate().robust_chi2
+        if not math.isfinite(chi):  # only then look for the cause in the estimates
+            self._check_finite_estimates()
+        return chi
+
+    def _check_finite_estimates(self) -> None:
+        """Raise naming the first store with non-finite estimates (after a finite step)."""
+        for st in self.stores:
+            est = st.estimates
+            ok = np.isfinite(est.reshape(len(est), -1)).all(axis=1)
+            if not ok.all():
+                ids = st.ids[~ok][:5].tolist()
+                if self._saved:
+                    self.pop()
+                raise GraphError(f"{st.vtype.__name__}.oplus returned non-finite estimates for "
+                                 f"a finite step (vertices {ids})")
 
     # --- the linear algebra ------------------------------------------------------------------
 
@@ -194,14 +216,33 @@ class Problem:
     def apply(self, step: Step) -> None:
         """``x ← x ⊞ Δ`` with every vertex type's vectorised ``oplus``.
 
+        ``oplus`` receives the estimates gathered by slot (a copy), so one that updates its input
+        in place cannot change the state; what it returns must have the input's shape. No store
+        changes unless every ``oplus`` succeeds.
+
         Args:
             step: ``(u part, [v parts])`` as returned by :meth:`solve`.
+
+        Raises:
+            GraphError: an ``oplus`` returned the wrong shape (naming the vertex type).
         """
         du, dv = step
+        new = []
         for st, up in zip(self.stores, self._updates, strict=True):
             est = st.estimates.copy()
             if len(up.uslots):
-                est[up.uslots] = st.vtype.oplus(est[up.uslots], du[up.upos])
+                est[up.uslots] = self._oplus(st, est[up.uslots], du[up.upos])
             if up.vclass >= 0:
-                est[up.vslots] = st.vtype.oplus(est[up.vslots], dv[up.vclass])
+                est[up.vslots] = self._oplus(st, est[up.vslots], dv[up.vclass])
+            new.append(est)
+        for st, est in zip(self.stores, new, strict=True):
             st.estimates = est
+
+    @staticmethod
+    def _oplus(st: VertexStore, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        """The store type's ``oplus``, its result checked to be ``(k, *estimate_shape)``."""
+        out = st.vtype.oplus(x, delta)
+        if getattr(out, "shape", None) != x.shape:
+            got = f"shape {out.shape}" if hasattr(out, "shape") else f"a {type(out).__name__}"
+            raise GraphError(f"{st.vtype.__name__}.oplus returned {got}, expected {x.shape}")
+        return out

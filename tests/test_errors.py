@@ -174,3 +174,260 @@ def test_non_finite_jacobian_names_the_edge() -> None:
     opt.add_edges(EdgeBadJac, np.full((5, 1), 7), np.ones((5, 2)))
     with pytest.raises(FloatingPointError, match=r"EdgeBadJac on vertices \[7\]: non-finite"):
         opt.optimize(1)
+
+
+# --- misuse of the edge and vertex interfaces (issue 13 §2) ---------------------------------
+
+
+class VertexPoint2(VertexVector):
+    dimension = 2
+
+
+class EdgeSquare2(BaseEdge):
+    """Unary, nonlinear: e = x² − z (element-wise); analytic Jacobian diag(2x)."""
+
+    dimension = 2
+    vertex_types = (VertexPoint2,)
+
+    @classmethod
+    def error(cls, x, z, ctx):
+        return x[0] ** 2 - z
+
+    @classmethod
+    def jacobians(cls, x, z, ctx):
+        return (2.0 * x[0][:, :, None] * np.eye(2),)
+
+
+class EdgeSquare2Numeric(BaseEdge):
+    dimension = 2
+    vertex_types = (VertexPoint2,)
+    error = EdgeSquare2.error
+
+
+class EdgeDiff2(BaseEdge):
+    """Binary: e = x1 − x0 − z."""
+
+    dimension = 2
+    vertex_types = (VertexPoint2, VertexPoint2)
+
+    @classmethod
+    def error(cls, x, z, ctx):
+        return x[1] - x[0] - z
+
+    @classmethod
+    def jacobians(cls, x, z, ctx):
+        eye = np.broadcast_to(np.eye(2), (len(z), 2, 2))
+        return (-eye.copy(), eye.copy())
+
+
+def points(opt: SparseOptimizer | None = None, vtype=VertexPoint2, n: int = 4) -> SparseOptimizer:
+    opt = opt or SparseOptimizer("lm", "dense")
+    opt.add_vertices(vtype, np.arange(n), np.arange(1.0, 2 * n + 1).reshape(n, 2))
+    return opt
+
+
+def square_edges(opt: SparseOptimizer, etype: type[BaseEdge]) -> None:
+    opt.add_edges(etype, np.arange(4)[:, None], np.full((4, 2), 2.0))
+
+
+@pytest.mark.parametrize(("result", "got"), [
+    (lambda e: e[:, 0], r"shape \(4,\)"),  # (m,) for a 2-D error
+    (lambda e: None, "a NoneType"),
+    (lambda e: np.hstack([e, e[:, :1]]), r"shape \(4, 3\)"),
+    (lambda e: e[:, :1].tolist(), "a list"),
+])
+def test_error_of_the_wrong_shape_names_the_type(result, got) -> None:
+    class EdgeBadError(EdgeSquare2):
+        @classmethod
+        def error(cls, x, z, ctx):
+            return result(EdgeSquare2.error(x, z, ctx))
+
+    opt = points()
+    square_edges(opt, EdgeBadError)
+    with pytest.raises(GraphError, match=rf"EdgeBadError.evaluate returned an error of {got}, "
+                                         r"expected \(4, 2\) \(4 edges of the group, the first "
+                                         r"on vertices \[0\]\)"):
+        opt.optimize(3)
+
+
+def test_error_of_dimension_one_as_a_vector() -> None:
+    class EdgeFlat(EdgeSqrt):
+        @classmethod
+        def error(cls, x, z, ctx):
+            return EdgeSqrt.error(x, z, ctx)[:, 0]  # (m,), not (m, 1)
+
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(VertexPositive, [3, 4, 5], [[4.0], [4.0], [4.0]])
+    opt.add_edges(EdgeFlat, np.array([[4], [5], [3]]), np.full((3, 1), 0.5))
+    with pytest.raises(GraphError, match=r"EdgeFlat.evaluate returned an error of shape \(3,\), "
+                                         r"expected \(3, 1\) \(3 edges of the group, the first "
+                                         r"on vertices \[4\]\)"):
+        opt.optimize(3)
+
+
+def test_error_as_a_list_of_the_right_shape_is_accepted() -> None:
+    class EdgeList(EdgeSquare2):
+        @classmethod
+        def error(cls, x, z, ctx):
+            return EdgeSquare2.error(x, z, ctx).tolist()
+
+    results = []
+    for etype in (EdgeSquare2, EdgeList):
+        opt = points()
+        square_edges(opt, etype)
+        opt.optimize(20)
+        results.append(np.array([opt.vertex(i).estimate for i in range(4)]))
+    np.testing.assert_allclose(results[1], results[0])
+    np.testing.assert_allclose(results[0], np.sqrt(2.0), rtol=1e-6)
+
+
+def test_linearize_with_an_error_of_the_wrong_shape() -> None:
+    class EdgeBadLinearize(EdgeSquare2):
+        @classmethod
+        def linearize(cls, x, z, ctx):
+            lin = super().linearize(x, z, ctx)
+            return lin._replace(error=lin.error[:, :1])
+
+    opt = points()
+    square_edges(opt, EdgeBadLinearize)
+    with pytest.raises(GraphError, match=r"EdgeBadLinearize.linearize returned an error of shape "
+                                         r"\(4, 1\), expected \(4, 2\) \(4 edges .* \[0\]\)"):
+        opt.optimize(3)
+
+
+def test_numeric_differences_check_the_error_shape() -> None:
+    from graphopt.edge import EdgeContext
+    from graphopt.numeric import numeric_jacobians
+
+    class EdgeFlatNumeric(EdgeSquare2Numeric):
+        @classmethod
+        def error(cls, x, z, ctx):
+            return EdgeSquare2.error(x, z, ctx)[:, 0]
+
+    x = (np.ones((3, 2)),)
+    with pytest.raises(GraphError, match=r"EdgeFlatNumeric.error returned shape \(3,\), "
+                                         r"expected \(3, 2\)"):
+        numeric_jacobians(EdgeFlatNumeric, x, np.zeros((3, 2)), EdgeContext())
+
+
+def test_jacobian_of_the_wrong_shape_names_the_type_and_position() -> None:
+    class EdgeWideJac(EdgeSquare2):
+        @classmethod
+        def jacobians(cls, x, z, ctx):
+            return (np.zeros((len(z), 2, 3)),)  # (m, 2, 3) for a 2-D vertex
+
+    opt = points()
+    square_edges(opt, EdgeWideJac)
+    with pytest.raises(GraphError, match=r"EdgeWideJac.linearize returned a Jacobian of shape "
+                                         r"\(4, 2, 3\) for position 0 \(VertexPoint2\), expected "
+                                         r"\(4, 2, 2\) \(4 edges of the group, the first on "
+                                         r"vertices \[0\]\)"):
+        opt.optimize(3)
+
+
+@pytest.mark.parametrize(("jacobians", "got"), [
+    (lambda j: j[1], "a ndarray"),  # one array for a binary edge
+    (lambda j: (j[1],), "1 Jacobians"),
+])
+def test_jacobians_of_a_binary_edge_must_be_one_per_position(jacobians, got) -> None:
+    class EdgeOneJac(EdgeDiff2):
+        @classmethod
+        def jacobians(cls, x, z, ctx):
+            return jacobians(EdgeDiff2.jacobians(x, z, ctx))
+
+    opt = points()
+    opt.add_edges(EdgeOneJac, np.array([[2, 3], [0, 1]]), np.zeros((2, 2)))
+    with pytest.raises(GraphError, match=rf"EdgeOneJac.linearize returned {got}, expected a tuple "
+                                         r"of 2 \(one per vertex position\) \(2 edges of the "
+                                         r"group, the first on vertices \[2, 3\]\)"):
+        opt.optimize(3)
+
+
+class VertexTruncating(VertexVector):
+    """oplus returns (n, 1) for a 2-D vertex: numpy would broadcast it into the estimates."""
+
+    dimension = 2
+
+    @staticmethod
+    def oplus(estimates, deltas):
+        return estimates[:, :1] + deltas[:, :1]
+
+
+class VertexMutating(VertexVector):
+    """oplus updates its input in place (against the contract) and returns it."""
+
+    dimension = 2
+
+    @staticmethod
+    def oplus(estimates, deltas):
+        estimates += deltas
+        return estimates
+
+
+class VertexNaN(VertexVector):
+    dimension = 2
+
+    @staticmethod
+    def oplus(estimates, deltas):
+        return np.full_like(estimates, np.nan)
+
+
+def unary_on(vtype, analytic: bool) -> type[BaseEdge]:
+    base = EdgeSquare2 if analytic else EdgeSquare2Numeric
+    return type(f"{base.__name__}On{vtype.__name__}", (base,), {"vertex_types": (vtype,)})
+
+
+@pytest.mark.parametrize("analytic", [True, False])
+def test_oplus_of_the_wrong_shape_names_the_vertex_type(analytic: bool) -> None:
+    opt = points(vtype=VertexTruncating)
+    before = np.array([opt.vertex(i).estimate for i in range(4)])
+    square_edges(opt, unary_on(VertexTruncating, analytic))
+    with pytest.raises(GraphError, match=r"VertexTruncating.oplus returned shape \(4, 1\), "
+                                         r"expected \(4, 2\)"):
+        opt.optimize(3)
+    np.testing.assert_array_equal([opt.vertex(i).estimate for i in range(4)], before)
+
+
+def test_mutating_oplus_gives_the_right_numeric_jacobian_and_answer() -> None:
+    analytic = points()
+    square_edges(analytic, EdgeSquare2)
+    mutating = points(vtype=VertexMutating)
+    square_edges(mutating, unary_on(VertexMutating, analytic=False))
+    jac = []
+    for opt in (analytic, mutating):
+        opt.initialize_optimization()
+        lin, _ = opt.problem.linearizer.linearize()
+        jac.append(lin.jacobians[0][0])
+    np.testing.assert_allclose(jac[1], jac[0], rtol=1e-6, atol=1e-8)
+    # The estimates are untouched by the differences and by the steps' oplus.
+    np.testing.assert_array_equal([mutating.vertex(i).estimate for i in range(4)],
+                                  np.arange(1.0, 9.0).reshape(4, 2))
+    res = [opt.optimize(20) for opt in (analytic, mutating)]
+    assert res[1].iterations == res[0].iterations
+    np.testing.assert_allclose([mutating.vertex(i).estimate for i in range(4)],
+                               [analytic.vertex(i).estimate for i in range(4)], rtol=1e-6)
+
+
+def test_oplus_returning_nan_names_the_vertex_type() -> None:
+    opt = points(vtype=VertexNaN)
+    square_edges(opt, unary_on(VertexNaN, analytic=True))
+    with pytest.raises(GraphError, match=r"VertexNaN.oplus returned non-finite estimates for a "
+                                         r"finite step \(vertices \[0, 1, 2, 3\]\)"):
+        opt.optimize(3)
+    np.testing.assert_array_equal([opt.vertex(i).estimate for i in range(4)],
+                                  np.arange(1.0, 9.0).reshape(4, 2))
+
+
+def test_gauss_newton_keeps_the_last_finite_estimate() -> None:
+    opt = SparseOptimizer("gn", "dense")
+    opt.add_vertices(VertexPositive, [0], [[4.0]])
+    opt.add_edges(EdgeSqrt, np.zeros((1, 1), int), [[0.1]])  # the GN step goes to x = −3.6
+    res = opt.optimize(5)
+    assert opt.vertex(0).estimate.tolist() == [4.0]
+    assert res.info[0].failed and len(res.info) == 1
+    assert res.final_chi2 == pytest.approx(1.9**2)
+    # From where a step stays in the domain, GN goes on to the minimum.
+    opt.vertex(0).set_estimate([0.02])
+    res = opt.optimize(20)
+    assert np.isfinite(res.chi2_history).all()
+    assert opt.vertex(0).estimate[0] == pytest.approx(0.01, rel=1e-6)
