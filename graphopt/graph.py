@@ -232,14 +232,26 @@ class Graph:
                 raise GraphError(f"{et.__name__} on vertices {vids[0].tolist()}: information "
                                  f"has shape {info.shape}, expected {(e, e)}")
         infos = info.reshape(-1, e, e)
-        if not np.all(np.isfinite(infos)):
-            raise GraphError(f"{et.__name__}: non-finite information matrix")
-        if not np.allclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12):
-            raise GraphError(f"{et.__name__}: information matrix is not symmetric")
-        uniq_info = infos if len(infos) <= 1 else np.unique(infos, axis=0)
-        low = np.linalg.eigvalsh(uniq_info)
-        if np.any(low[:, 0] < -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)):
-            raise GraphError(f"{et.__name__}: information matrix is not positive semi-definite")
+
+        def bad_info(ok: np.ndarray, what: str) -> GraphError:
+            # Name the first edge whose own matrix fails (or say the one matrix is shared).
+            who = (f"on vertices {vids[int(np.flatnonzero(~ok)[0])].tolist()}"
+                   if len(infos) == m and m else f"(one matrix for all {m} edges)")
+            return GraphError(f"{et.__name__} {who}: {what}")
+
+        finite = np.isfinite(infos).all(axis=(1, 2))
+        if not finite.all():
+            raise bad_info(finite, "non-finite information matrix")
+        sym = np.isclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12).all(axis=(1, 2))
+        if not sym.all():
+            raise bad_info(sym, "information matrix is not symmetric")
+        def psd(mats: np.ndarray) -> np.ndarray:
+            low = np.linalg.eigvalsh(mats)
+            return low[:, 0] >= -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)
+
+        # Distinct matrices only (most files share a few); per edge only to name a failure.
+        if not psd(infos if len(infos) <= 1 else np.unique(infos, axis=0)).all():
+            raise bad_info(psd(infos), "information matrix is not positive semi-definite")
         for pos, vt in enumerate(et.vertex_types):
             # Check each distinct id once; report the first edge that names a bad one.
             col = vids[:, pos]

@@ -73,12 +73,23 @@ def test_wrong_information_shape_and_values() -> None:
         opt.add_edge(EdgeSE2([0, 1], np.zeros(3), information=np.eye(2)))
     asym = np.eye(3)
     asym[0, 1] = 0.5
-    with pytest.raises(GraphError, match="not symmetric"):
+    with pytest.raises(GraphError, match=r"EdgeSE2 on vertices \[0, 1\]: information matrix is "
+                                         "not symmetric"):
         opt.add_edges(EdgeSE2, ids, np.zeros((1, 3)), information=asym)
+    with pytest.raises(GraphError, match=r"EdgeSE2 \(one matrix for all 2 edges\): information "
+                                         "matrix is not symmetric"):
+        opt.add_edges(EdgeSE2, np.array([[0, 1], [1, 0]]), np.zeros((2, 3)), information=asym)
     with pytest.raises(GraphError, match="not positive semi-definite"):
         opt.add_edges(EdgeSE2, ids, np.zeros((1, 3)), information=np.diag([1.0, -1.0, 1.0]))
     with pytest.raises(GraphError, match="non-finite information"):
         opt.add_edges(EdgeSE2, ids, np.zeros((1, 3)), information=np.diag([1.0, np.nan, 1.0]))
+    # Per-edge matrices: the message names the first edge whose own matrix is bad.
+    three = np.array([[0, 1], [1, 0], [0, 1]])
+    for bad, what in ((asym, "not symmetric"), (np.diag([1.0, -1.0, 1.0]), "positive semi"),
+                      (np.diag([np.inf, 1.0, 1.0]), "non-finite")):
+        infos = np.stack([np.eye(3), bad, np.eye(3)])
+        with pytest.raises(GraphError, match=rf"EdgeSE2 on vertices \[1, 0\]: .*{what}"):
+            opt.add_edges(EdgeSE2, three, np.zeros((3, 3)), information=infos)
 
 
 def test_non_finite_values() -> None:
