@@ -99,9 +99,24 @@ def _residual_stats(
     problem: BALProblem, cams: np.ndarray, pts: np.ndarray
 ) -> tuple[float, float, int]:
     """Cost ½Σ‖r‖², RMS pixel error and observations behind their camera."""
-    r, pz = reprojection_errors(problem, cams, pts)
-    sq = np.einsum("ij,ij->i", r, r)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # reported by the caller
+        r, pz = reprojection_errors(problem, cams, pts)
+        sq = np.einsum("ij,ij->i", r, r)
     return 0.5 * float(sq.sum()), float(np.sqrt(sq.mean())), int(np.count_nonzero(pz >= 0))
+
+
+def _first_bad_observation(problem: BALProblem, source: str) -> str:
+    """Where the first observation with a non-finite reprojection error is (file:line)."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        r, _ = reprojection_errors(problem)
+    bad = np.flatnonzero(~np.isfinite(r).all(axis=1))
+    if not len(bad):
+        return source
+    i = int(bad[0])
+    # Observations are lines 2.. of a BAL file (line 1 is the header).
+    where = f"{source}:{i + 2}" if problem.path else source
+    return (f"{where}: observation {i} (camera {int(problem.camera_index[i])}, point "
+            f"{int(problem.point_index[i])})")
 
 
 class _BALRecording(_cli.RunRecording):
@@ -255,8 +270,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     problem, truth, source = _load(args)
     initial_cost, initial_rms, behind0 = _residual_stats(problem, problem.cameras, problem.points)
     if not math.isfinite(initial_cost):
-        raise _cli.AppError(f"{source}: the initial reprojection error is not finite "
-                       "(a point at depth 0 in its camera?)")
+        raise _cli.AppError(f"{_first_bad_observation(problem, source)}: the initial "
+                            "reprojection error is not finite (a point at depth 0 in its camera?)")
     if args.ply_before:
         _write_ply(args.ply_before, problem, args.ply_drop_far)
 

@@ -223,3 +223,18 @@ def test_far_points_are_counted_robustly() -> None:
     mask = far_points(np.vstack([pts, far]))
     np.testing.assert_array_equal(np.flatnonzero(mask), [1000, 1001])
     assert far_points(np.zeros((0, 3))).shape == (0,)
+
+
+def test_point_at_a_camera_centre_names_the_observation(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Depth 0: one line naming the file, line and observation, and no numpy warnings."""
+    bal = tmp_path / "centre.txt"
+    cams = "\n".join(["0"] * 6 + ["500", "0", "0"] + ["0.1", "0", "0", "0", "0", "-1",
+                                                        "500", "0", "0"])
+    bal.write_text("2 2 3\n0 0 1.0 2.0\n1 1 3.0 4.0\n0 1 5.0 6.0\n"  # camera 0 at the origin
+                   + cams + "\n0 0 0\n0 0 -3\n")                     # point 0 at its centre
+    code, _, err = _run([str(bal), "--iterations", "2", "--quiet"], capsys)
+    assert code == 1
+    assert err == (f"graphopt-bal: error: {bal}:2: observation 0 (camera 0, point 0): the "
+                   "initial reprojection error is not finite (a point at depth 0 in its "
+                   "camera?)\n")
