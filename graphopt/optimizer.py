@@ -340,7 +340,7 @@ class SparseOptimizer:
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
         if not np.isfinite(initial):
-            raise FloatingPointError("the initial chi2 is not finite: check the estimates")
+            raise FloatingPointError(f"the initial chi2 is not finite: {self._first_non_finite()}")
         cum = 0.0
         last = initial
         for it in range(int(iterations)):
@@ -373,6 +373,15 @@ class SparseOptimizer:
         res.final_chi2 = last
         res.seconds = time.perf_counter() - t_start
         return res
+
+    def _first_non_finite(self) -> str:
+        """The first edge whose error was not finite at the last evaluation, named."""
+        for g in self.graph.groups.values():
+            bad = np.flatnonzero(~np.isfinite(g.last_chi2))
+            if len(bad):
+                return (f"{g.etype.__name__} on vertices {g.vertex_ids[int(bad[0])].tolist()} "
+                        f"(and {len(bad) - 1} more edges of its type); check the estimates")
+        return "check the estimates"
 
     def _stop_reason(self, info: IterationInfo, last: float) -> StopReason | None:
         """Why to stop after this iteration, or ``None`` to go on."""

@@ -166,9 +166,10 @@ def test_steps_into_nan_are_rejected_and_results_stay_finite() -> None:
 
 def test_non_finite_initial_error_is_reported() -> None:
     opt = SparseOptimizer("lm", "dense")
-    opt.add_vertices(VertexPositive, [0], [[-1.0]])
-    opt.add_edges(EdgeSqrt, np.zeros((1, 1), int), [[2.0]])
-    with pytest.raises(FloatingPointError, match="initial chi2 is not finite"):
+    opt.add_vertices(VertexPositive, [0, 7], [[4.0], [-1.0]])
+    opt.add_edges(EdgeSqrt, np.array([[0], [7], [7]]), [[2.0], [2.0], [1.0]])
+    with pytest.raises(FloatingPointError, match=r"initial chi2 is not finite: EdgeSqrt on "
+                                                 r"vertices \[7\] \(and 1 more edges"):
         opt.optimize(3)
 
 
