@@ -72,9 +72,9 @@ def numeric_jacobians(
         for k in range(d):
             delta[:, k] = h
             xp = list(x)
-            xp[pos] = _oplus(vtype, xi, delta)
+            xp[pos] = checked_oplus(vtype, xi.copy(), delta)
             ep = edge_type.error(xp, measurement, ctx)
-            xp[pos] = _oplus(vtype, xi, -delta)
+            xp[pos] = checked_oplus(vtype, xi.copy(), -delta)
             em = edge_type.error(xp, measurement, ctx)
             if np.shape(ep) != shape or np.shape(em) != shape:
                 raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(ep)}, "
@@ -85,10 +85,20 @@ def numeric_jacobians(
     return tuple(out)
 
 
-def _oplus(vtype: type[_VertexType], x: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """``oplus`` on a copy of ``x``, its result checked to have ``x``'s shape."""
-    out = vtype.oplus(x.copy(), delta)
-    if np.shape(out) != x.shape:
-        raise GraphError(f"{getattr(vtype, '__name__', vtype)}.oplus returned shape "
-                         f"{np.shape(out)}, expected {x.shape}")
+def checked_oplus(vtype: type[_VertexType], x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """``vtype.oplus(x, delta)``, its result checked to have ``x``'s shape.
+
+    Args:
+        vtype: The vertex type.
+        x: ``(k, *estimate_shape)`` estimates (``oplus`` may change them: pass a copy).
+        delta: ``(k, dimension)`` increments.
+
+    Raises:
+        GraphError: a result of another shape (or not an array), naming the type.
+    """
+    out = vtype.oplus(x, delta)
+    if getattr(out, "shape", None) != x.shape:
+        got = f"shape {out.shape}" if hasattr(out, "shape") else f"a {type(out).__name__}"
+        raise GraphError(f"{getattr(vtype, '__name__', vtype)}.oplus returned {got}, "
+                         f"expected {x.shape}")
     return out

@@ -19,6 +19,7 @@ import numpy as np
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linearizer import Evaluation, Linearizer, Positions
+from graphopt.numeric import checked_oplus
 from graphopt.solvers import LinearSolver
 from graphopt.storage import EdgeGroup, VertexStore
 
@@ -231,18 +232,9 @@ class Problem:
         for st, up in zip(self.stores, self._updates, strict=True):
             est = st.estimates.copy()
             if len(up.uslots):
-                est[up.uslots] = self._oplus(st, est[up.uslots], du[up.upos])
+                est[up.uslots] = checked_oplus(st.vtype, est[up.uslots], du[up.upos])
             if up.vclass >= 0:
-                est[up.vslots] = self._oplus(st, est[up.vslots], dv[up.vclass])
+                est[up.vslots] = checked_oplus(st.vtype, est[up.vslots], dv[up.vclass])
             new.append(est)
         for st, est in zip(self.stores, new, strict=True):
             st.estimates = est
-
-    @staticmethod
-    def _oplus(st: VertexStore, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        """The store type's ``oplus``, its result checked to be ``(k, *estimate_shape)``."""
-        out = st.vtype.oplus(x, delta)
-        if getattr(out, "shape", None) != x.shape:
-            got = f"shape {out.shape}" if hasattr(out, "shape") else f"a {type(out).__name__}"
-            raise GraphError(f"{st.vtype.__name__}.oplus returned {got}, expected {x.shape}")
-        return out
