@@ -117,32 +117,6 @@ def _load(args: argparse.Namespace) -> tuple[GraphFile, np.ndarray | None, str]:
     return read_graph(args.input, skip_unknown=args.skip_unknown), None, args.input
 
 
-class _KernelOptimizer(SparseOptimizer):
-    """A :class:`SparseOptimizer` that gives every edge added in bulk the same robust kernel
-    (how the builder's edges get ``--robust-kernel``)."""
-
-    def __init__(self, kernel: RobustKernel, **kwargs: Any) -> None:
-        super().__init__(**kwargs)
-        self.kernel = kernel
-
-    def add_edges(self, etype: Any, vertex_ids: Any, measurements: Any, information: Any = None,
-                  robust_kernel: RobustKernel | None = None, params: Any = None,
-                  data: dict[str, Any] | None = None) -> None:
-        """Add edges with the optimizer's kernel (see :meth:`SparseOptimizer.add_edges`).
-
-        Args:
-            etype: The edge class.
-            vertex_ids: ``(m, k)`` vertex ids.
-            measurements: ``(m, *measurement_shape)``.
-            information: Information matrices (or None).
-            robust_kernel: A kernel for these edges instead of the optimizer's.
-            params: Shared parameters.
-            data: Per-edge auxiliary arrays.
-        """
-        super().add_edges(etype, vertex_ids, measurements, information,
-                          robust_kernel or self.kernel, params, data)
-
-
 def _build(args: argparse.Namespace, graph: GraphFile, kernel: RobustKernel | None
            ) -> SlamGraph:
     """The optimizer with the graph's vertices and edges (one-line errors naming the line)."""
@@ -151,11 +125,15 @@ def _build(args: argparse.Namespace, graph: GraphFile, kernel: RobustKernel | No
         algorithm = LevenbergConfig(schedule=args.lm_schedule)
     options: dict[str, Any] = {"algorithm": algorithm, "solver": args.solver,
                                "verbose": not args.quiet, "stream": sys.stderr}
-    opt = SparseOptimizer(**options) if kernel is None else _KernelOptimizer(kernel, **options)
+    opt = SparseOptimizer(**options)
     try:
-        return build_graph(graph, opt, guess=args.guess)
+        slam = build_graph(graph, opt, guess=args.guess)
     except GraphError as exc:
         raise _cli.AppError(str(exc).replace("build with guess=True", "use --guess")) from None
+    if kernel is not None:
+        for group in opt.edge_groups():  # every edge the builder added
+            group.set_kernel(slice(None), kernel)
+    return slam
 
 
 def _marginals(slam: SlamGraph, view: GraphView) -> dict[str, Any]:
