@@ -241,9 +241,10 @@ class Linearizer:
             raise GraphError(f"{name}: linearization_rows is set, so linearize must return a "
                              "Linearization with reduced_error (e_lin)")
         e_lin = out.reduced_error
-        if e_lin.shape != (g.size, r) or any(j.shape[:2] != (g.size, r) for j in out.jacobians):
-            raise GraphError(f"{name}: a reduced linearisation needs e_lin ({g.size}, {r}) and "
-                             f"Jacobians ({g.size}, {r}, d)")
+        # The Jacobians' (m, r, d) shapes were checked with the rest of the output (_checked).
+        if np.shape(e_lin) != (g.size, r):
+            raise GraphError(f"{name}: a reduced linearisation needs e_lin ({g.size}, {r}), got "
+                             f"shape {np.shape(e_lin)}")
         if not g.info_is_identity:
             raise GraphError(f"{name}: a reduced linearisation needs an identity information "
                              "matrix")

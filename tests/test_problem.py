@@ -175,6 +175,19 @@ def test_reduced_linearisation_checks_its_output() -> None:
     with pytest.raises(GraphError, match="reduced_error"):
         opt.optimize(1)
 
+    class WrongRows(EdgeFactoredReduced):
+        @classmethod
+        def linearize(cls, x, z, ctx):
+            e, j, e_lin, _ = EdgeFactoredReduced.linearize(x, z, ctx)
+            return Linearization(e, j, e_lin[:, :1])
+
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(VertexP3, [0], np.zeros((1, 3)))
+    opt.add_edges(WrongRows, np.zeros((3, 1), int), np.ones((3, 4)),
+                  data={"g": np.ones((3, 4, 2)) + np.eye(4, 2)})
+    with pytest.raises(GraphError, match=r"needs e_lin \(3, 2\), got shape \(3, 1\)"):
+        opt.optimize(1)
+
 
 def test_linearize_on_trial_reuses_the_accepted_linearisation() -> None:
     calls = {"lin": 0, "err": 0}
