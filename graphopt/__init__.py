@@ -2,7 +2,7 @@
 
 from graphopt.algorithms import DoglegConfig, GaussNewtonConfig, LevenbergConfig
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.errors import GraphError, NotPositiveDefiniteError
+from graphopt.errors import GraphError, NotPositiveDefiniteError, SingularSystemError
 from graphopt.linear import SchurConfig
 from graphopt.numeric import numeric_jacobians
 from graphopt.optimizer import SparseOptimizer
@@ -49,6 +49,7 @@ __all__ = [
     "LinearSolverPCG",
     "LinearSolverScipy",
     "NotPositiveDefiniteError",
+    "SingularSystemError",
     "OptimizationResult",
     "PCGConfig",
     "Problem",

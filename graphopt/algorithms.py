@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graphopt.errors import NotPositiveDefiniteError
+from graphopt.errors import NotPositiveDefiniteError, SingularSystemError
 from graphopt.problem import Problem, Step
 from graphopt.result import IterationInfo
 
@@ -144,8 +144,9 @@ class GaussNewton(Algorithm):
         asm, chi = p.linearize()
         try:
             step = p.solve(asm, 0.0)
-        except NotPositiveDefiniteError:
-            return IterationInfo(iteration, chi, not_pd=1, failed=True)
+        except NotPositiveDefiniteError as exc:  # never apply a step of a singular factor
+            singular = int(isinstance(exc, SingularSystemError))
+            return IterationInfo(iteration, chi, not_pd=1, singular=singular, failed=True)
         p.push()
         p.apply(step)
         new_chi = p.robust_chi2()

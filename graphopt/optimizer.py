@@ -390,7 +390,9 @@ class SparseOptimizer:
             if info.not_pd and self.verbose:
                 print(f"# {self.algorithm.config.name}: the system was not positive definite "
                       f"{info.not_pd} time(s); no acceptable step", file=self._out)
-            return StopReason.FAILED if info.not_pd >= info.trials else StopReason.CONVERGED
+            if info.not_pd < info.trials:
+                return StopReason.CONVERGED
+            return StopReason.SINGULAR if info.singular >= info.trials else StopReason.FAILED
         if self._interrupt:
             return StopReason.INTERRUPTED
         if self._stop:

@@ -25,6 +25,8 @@ class StopReason(StrEnum):
     CONVERGED = "converged"
     #: Every solve of the last iteration met a system that is not positive definite.
     FAILED = "failed"
+    #: Gauss–Newton met a rank-deficient (singular) system; no step was applied.
+    SINGULAR = "singular"
 
 
 @dataclass
@@ -38,6 +40,7 @@ class IterationInfo:
         trials: Damped solves tried (g2o's ``levenbergIter``).
         radius: Trust-region radius (Dogleg), else 0.
         not_pd: How many solves met a non-positive-definite system.
+        singular: How many of those found it rank deficient (singular).
         failed: True when no acceptable step was found (the optimisation stops).
         linearize_seconds: Time for errors, Jacobians and assembly.
         schur_seconds: Time for damping and the Schur complement.
@@ -51,6 +54,7 @@ class IterationInfo:
     trials: int = 1
     radius: float = 0.0
     not_pd: int = 0
+    singular: int = 0
     failed: bool = False
     linearize_seconds: float = 0.0
     schur_seconds: float = 0.0
