@@ -24,6 +24,7 @@ from typing import Any, NoReturn
 
 from graphopt.io.atomic import atomic_path, atomic_write
 from graphopt.solvers import CHOLMOD_AVAILABLE, SOLVERS
+from graphopt.stopping import StoppingConfig
 
 __all__ = [
     "AppError",
@@ -68,6 +69,52 @@ def add_solver_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_stopping_options(parser: argparse.ArgumentParser, iterations: int = 100) -> None:
+    """Add ``--iterations`` and the stopping tests of :class:`~graphopt.StoppingConfig`.
+
+    Args:
+        parser: The app's parser.
+        iterations: The default cap.
+    """
+    d = StoppingConfig()
+    parser.add_argument("-i", "--iterations", type=int, default=iterations, metavar="N",
+                        help=f"most iterations (default {iterations}; the run stops earlier "
+                             "when a tolerance says it has converged)")
+    parser.add_argument("--function-tolerance", type=float, default=d.function_tolerance,
+                        metavar="T", help="stop when a step changes chi2 by less than this "
+                        f"fraction (default {d.function_tolerance:g}, Ceres'; 0: off)")
+    parser.add_argument("--gradient-tolerance", type=float, default=d.gradient_tolerance,
+                        metavar="T", help="stop when the gradient's max-norm is below this "
+                        f"(default {d.gradient_tolerance:g}; 0: off)")
+    parser.add_argument("--parameter-tolerance", type=float, default=d.parameter_tolerance,
+                        metavar="T", help="stop when a step is below this fraction of the "
+                        f"estimates' norm (default {d.parameter_tolerance:g}; 0: off)")
+    parser.add_argument("--gain", type=float, default=0.0, metavar="G",
+                        help="g2o's -gain: stop when an iteration decreases chi2 by less than "
+                             "this fraction (default 0: off)")
+
+
+def stopping_config(args: argparse.Namespace) -> StoppingConfig:
+    """The :class:`~graphopt.StoppingConfig` of the options :func:`add_stopping_options` added.
+
+    Args:
+        args: The parsed arguments.
+
+    Raises:
+        AppError: a negative or non-finite tolerance, or a negative iteration count.
+    """
+    if args.iterations < 0:
+        raise AppError(f"--iterations must be >= 0, got {args.iterations}")
+    values = {"function_tolerance": args.function_tolerance,
+              "gradient_tolerance": args.gradient_tolerance,
+              "parameter_tolerance": args.parameter_tolerance, "gain_threshold": args.gain}
+    for key, value in values.items():
+        if not (math.isfinite(value) and value >= 0):
+            flag = "--gain" if key == "gain_threshold" else "--" + key.replace("_", "-")
+            raise AppError(f"{flag} must be a finite number >= 0, got {value:g}")
+    return StoppingConfig(max_iterations=args.iterations, **values)
+
+
 def initialize(opt: Any, requested: str) -> tuple[str, str, list[str]]:
     """Initialise an optimizer; name the linear solver that runs.
 
@@ -104,18 +151,17 @@ COMMON_KEYS = ("input", "algorithm", "solver", "solver_requested", "robust_kerne
                "seconds_per_iteration")
 
 
-def check_run_options(iterations: int, robust_delta: float) -> None:
-    """Check the options every app has: ``--iterations`` and ``--robust-delta``.
+def check_run_options(args: argparse.Namespace, robust_delta: float) -> None:
+    """Check the options every app has: the stopping options and ``--robust-delta``.
 
     Args:
-        iterations: Maximum iterations (must be >= 0).
+        args: The parsed arguments (with :func:`add_stopping_options`' options).
         robust_delta: Robust kernel width (must be finite and positive).
 
     Raises:
-        AppError: Either is out of range.
+        AppError: Any is out of range.
     """
-    if iterations < 0:
-        raise AppError(f"--iterations must be >= 0, got {iterations}")
+    stopping_config(args)
     if not math.isfinite(robust_delta) or robust_delta <= 0:
         raise AppError(f"--robust-delta must be positive, got {robust_delta:g}")
 

@@ -54,8 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("input", nargs="?", metavar="INPUT",
                    help="BAL file (.txt, .txt.gz, .txt.bz2); omit for a synthetic scene")
-    p.add_argument("--iterations", type=int, default=20, metavar="N",
-                   help="maximum iterations (default 20)")
+    _cli.add_stopping_options(p)
     p.add_argument("--algorithm", choices=("lm", "gn", "dogleg"), default="lm")
     p.add_argument("--lm-damping", choices=("diagonal", "identity"), default="diagonal",
                    help="LM damping: lambda*diag(H) (Marquardt, as Ceres; default) or "
@@ -83,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_options(args: argparse.Namespace) -> None:
     """Check what argparse cannot: value ranges, and that the outputs can be written."""
-    _cli.check_run_options(args.iterations, args.robust_delta)
+    _cli.check_run_options(args, args.robust_delta)
     if args.perturb is not None and any(not math.isfinite(s) or s < 0 for s in args.perturb):
         raise _cli.AppError(f"--perturb sigmas must be finite and >= 0, got {args.perturb}")
     _cli.check_outputs({"--ply-before": args.ply_before, "--ply-after": args.ply_after,
@@ -185,7 +184,7 @@ def _build_optimizer(
         # small as 1e-7): λ·diag(H) damps each in its own units, λ·I starves the small ones.
         algorithm = LevenbergConfig(diagonal_damping=args.lm_damping == "diagonal")
     opt = SparseOptimizer(algorithm=algorithm, solver=args.solver, verbose=not args.quiet,
-                          stream=sys.stderr)
+                          stream=sys.stderr, stopping=_cli.stopping_config(args))
     nc, npt = problem.num_cameras, problem.num_points
     opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
     opt.add_vertices(VertexPointXYZ, nc + np.arange(npt), problem.points, marginalized=True)

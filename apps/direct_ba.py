@@ -49,8 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
         "poses.txt, points.txt, 0.png...) or, without DATA_DIR, of a synthetic textured scene.",
     )
     ap.add_argument("data_dir", nargs="?", metavar="DATA_DIR", help="data folder")
-    ap.add_argument("--iterations", type=int, default=40, metavar="N",
-                    help="LM iterations (default 40)")
+    _cli.add_stopping_options(ap)
     ap.add_argument("--robust", default="huber", metavar="KERNEL",
                     help="robust kernel: huber (default), cauchy, tukey, ... or none")
     ap.add_argument("--robust-delta", type=float, default=0.5, metavar="D",
@@ -76,7 +75,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     Raises:
         _cli.AppError: Bad input or output location (one-line message).
     """
-    _cli.check_run_options(args.iterations, args.robust_delta)
+    _cli.check_run_options(args, args.robust_delta)
     _cli.check_outputs({"--rrd": args.rrd, "--png": args.png, "--json": args.json},
                        inputs=[args.data_dir])
     out = sys.stdout
@@ -101,6 +100,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     except (ValueError, GraphError) as exc:
         raise _cli.AppError(str(exc)) from None
     opt = problem.optimizer
+    opt.stopping = _cli.stopping_config(args)
     solver, solver_text, _ = _cli.initialize(opt, args.solver)
     before = (problem.poses(), problem.points())
     opt.compute_active_errors()

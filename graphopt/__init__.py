@@ -29,6 +29,7 @@ from graphopt.solvers import (
     LinearSolverScipy,
     PCGConfig,
 )
+from graphopt.stopping import StoppingConfig
 from graphopt.vertex import BaseVertex, VertexVector
 
 __version__ = "0.1.0"
@@ -66,6 +67,7 @@ __all__ = [
     "SchurConfig",
     "SparseOptimizer",
     "StopReason",
+    "StoppingConfig",
     "VertexVector",
     "make_kernel",
     "numeric_jacobians",

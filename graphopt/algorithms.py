@@ -14,7 +14,8 @@ import numpy as np
 
 from graphopt.errors import NotPositiveDefiniteError, SingularSystemError
 from graphopt.problem import Problem, Step
-from graphopt.result import IterationInfo
+from graphopt.result import IterationInfo, StopReason
+from graphopt.stopping import StoppingConfig
 
 
 @dataclass(frozen=True)
@@ -83,6 +84,9 @@ class DoglegConfig:
 
 AlgorithmConfig = GaussNewtonConfig | LevenbergConfig | DoglegConfig
 
+#: No stopping test (``iterate`` called without a config).
+_NO_TESTS = StoppingConfig.iterations_only()
+
 
 def _dot(a: Step, b: Step) -> float:
     return float(a[0] @ b[0] + sum(float(np.vdot(x, y)) for x, y in zip(a[1], b[1], strict=True)))
@@ -94,8 +98,44 @@ def _axpy(alpha: float, a: Step, beta: float, b: Step) -> Step:
     ]
 
 
+class _Tests:
+    """The stopping tests of one iteration; the state norm is computed once, when needed.
+
+    Args:
+        p: The problem.
+        stopping: The tests' tolerances.
+    """
+
+    def __init__(self, p: Problem, stopping: StoppingConfig) -> None:
+        self.p, self.stopping = p, stopping
+        self._state_norm: float | None = None
+
+    def gradient(self, b: Step) -> bool:
+        """The gradient at the linearisation point is negligible."""
+        tol = self.stopping.gradient_tolerance
+        return tol > 0 and self.stopping.gradient_converged(self.p.max_abs(b))
+
+    def step(self, step: Step) -> bool:
+        """The step is negligible against the estimates."""
+        if self.stopping.parameter_tolerance <= 0:
+            return False
+        if self._state_norm is None:
+            self._state_norm = self.p.state_norm()
+        return self.stopping.parameters_converged(self.p.step_norm(step), self._state_norm)
+
+    def function(self, chi: float, new_chi: float) -> bool:
+        """The trial changed chi2 by a negligible fraction."""
+        return (self.stopping.function_tolerance > 0 and math.isfinite(new_chi)
+                and self.stopping.function_converged(chi, new_chi))
+
+
 class Algorithm:
     """Base of the algorithms.
+
+    Every algorithm applies the stopping tests of :class:`~graphopt.stopping.StoppingConfig`
+    where Ceres does: the gradient at the linearisation point (the iteration then makes no
+    trial: ``trials == 0``), the size of every trial step before it is applied, the chi2 change
+    of every trial. A test that fires sets :attr:`IterationInfo.stop`.
 
     Args:
         config: The algorithm's frozen configuration.
@@ -104,18 +144,31 @@ class Algorithm:
     def __init__(self, config: AlgorithmConfig) -> None:
         self.config = config
         self.lam = 0.0
+        # Whether the next trial lets linearize-on-trial edge types linearise: yes after an
+        # accepted trial (the Jacobians are then reused), no after a rejected one (errors only,
+        # as Ceres' unsuccessful step costs).
+        self.trial_linearizes = True
 
     def reset(self) -> None:
         """Forget state kept across iterations (λ, radius)."""
+        self.trial_linearizes = True
 
-    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+    def iterate(self, p: Problem, iteration: int,
+                stopping: StoppingConfig | None = None) -> IterationInfo:
         """Perform one iteration.
 
         Args:
             p: The problem.
             iteration: Iteration index.
+            stopping: The stopping tests (``None``: none but a failed iteration).
         """
         raise NotImplementedError
+
+    def _trial(self, p: Problem, step: Step) -> float:
+        """Apply a trial step (after :meth:`Problem.push`) and return the new robust chi2."""
+        p.push()
+        p.apply(step)
+        return p.robust_chi2(self.trial_linearizes)
 
     def line_fields(self, info: IterationInfo) -> str:
         """The algorithm's fields of g2o's iteration line (after ``schur=``).
@@ -134,26 +187,34 @@ class GaussNewton(Algorithm):
         config: :class:`GaussNewtonConfig`.
     """
 
-    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+    def iterate(self, p: Problem, iteration: int,
+                stopping: StoppingConfig | None = None) -> IterationInfo:
         """See :meth:`Algorithm.iterate`.
 
         Args:
             p: The problem.
             iteration: Iteration index.
+            stopping: The stopping tests.
         """
+        tests = _Tests(p, stopping if stopping is not None else _NO_TESTS)
         asm, chi = p.linearize()
+        if tests.gradient(p.gradient(asm)):
+            return IterationInfo(iteration, chi, trials=0, stop=StopReason.GRADIENT_TOLERANCE)
         try:
             step = p.solve(asm, 0.0)
         except NotPositiveDefiniteError as exc:  # never apply a step of a singular factor
-            singular = int(isinstance(exc, SingularSystemError))
-            return IterationInfo(iteration, chi, not_pd=1, singular=singular, failed=True)
-        p.push()
-        p.apply(step)
-        new_chi = p.robust_chi2()
+            singular = isinstance(exc, SingularSystemError)
+            return IterationInfo(iteration, chi, not_pd=1, singular=int(singular), failed=True,
+                                 stop=StopReason.SINGULAR if singular else StopReason.FAILED)
+        if tests.step(step):
+            return IterationInfo(iteration, chi, failed=True,
+                                 stop=StopReason.PARAMETER_TOLERANCE)
+        new_chi = self._trial(p, step)
         if not math.isfinite(new_chi):  # keep the last finite estimate, as LM does
             p.pop()
-            return IterationInfo(iteration, chi, failed=True)
-        return IterationInfo(iteration, new_chi)
+            return IterationInfo(iteration, chi, failed=True, stop=StopReason.FAILED)
+        stop = StopReason.FUNCTION_TOLERANCE if tests.function(chi, new_chi) else None
+        return IterationInfo(iteration, new_chi, stop=stop)
 
 
 class LevenbergMarquardt(Algorithm):
@@ -171,8 +232,18 @@ class LevenbergMarquardt(Algorithm):
 
     def reset(self) -> None:
         """Start again from the τ rule."""
+        super().reset()
         self.lam = 0.0
         self.nu = 2.0
+
+    def _succeeded(self, rho: float) -> None:
+        """Less damping after an accepted trial with gain ratio ``rho``."""
+        if self.config.schedule == "gtsam":
+            self.lam /= self.config.factor
+        else:
+            alpha = min(1.0 - (2.0 * rho - 1.0) ** 3, 2.0 / 3.0)
+            self.lam *= max(1.0 / 3.0, alpha)
+            self.nu = 2.0
 
     def _failed(self) -> None:
         """More damping after a rejected or failed trial."""
@@ -190,15 +261,22 @@ class LevenbergMarquardt(Algorithm):
         """
         return f"\t lambda= {info.lam:.6g}\t levenbergIter= {info.trials}"
 
-    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+    def iterate(self, p: Problem, iteration: int,
+                stopping: StoppingConfig | None = None) -> IterationInfo:
         """See :meth:`Algorithm.iterate`.
 
         Args:
             p: The problem.
             iteration: Iteration index.
+            stopping: The stopping tests.
         """
+        tests = _Tests(p, stopping if stopping is not None else _NO_TESTS)
         asm, chi = p.linearize()
         cfg = self.config
+        b = p.gradient(asm)
+        if tests.gradient(b):
+            return IterationInfo(iteration, chi, lam=self.lam, trials=0,
+                                 stop=StopReason.GRADIENT_TOLERANCE)
         if self.lam <= 0.0:
             if cfg.initial_lambda is not None:
                 self.lam = cfg.initial_lambda
@@ -209,36 +287,40 @@ class LevenbergMarquardt(Algorithm):
             else:
                 self.lam = cfg.tau * max(p.max_diagonal(asm), 1e-12)
             self.nu = 2.0
-        b = p.gradient(asm)
         damp = p.damping(asm, cfg.diagonal_damping)  # once per linearisation
-        not_pd = 0
+        not_pd = singular = 0
         for trial in range(1, cfg.max_trials + 1):
             try:
                 step = p.solve(asm, self.lam, damp)
-            except NotPositiveDefiniteError:
+            except NotPositiveDefiniteError as exc:
                 not_pd += 1
+                singular += isinstance(exc, SingularSystemError)
                 self._failed()
                 continue
-            p.push()
-            p.apply(step)
-            new_chi = p.robust_chi2()
+            if tests.step(step):
+                return IterationInfo(iteration, chi, lam=self.lam, trials=trial, not_pd=not_pd,
+                                     singular=singular, failed=True,
+                                     stop=StopReason.PARAMETER_TOLERANCE)
+            new_chi = self._trial(p, step)
             # Predicted decrease of chi2 = Δ'(λDΔ + b) (g2o adds 1e-3 against a zero divisor).
             dstep = (damp[0] * step[0], [d * x for d, x in zip(damp[1], step[1], strict=True)])
             scale = _dot(step, _axpy(self.lam, dstep, 1.0, b)) + 1e-3
             rho = (chi - new_chi) / scale
+            stop = StopReason.FUNCTION_TOLERANCE if tests.function(chi, new_chi) else None
             if rho > 0 and math.isfinite(new_chi):
                 lam_used = self.lam
-                if cfg.schedule == "gtsam":
-                    self.lam /= cfg.factor
-                else:
-                    alpha = min(1.0 - (2.0 * rho - 1.0) ** 3, 2.0 / 3.0)
-                    self.lam *= max(1.0 / 3.0, alpha)
-                    self.nu = 2.0
-                return IterationInfo(iteration, new_chi, lam=lam_used, trials=trial, not_pd=not_pd)
+                self._succeeded(rho)
+                self.trial_linearizes = True
+                return IterationInfo(iteration, new_chi, lam=lam_used, trials=trial,
+                                     not_pd=not_pd, singular=singular, stop=stop)
             p.pop()
+            self.trial_linearizes = False
+            if stop is not None:  # a rejected step that changes nothing: converged
+                return IterationInfo(iteration, chi, lam=self.lam, trials=trial, not_pd=not_pd,
+                                     singular=singular, failed=True, stop=stop)
             self._failed()
         return IterationInfo(iteration, chi, lam=self.lam, trials=cfg.max_trials, not_pd=not_pd,
-                             failed=True)
+                             singular=singular, failed=True)
 
 
 class Dogleg(Algorithm):
@@ -256,6 +338,7 @@ class Dogleg(Algorithm):
 
     def reset(self) -> None:
         """Start again from the initial radius and λ."""
+        super().reset()
         self.radius = self.config.initial_radius
         self.lam = self.config.initial_lambda
 
@@ -267,16 +350,22 @@ class Dogleg(Algorithm):
         """
         return f"\t delta= {info.radius:.6f}\t lambda= {info.lam:.6g}"
 
-    def iterate(self, p: Problem, iteration: int) -> IterationInfo:
+    def iterate(self, p: Problem, iteration: int,
+                stopping: StoppingConfig | None = None) -> IterationInfo:
         """See :meth:`Algorithm.iterate`.
 
         Args:
             p: The problem.
             iteration: Iteration index.
+            stopping: The stopping tests.
         """
         cfg = self.config
+        tests = _Tests(p, stopping if stopping is not None else _NO_TESTS)
         asm, chi = p.linearize()
         b = p.gradient(asm)
+        if tests.gradient(b):
+            return IterationInfo(iteration, chi, lam=self.lam, trials=0, radius=self.radius,
+                                 stop=StopReason.GRADIENT_TOLERANCE)
         bb = _dot(b, b)
         hb = p.hessian_product(asm, b)
         bhb = _dot(b, hb)
@@ -284,15 +373,16 @@ class Dogleg(Algorithm):
         sd = _axpy(alpha, b, 0.0, b)
         sd_norm = math.sqrt(_dot(sd, sd))
         gn: Step | None = None
-        not_pd = 0
+        not_pd = singular = 0
         trial = 0
         for trial in range(1, cfg.max_trials + 1):  # noqa: B007 - reported below
             if gn is None:
                 try:
                     gn = p.solve(asm, self.lam)
                     self.lam = max(self.lam / cfg.lambda_factor, cfg.initial_lambda)
-                except NotPositiveDefiniteError:
+                except NotPositiveDefiniteError as exc:
                     not_pd += 1
+                    singular += isinstance(exc, SingularSystemError)
                     self.lam *= cfg.lambda_factor
                     continue
             gn_norm = math.sqrt(_dot(gn, gn))
@@ -307,25 +397,35 @@ class Dogleg(Algorithm):
                 a0 = sd_norm**2 - self.radius**2
                 beta = (-a1 + math.sqrt(max(a1 * a1 - 4 * a2 * a0, 0.0))) / (2 * a2)
                 step = _axpy(1.0, sd, beta, d)
+            if tests.step(step):
+                return IterationInfo(iteration, chi, lam=self.lam, trials=trial,
+                                     radius=self.radius, not_pd=not_pd, singular=singular,
+                                     failed=True, stop=StopReason.PARAMETER_TOLERANCE)
             hstep = p.hessian_product(asm, step)
             linear_gain = 2.0 * _dot(b, step) - _dot(step, hstep)  # in chi2 units
-            p.push()
-            p.apply(step)
-            new_chi = p.robust_chi2()
+            new_chi = self._trial(p, step)
             rho = (chi - new_chi) / linear_gain if linear_gain > 0 else -1.0
             step_norm = math.sqrt(_dot(step, step))
             if rho > 0.75:
                 self.radius = max(self.radius, 3.0 * step_norm)
             elif rho < 0.25:
                 self.radius *= 0.5
+            stop = StopReason.FUNCTION_TOLERANCE if tests.function(chi, new_chi) else None
             if rho > 0 and math.isfinite(new_chi):
+                self.trial_linearizes = True
                 return IterationInfo(iteration, new_chi, lam=self.lam, trials=trial,
-                                     radius=self.radius, not_pd=not_pd)
+                                     radius=self.radius, not_pd=not_pd, singular=singular,
+                                     stop=stop)
             p.pop()
+            self.trial_linearizes = False
+            if stop is not None:  # a rejected step that changes nothing: converged
+                return IterationInfo(iteration, chi, lam=self.lam, trials=trial,
+                                     radius=self.radius, not_pd=not_pd, singular=singular,
+                                     failed=True, stop=stop)
             if self.radius < 1e-30:
                 break
         return IterationInfo(iteration, chi, lam=self.lam, trials=trial, radius=self.radius,
-                             not_pd=not_pd, failed=True)
+                             not_pd=not_pd, singular=singular, failed=True)
 
 
 #: The algorithm class of every configuration type.

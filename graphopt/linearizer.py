@@ -268,18 +268,23 @@ class Linearizer:
 
     # --- the two entry points ----------------------------------------------------------------
 
-    def evaluate(self) -> Evaluation:
+    def evaluate(self, linearize_trial: bool = True) -> Evaluation:
         """Errors only (a trial step): chi2, robust chi2 and active edges at the current state.
 
-        Types with ``linearize_on_trial`` linearise instead, and keep the result for the next
-        :meth:`linearize` at the same state.
+        Types with ``linearize_on_trial`` linearise instead when ``linearize_trial`` is set, and
+        keep the result for the next :meth:`linearize` at the same state (the errors are then
+        computed once for an accepted step).
+
+        Args:
+            linearize_trial: Let ``linearize_on_trial`` types linearise; pass ``False`` for a
+                trial that is likely rejected, which then costs the errors alone.
 
         Raises:
             GraphError: an error (or Jacobian) of the wrong shape, naming the type.
         """
         totals = [0.0, 0.0, 0.0]
         for gi, g in enumerate(self.groups):
-            if g.etype.linearize_on_trial:
+            if linearize_trial and g.etype.linearize_on_trial:
                 out = self._linearization(gi)
             else:
                 out = self._call(g, "evaluate", self.gather(gi), self.context(gi))

@@ -27,6 +27,7 @@ from graphopt.problem import Problem
 from graphopt.result import IterationInfo, OptimizationResult, StopReason
 from graphopt.robust_kernel import RobustKernel
 from graphopt.solvers import LinearSolver, make_solver
+from graphopt.stopping import StoppingConfig
 from graphopt.storage import EdgeGroup
 from graphopt.vertex import BaseVertex
 
@@ -43,8 +44,9 @@ class SparseOptimizer:
             ``"cholmod"``, ``"dense"``, ``"pcg"``, ``"scipy"`` or a
             :class:`~graphopt.solvers.LinearSolver`.
         verbose: Print g2o's iteration line after every iteration.
-        gain_threshold: Stop when the relative chi2 decrease of an iteration falls below this
-            (g2o's ``-gain``); ``0`` disables it.
+        stopping: When a run has converged (:class:`~graphopt.stopping.StoppingConfig`; by
+            default Ceres' tolerances; ``StoppingConfig.iterations_only()`` for g2o's
+            behaviour).
         stream: Where verbose lines go (stderr by default).
         schur: How to form the Schur complement (:class:`~graphopt.linear.SchurConfig`);
             ``None``: the cost model chooses per class of W blocks.
@@ -55,7 +57,7 @@ class SparseOptimizer:
         algorithm: str | AlgorithmConfig = "lm",
         solver: str | LinearSolver = "auto",
         verbose: bool = False,
-        gain_threshold: float = 0.0,
+        stopping: StoppingConfig | None = None,
         stream: TextIO | None = None,
         schur: SchurConfig | None = None,
     ) -> None:
@@ -64,7 +66,7 @@ class SparseOptimizer:
         self._solver_spec = solver
         self._schur = schur
         self.verbose = verbose
-        self.gain_threshold = gain_threshold
+        self.stopping = stopping if stopping is not None else StoppingConfig()
         self.stream = stream
         self._callbacks: dict[str, list[Callback]] = {"pre_iteration": [], "post_iteration": []}
         self._problem: Problem | None = None
@@ -323,15 +325,18 @@ class SparseOptimizer:
 
     # --- optimisation ------------------------------------------------------------------------
 
-    def optimize(self, iterations: int) -> OptimizationResult:
-        """Run up to ``iterations`` iterations of the selected algorithm.
+    def optimize(self, iterations: int | None = None) -> OptimizationResult:
+        """Run the algorithm until a stopping test fires or ``iterations`` iterations are done.
 
         Args:
-            iterations: Maximum number of iterations (non-negative).
+            iterations: Most iterations (non-negative); ``None``: the stopping config's
+                ``max_iterations``.
 
         Returns:
             An :class:`~graphopt.result.OptimizationResult`.
         """
+        if iterations is None:
+            iterations = self.stopping.max_iterations
         if int(iterations) != iterations or iterations < 0:
             raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
         t_start = time.perf_counter()
@@ -351,14 +356,17 @@ class SparseOptimizer:
                 cb(self, IterationInfo(it, last))
             p.reset_timing()
             t0 = time.perf_counter()
-            info = self.algorithm.iterate(p, it)
+            info = self.algorithm.iterate(p, it, self.stopping)
             info.seconds = time.perf_counter() - t0
+            if info.trials == 0:  # converged at the linearisation: not an iteration
+                res.stop_reason = info.stop or StopReason.CONVERGED
+                break
             cum += info.seconds
             info.linearize_seconds = p.timing.linearize
             info.schur_seconds = p.timing.schur
             info.solve_seconds = p.timing.solve
-            if info.failed:
-                p.evaluate()  # the state was restored: keep the evaluation consistent with it
+            if info.failed:  # the state was restored: keep the evaluation consistent with it
+                p.evaluate(linearize=False)
             res.info.append(info)
             if self.verbose:
                 self._print_line(info, cum)
@@ -385,11 +393,13 @@ class SparseOptimizer:
 
     def _stop_reason(self, info: IterationInfo, last: float) -> StopReason | None:
         """Why to stop after this iteration, or ``None`` to go on."""
+        if info.not_pd and info.failed and self.verbose:
+            print(f"# {self.algorithm.config.name}: the system was not positive definite "
+                  f"{info.not_pd} time(s); no acceptable step", file=self._out)
+        if info.stop is not None:
+            return info.stop
         if info.failed:
             # No trial reduced chi2: converged if the solves worked, failed otherwise.
-            if info.not_pd and self.verbose:
-                print(f"# {self.algorithm.config.name}: the system was not positive definite "
-                      f"{info.not_pd} time(s); no acceptable step", file=self._out)
             if info.not_pd < info.trials:
                 return StopReason.CONVERGED
             return StopReason.SINGULAR if info.singular >= info.trials else StopReason.FAILED
@@ -399,8 +409,7 @@ class SparseOptimizer:
             return StopReason.STOPPED
         if info.chi2 == 0.0:
             return StopReason.CONVERGED
-        gain = (last - info.chi2) / info.chi2 if info.chi2 > 0 else 0.0
-        if self.gain_threshold > 0 and 0 <= gain < self.gain_threshold:
+        if self.stopping.gain_reached(last, info.chi2):
             return StopReason.GAIN
         return None
 

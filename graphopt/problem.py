@@ -108,19 +108,28 @@ class Problem:
         self.timing.linearize += time.perf_counter() - t0
         return asm, ev.robust_chi2
 
-    def evaluate(self) -> Evaluation:
-        """Chi2 totals at the current state (errors only)."""
-        return self.linearizer.evaluate()
+    def evaluate(self, linearize: bool = True) -> Evaluation:
+        """Chi2 totals at the current state.
 
-    def robust_chi2(self) -> float:
+        Args:
+            linearize: Let edge types that linearise on trial do so (their Jacobians are then
+                reused by the next :meth:`linearize` at this state).
+        """
+        return self.linearizer.evaluate(linearize)
+
+    def robust_chi2(self, linearize: bool = True) -> float:
         """Robust chi2 at the current state (``inf`` if any error is not finite).
+
+        Args:
+            linearize: Let edge types that linearise on trial do so (see
+                :meth:`Linearizer.evaluate <graphopt.linearizer.Linearizer.evaluate>`).
 
         Raises:
             GraphError: the chi2 is not finite because a vertex type's ``oplus`` returned
                 non-finite estimates (naming the type and ids); the estimates saved by
                 :meth:`push` are restored first.
         """
-        chi = self.linearizer.evaluate().robust_chi2
+        chi = self.linearizer.evaluate(linearize).robust_chi2
         if not math.isfinite(chi):  # only then look for the cause in the estimates
             self._check_finite_estimates()
         return chi
@@ -203,6 +212,38 @@ class Problem:
         return self.system.max_diagonal(asm)
 
     # --- the state ---------------------------------------------------------------------------
+
+    def state_norm(self) -> float:
+        """``‖x‖`` over the estimates of the free vertices (the parameter tolerance's scale)."""
+        total = 0.0
+        for st, up in zip(self.stores, self._updates, strict=True):
+            est = st.estimates
+            for slots in (up.uslots, up.vslots):
+                if len(slots):
+                    x = est[slots]
+                    total += float(np.vdot(x, x))
+        return math.sqrt(total)
+
+    @staticmethod
+    def step_norm(step: Step) -> float:
+        """``‖Δ‖`` of a step.
+
+        Args:
+            step: A vector in the step layout.
+        """
+        du, dv = step
+        return math.sqrt(float(du @ du) + sum(float(np.vdot(x, x)) for x in dv))
+
+    @staticmethod
+    def max_abs(step: Step) -> float:
+        """``max |Δ|`` of a step (0 for an empty one).
+
+        Args:
+            step: A vector in the step layout.
+        """
+        du, dv = step
+        parts = [float(np.max(np.abs(a))) for a in (du, *dv) if a.size]
+        return max(parts, default=0.0)
 
     def push(self) -> None:
         """Save the estimates of every store (g2o's ``push``)."""

@@ -15,6 +15,12 @@ class StopReason(StrEnum):
 
     #: The iteration count was reached.
     ITERATIONS = "iterations"
+    #: A trial step changed chi2 by less than the function tolerance (relative).
+    FUNCTION_TOLERANCE = "function_tolerance"
+    #: The gradient's max-norm fell below the gradient tolerance.
+    GRADIENT_TOLERANCE = "gradient_tolerance"
+    #: A step was negligible against the estimates (parameter tolerance).
+    PARAMETER_TOLERANCE = "parameter_tolerance"
     #: The relative chi2 decrease of an iteration fell below the gain threshold.
     GAIN = "gain"
     #: :meth:`~graphopt.optimizer.SparseOptimizer.force_stop` was called (g2o's flag).
@@ -23,10 +29,17 @@ class StopReason(StrEnum):
     INTERRUPTED = "interrupted"
     #: Zero chi2, or no trial step reduced chi2 although the solves worked.
     CONVERGED = "converged"
-    #: Every solve of the last iteration met a system that is not positive definite.
+    #: Every solve of the last iteration met a system that is not positive definite, or the
+    #: step led to a non-finite chi2 (Gauss–Newton).
     FAILED = "failed"
     #: Gauss–Newton met a rank-deficient (singular) system; no step was applied.
     SINGULAR = "singular"
+
+    @property
+    def converged(self) -> bool:
+        """Whether the run stopped at a minimum: a tolerance, zero chi2 or no better step."""
+        return self in (StopReason.FUNCTION_TOLERANCE, StopReason.GRADIENT_TOLERANCE,
+                        StopReason.PARAMETER_TOLERANCE, StopReason.CONVERGED, StopReason.GAIN)
 
 
 @dataclass
@@ -42,6 +55,8 @@ class IterationInfo:
         not_pd: How many solves met a non-positive-definite system.
         singular: How many of those found it rank deficient (singular).
         failed: True when no acceptable step was found (the optimisation stops).
+        stop: The stopping test this iteration met, if any (set by the algorithm:
+            tolerances, a singular or failed solve).
         linearize_seconds: Time for errors, Jacobians and assembly.
         schur_seconds: Time for damping and the Schur complement.
         solve_seconds: Time in the linear solver.
@@ -56,6 +71,7 @@ class IterationInfo:
     not_pd: int = 0
     singular: int = 0
     failed: bool = False
+    stop: StopReason | None = None
     linearize_seconds: float = 0.0
     schur_seconds: float = 0.0
     solve_seconds: float = 0.0
@@ -66,15 +82,19 @@ class IterationInfo:
 class OptimizationResult:
     """What :meth:`~graphopt.optimizer.SparseOptimizer.optimize` did.
 
-    The histories are views of ``info``, over the iterations that changed the state (a failed
-    last iteration is in ``info`` but not in the histories).
+    One definition of an *iteration* everywhere (iteration lines, these records, the apps'
+    JSON, the recordings' ``iteration`` timeline): one linearisation followed by at least one
+    trial step — accepted, or rejected as the last iteration that found no acceptable step
+    (its chi2 is the unchanged one). A run that stops because the gradient at the start of an
+    iteration is negligible does not count that linearisation as an iteration; its time is in
+    :attr:`seconds` (as the set-up).
 
     Args:
         initial_chi2: Robust chi2 before the first iteration.
         final_chi2: Robust chi2 at the end.
         seconds: Wall time of the whole call.
         stop_reason: Why the run stopped.
-        info: The :class:`IterationInfo` of every iteration, failed ones included.
+        info: The :class:`IterationInfo` of every iteration.
     """
 
     initial_chi2: float
@@ -84,43 +104,49 @@ class OptimizationResult:
     info: list[IterationInfo] = field(default_factory=list)
 
     @property
-    def _done(self) -> list[IterationInfo]:
-        return [r for r in self.info if not r.failed]
+    def iterations(self) -> int:
+        """Iterations performed (a last one that found no acceptable step included)."""
+        return len(self.info)
 
     @property
-    def iterations(self) -> int:
-        """Iterations that changed the state."""
-        return len(self._done)
+    def accepted_iterations(self) -> int:
+        """Iterations whose step was accepted (the state changed)."""
+        return sum(1 for r in self.info if not r.failed)
 
     @property
     def chi2_history(self) -> list[float]:
         """Robust chi2 after each iteration."""
-        return [r.chi2 for r in self._done]
+        return [r.chi2 for r in self.info]
 
     @property
     def lambda_history(self) -> list[float]:
         """λ of each iteration (LM/Dogleg)."""
-        return [r.lam for r in self._done]
+        return [r.lam for r in self.info]
+
+    @property
+    def iteration_seconds(self) -> list[float]:
+        """Wall time of each iteration."""
+        return [r.seconds for r in self.info]
 
     @property
     def linearize_seconds(self) -> list[float]:
         """Per iteration: errors, Jacobians, assembly."""
-        return [r.linearize_seconds for r in self._done]
+        return [r.linearize_seconds for r in self.info]
 
     @property
     def schur_seconds(self) -> list[float]:
         """Per iteration: damping and Schur complement (all trials)."""
-        return [r.schur_seconds for r in self._done]
+        return [r.schur_seconds for r in self.info]
 
     @property
     def solve_seconds(self) -> list[float]:
         """Per iteration: linear solver (all trials)."""
-        return [r.solve_seconds for r in self._done]
+        return [r.solve_seconds for r in self.info]
 
     @property
     def trials(self) -> list[int]:
         """Per iteration: damped solves (g2o's ``levenbergIter``)."""
-        return [r.trials for r in self._done]
+        return [r.trials for r in self.info]
 
     @property
     def not_positive_definite(self) -> int:
@@ -129,5 +155,5 @@ class OptimizationResult:
 
     @property
     def seconds_per_iteration(self) -> float:
-        """Mean wall time of one iteration (over the iterations that changed the state)."""
+        """Mean wall time of one iteration (:attr:`seconds` over :attr:`iterations`)."""
         return self.seconds / self.iterations if self.iterations else 0.0

@@ -13,6 +13,7 @@ from custom_types import (
 
 from graphopt import (
     SparseOptimizer,
+    StoppingConfig,
 )
 from graphopt.solvers import CHOLMOD_AVAILABLE
 
@@ -31,7 +32,8 @@ def curve_data(n=200, sigma=0.1, outliers=0.0, seed=1):
 
 
 def fit_curve(meas, algorithm="lm", kernel=None, solver="dense", edge=EdgeCurve, iters=100):
-    opt = SparseOptimizer(algorithm, solver)
+    # References: run until no step improves (g2o's rule), tighter than any tolerance.
+    opt = SparseOptimizer(algorithm, solver, stopping=StoppingConfig.iterations_only())
     opt.add_vertices(VertexCurve, [0], [[0.0, 0.0, 0.0]])
     opt.add_edges(edge, np.zeros((len(meas), 1), int), meas, robust_kernel=kernel)
     res = opt.optimize(iters)

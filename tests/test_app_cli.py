@@ -11,16 +11,19 @@ from pathlib import Path
 
 import pytest
 
+from graphopt import StoppingConfig
 from graphopt.apps import _cli, bal, direct_ba, g2o
 from graphopt.apps._cli import (
     AppError,
     OneLineParser,
     RunRecording,
     add_solver_option,
+    add_stopping_options,
     check_outputs,
     check_run_options,
     optimize_recorded,
     run_main,
+    stopping_config,
     write_json,
 )
 from graphopt.solvers import SOLVERS
@@ -52,23 +55,42 @@ def test_both_apps_take_the_library_solver_names(parser) -> None:
     assert "--solver {" + ",".join(SOLVERS) + "}" in own.format_help()
 
 
+def _stopping_args(*argv: str):
+    p = OneLineParser(prog="tool")
+    add_stopping_options(p)
+    return p.parse_args(list(argv))
+
+
 @pytest.mark.parametrize(
-    ("iterations", "delta", "message"),
-    [(-1, 1.0, "--iterations must be >= 0, got -1"),
-     (5, 0.0, "--robust-delta must be positive, got 0"),
-     (5, -2.5, "--robust-delta must be positive, got -2.5"),
-     (5, float("nan"), "--robust-delta must be positive, got nan"),
-     (5, float("inf"), "--robust-delta must be positive, got inf")],
+    ("argv", "delta", "message"),
+    [(["-i", "-1"], 1.0, "--iterations must be >= 0, got -1"),
+     ([], 0.0, "--robust-delta must be positive, got 0"),
+     ([], -2.5, "--robust-delta must be positive, got -2.5"),
+     ([], float("nan"), "--robust-delta must be positive, got nan"),
+     ([], float("inf"), "--robust-delta must be positive, got inf"),
+     (["--function-tolerance=-1e-3"], 1.0,
+      "--function-tolerance must be a finite number >= 0, got -0.001"),
+     (["--gradient-tolerance", "nan"], 1.0,
+      "--gradient-tolerance must be a finite number >= 0, got nan"),
+     (["--gain", "inf"], 1.0, "--gain must be a finite number >= 0, got inf")],
 )
-def test_check_run_options_rejects(iterations: int, delta: float, message: str) -> None:
+def test_check_run_options_rejects(argv: list[str], delta: float, message: str) -> None:
     with pytest.raises(AppError) as info:
-        check_run_options(iterations, delta)
+        check_run_options(_stopping_args(*argv), delta)
     assert str(info.value) == message
 
 
 def test_check_run_options_accepts() -> None:
-    assert check_run_options(0, 1e-9) is None
-    assert check_run_options(40, 0.5) is None
+    assert check_run_options(_stopping_args("-i", "0"), 1e-9) is None
+    assert check_run_options(_stopping_args("--iterations", "40"), 0.5) is None
+
+
+def test_stopping_options_make_the_stopping_config() -> None:
+    assert stopping_config(_stopping_args()) == StoppingConfig(max_iterations=100)
+    got = stopping_config(_stopping_args("-i", "7", "--function-tolerance", "0",
+                                         "--gradient-tolerance", "1e-3",
+                                         "--parameter-tolerance", "2e-5", "--gain", "1e-4"))
+    assert got == StoppingConfig(7, 0.0, 1e-3, 2e-5, 1e-4)
 
 
 def test_check_outputs(tmp_path: Path) -> None:

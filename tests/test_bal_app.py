@@ -42,8 +42,10 @@ def test_synthetic_default_run(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert KEYS <= set(s)
     assert s["final_cost"] < 1e-2 * s["initial_cost"]
     assert s["final_chi2"] == pytest.approx(2 * s["final_cost"], rel=1e-9)  # no kernel
-    assert s["iterations"] == 15 and s["seconds"] > 0
-    assert s["seconds_per_iteration"] == pytest.approx(s["seconds"] / 15)
+    assert s["iterations"] <= 15 and s["seconds"] > 0
+    assert s["stop_reason"] in ("iterations", "function_tolerance", "parameter_tolerance")
+    assert s["seconds_per_iteration"] == pytest.approx(s["seconds"] / s["iterations"])
+    assert err.count("iteration= ") == s["iterations"]
     # The optimum fits the noise (σ = 0.5 px per axis) and recovers the ground truth.
     assert s["rms_px"] < 0.75
     assert s["ground_truth"]["point_rms"] < 0.5 * s["ground_truth_initial"]["point_rms"]

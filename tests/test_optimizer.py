@@ -11,7 +11,7 @@ import pytest
 from custom_types import VertexSE2
 from graphs import build_pose_graph
 
-from graphopt import SparseOptimizer, StopReason
+from graphopt import SparseOptimizer, StoppingConfig, StopReason
 
 
 def test_per_object_api_equals_bulk() -> None:
@@ -71,8 +71,8 @@ def test_callbacks_and_force_stop() -> None:
 
 def test_gain_threshold_stops_early() -> None:
     opt, _, _ = build_pose_graph("lm")
-    opt.gain_threshold = 1e-3
-    res = opt.optimize(100)
+    opt.stopping = StoppingConfig(100, 0.0, 0.0, 0.0, gain_threshold=1e-3)
+    res = opt.optimize()
     assert res.stop_reason == "gain" and res.iterations < 100
     gains = np.diff(res.chi2_history) / np.array(res.chi2_history[1:])
     assert -gains[-1] < 1e-3
@@ -80,6 +80,7 @@ def test_gain_threshold_stops_early() -> None:
 
 def test_result_times_and_history() -> None:
     opt, _, _ = build_pose_graph("lm")
+    opt.stopping = StoppingConfig.iterations_only()
     res = opt.optimize(5)
     assert res.iterations == len(res.chi2_history) == len(res.linearize_seconds) == 5
     assert all(t > 0 for t in res.linearize_seconds + res.solve_seconds)
@@ -112,15 +113,18 @@ def test_stop_reason_is_an_enum_equal_to_its_word() -> None:
 
 
 def test_histories_are_views_of_the_iteration_records() -> None:
-    """A failed last iteration is recorded in ``info`` but not counted in the histories."""
+    """A last iteration without an acceptable step is an iteration like the others."""
     opt, _, _ = build_pose_graph("lm")
+    opt.stopping = StoppingConfig.iterations_only()
     res = opt.optimize(200)
     assert res.stop_reason == StopReason.CONVERGED
     assert res.info[-1].failed and not any(r.failed for r in res.info[:-1])
-    assert res.iterations == len(res.info) - 1 == len(res.chi2_history)
-    assert res.chi2_history == [r.chi2 for r in res.info[:-1]]
-    assert res.trials == [r.trials for r in res.info[:-1]]
-    assert res.final_chi2 == res.chi2_history[-1]
+    assert res.iterations == len(res.info) == len(res.chi2_history) == res.accepted_iterations + 1
+    assert res.chi2_history == [r.chi2 for r in res.info]
+    assert res.chi2_history[-1] == res.chi2_history[-2] == res.final_chi2  # nothing changed
+    assert res.trials == [r.trials for r in res.info] and res.trials[-1] == 10
+    assert res.iteration_seconds == [r.seconds for r in res.info]
+    assert res.seconds_per_iteration == pytest.approx(res.seconds / res.iterations)
     assert all(r.seconds >= r.linearize_seconds + r.solve_seconds for r in res.info)
 
 

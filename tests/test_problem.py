@@ -23,6 +23,7 @@ from graphopt import (
     Linearization,
     RobustKernelHuber,
     SparseOptimizer,
+    StoppingConfig,
     VertexVector,
     numeric_jacobians,
 )
@@ -211,14 +212,22 @@ def test_linearize_on_trial_reuses_the_accepted_linearisation() -> None:
     histories = {}
     for et in (Counting, OnTrial):
         calls.update(lin=0, err=0)
-        abc, res = fit_curve(meas, "lm", edge=et, iters=8)
-        histories[et.__name__] = (res.chi2_history, abc, dict(calls), sum(res.trials))
-    h1, a1, c1, t1 = histories["Counting"]
-    h2, a2, c2, t2 = histories["OnTrial"]
+        abc, res = fit_curve(meas, LevenbergConfig(tau=1.0), edge=et, iters=8)
+        histories[et.__name__] = (res.chi2_history, abc, dict(calls), res)
+    h1, a1, c1, _ = histories["Counting"]
+    h2, a2, c2, res = histories["OnTrial"]
     assert h1 == h2 and np.array_equal(a1, a2)
-    assert c1["lin"] == 8 and c2["err"] == 0
-    # One linearisation per trial plus the first: accepted trials are not linearised again.
-    assert c2["lin"] == t2 + 1
+    assert c1["lin"] == res.iterations
+    # A trial after an accepted one linearises (the next iteration reuses it); a trial after a
+    # rejected one evaluates the errors alone. An iteration linearises again only when its
+    # accepted trial came after a rejection (the first iteration reuses the initial evaluation).
+    trials = res.trials
+    assert sum(trials) > len(trials)  # the case under test: some trials were rejected
+    after_rejection = sum(t - 1 for t in trials) + (1 if res.info[-1].failed else 0)
+    relinearised = sum(1 for t, r in zip(trials[:-1], res.info[:-1], strict=True)
+                       if t > 1 and not r.failed)
+    assert c2["err"] == after_rejection
+    assert c2["lin"] == 1 + (sum(trials) - after_rejection) + relinearised
     assert c2["lin"] + c2["err"] < c1["lin"] + c1["err"]
 
 
@@ -290,6 +299,7 @@ def test_lm_computes_the_damping_once_per_linearisation() -> None:
         return original(asm, diagonal)
 
     system.damping = counting
+    opt.stopping = StoppingConfig.iterations_only()
     res = opt.optimize(30)
     assert sum(r.trials for r in res.info) > len(res.info)  # trials were rejected
     assert calls == [True] * len(res.info)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from graphopt import StoppingConfig
 from graphopt.errors import GraphError
 from graphopt.io.g2o import read_graph
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
@@ -78,8 +79,11 @@ def test_initial_chi2_is_g2os(name: str) -> None:
 @pytest.mark.parametrize("name", sorted(G2O_LM))
 def test_lm_reaches_g2os_chi2(name: str) -> None:
     slam = build_graph(read_graph(DATA / name), guess=name.startswith("victoria"))
+    # Agreement to 1e-6 needs convergence beyond Ceres' default function tolerance (1e-6):
+    # pose3example converges linearly, by a factor of about 0.6 per iteration.
+    slam.optimizer.stopping = StoppingConfig(function_tolerance=1e-10)
     result = slam.optimizer.optimize(100)
-    assert result.stop_reason.value == "converged"
+    assert result.stop_reason.converged
     final = _chi2(slam)
     assert final == pytest.approx(G2O_LM[name], rel=1e-6)
     assert final == pytest.approx(GRAPHOPT_LM[name], rel=1e-6)
