@@ -73,6 +73,8 @@ class Trace:
     times: list[float] = field(default_factory=list)
     iter_seconds: list[float] = field(default_factory=list)
     setup_seconds: float = 0.0
+    total_seconds: float = 0.0
+    stop: str = ""
 
     @property
     def final_cost(self) -> float:
@@ -120,7 +122,8 @@ def bal_cost(problem: BALProblem, cameras: np.ndarray, points: np.ndarray) -> fl
 
 
 def run_graphopt(
-    problem: BALProblem, iterations: int, solver: str = "auto", diagonal: bool = True
+    problem: BALProblem, iterations: int, solver: str = "auto", diagonal: bool = True,
+    default: bool = False,
 ) -> Trace:
     """LM with points marginalised, as ``graphopt-bal`` runs it.
 
@@ -129,13 +132,17 @@ def run_graphopt(
         iterations: Maximum iterations.
         solver: Linear solver name.
         diagonal: Marquardt damping ``λ·diag(H)`` (the app's default) or g2o's ``λ·I``.
+        default: Stop at convergence with the library's default tests (a user's default run);
+            otherwise run ``iterations`` iterations unless no step is found.
     """
-    from graphopt import LevenbergConfig, SparseOptimizer
+    from graphopt import LevenbergConfig, SparseOptimizer, StoppingConfig
     from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
     from graphopt.types.vertices import VertexPointXYZ
 
     nc = problem.num_cameras
-    opt = SparseOptimizer(algorithm=LevenbergConfig(diagonal_damping=diagonal), solver=solver)
+    stopping = StoppingConfig() if default else StoppingConfig.iterations_only()
+    opt = SparseOptimizer(algorithm=LevenbergConfig(diagonal_damping=diagonal), solver=solver,
+                          stopping=stopping)
     opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
     opt.add_vertices(VertexPointXYZ, nc + np.arange(problem.num_points), problem.points,
                      marginalized=True)
@@ -151,6 +158,8 @@ def run_graphopt(
     opt.initialize_optimization()
     t1 = time.perf_counter()
     res = opt.optimize(iterations)
+    tr.total_seconds = time.perf_counter() - t0
+    tr.stop = str(res.stop_reason)
     tr.setup_seconds = t1 - t0
     tr.costs = [0.5 * res.initial_chi2]
     tr.times = [tr.setup_seconds]
@@ -226,14 +235,17 @@ def _colmap_state(rec: Any, point_ids: list[int], nc: int) -> tuple[np.ndarray, 
     return cams, pts
 
 
-def run_ceres(problem: BALProblem, iterations: int, instrument: bool) -> Trace:
+def run_ceres(problem: BALProblem, iterations: int, instrument: bool,
+              default: bool = False) -> Trace:
     """pycolmap's reprojection cost (RADIAL camera, principal point fixed) with pyceres.
 
     Args:
         problem: The BAL problem.
-        iterations: Maximum iterations (``max_num_iterations``; tolerances disabled).
+        iterations: Maximum iterations (``max_num_iterations``).
         instrument: Evaluate BAL's cost on the state after every iteration (slow; for the
             cost trajectory, not for timing).
+        default: Keep Ceres' default stopping tolerances (a user's default run); otherwise
+            they are disabled and Ceres runs ``iterations`` iterations.
     """
     import pyceres
     import pycolmap
@@ -255,9 +267,10 @@ def run_ceres(problem: BALProblem, iterations: int, instrument: bool) -> Trace:
     so.trust_region_strategy_type = pyceres.TrustRegionStrategyType.LEVENBERG_MARQUARDT
     so.num_threads = 1
     so.max_num_iterations = iterations
-    so.function_tolerance = 0.0
-    so.gradient_tolerance = 0.0
-    so.parameter_tolerance = 0.0
+    if not default:
+        so.function_tolerance = 0.0
+        so.gradient_tolerance = 0.0
+        so.parameter_tolerance = 0.0
     so.minimizer_progress_to_stdout = False
     so.logging_type = pyceres.LoggingType.SILENT
     so.update_state_every_iteration = instrument
@@ -280,12 +293,14 @@ def run_ceres(problem: BALProblem, iterations: int, instrument: bool) -> Trace:
     pyceres.solve(so, ba.problem, summary)
     tr = Trace("ceres")
     tr.setup_seconds = summary.preprocessor_time_in_seconds
+    tr.total_seconds = summary.total_time_in_seconds
+    tr.stop = str(summary.termination_type).rsplit(".", 1)[-1].lower()
     # Record 0 is Ceres' evaluation at the start; the others are iterations.
     tr.times = [r[1] for r in records]
     tr.iter_seconds = [r[2] for r in records[1:]]
     tr.costs = states if instrument else [r[0] for r in records]
     cams, pts = _colmap_state(rec, point_ids, nc)
-    if instrument:
+    if instrument or default:
         tr.costs[-1] = bal_cost(problem, cams, pts)
     return tr
 
@@ -377,6 +392,45 @@ def _available(module: str) -> bool:
     return True
 
 
+def _default_runs(problem: BALProblem, args: argparse.Namespace,
+                  ceres: bool) -> dict[str, Any]:
+    """What a user waits for: each solver's default run, to its own stopping tests.
+
+    graphopt with :class:`~graphopt.StoppingConfig`'s defaults, Ceres with its own (the same
+    tolerances), both capped at ``--default-iterations``; whole-run seconds (graphopt: its
+    initialisation and ``optimize``; Ceres: ``total_time_in_seconds``), one warm-up, medians of
+    ``--repeats`` runs.
+    """
+    runners: dict[str, Any] = {
+        "graphopt": lambda: run_graphopt(problem, args.default_iterations, default=True)}
+    if ceres:
+        runners["ceres"] = lambda: run_ceres(problem, args.default_iterations, instrument=False,
+                                             default=True)
+    result: dict[str, Any] = {}
+    for name, run in runners.items():
+        run()  # warm-up
+        trs = [run() for _ in range(args.repeats)]
+        result[name] = {
+            "seconds": statistics.median(t.total_seconds for t in trs),
+            "iterations": len(trs[0].iter_seconds),
+            "final_cost": trs[0].final_cost,
+            "stop": trs[0].stop,
+            "seconds_per_iteration": statistics.median(
+                statistics.median(t.iter_seconds) for t in trs),
+        }
+        r = result[name]
+        print(f"   default run, {name}: {r['seconds']:.3f} s, {r['iterations']} iterations "
+              f"({r['stop']}), final cost {r['final_cost']:.6e}", flush=True)
+    if "ceres" in result:
+        g, c = result["graphopt"], result["ceres"]
+        result["graphopt_over_ceres_seconds"] = g["seconds"] / c["seconds"]
+        result["cost_difference"] = (g["final_cost"] - c["final_cost"]) / c["final_cost"]
+        print(f"   default run: graphopt / ceres time x{result['graphopt_over_ceres_seconds']:.2f}"
+              f" (<1: graphopt faster), final costs differ by "
+              f"{result['cost_difference']:+.1e} (relative)", flush=True)
+    return result
+
+
 def bench_file(path: Path, args: argparse.Namespace) -> dict[str, Any]:
     """Run all solvers on one file.
 
@@ -405,6 +459,10 @@ def bench_file(path: Path, args: argparse.Namespace) -> dict[str, Any]:
     if not args.skip_scipy:
         runners["scipy"] = lambda n: run_scipy(problem, n)
 
+    out: dict[str, Any] = {"file": path.name, "dropped_behind_camera": dropped, "solvers": {}}
+    out["default_runs"] = _default_runs(problem, args, "ceres" in runners)
+    if args.default_only:
+        return out
     runs: dict[str, list[Trace]] = {}
     for name, run in runners.items():
         iters = args.scipy_iterations if name == "scipy" else args.iterations
@@ -427,8 +485,7 @@ def bench_file(path: Path, args: argparse.Namespace) -> dict[str, Any]:
 
     best = min(tr.final_cost for trs in runs.values() for tr in trs)
     target = best * (1.0 + REL_TOL)
-    out: dict[str, Any] = {"file": path.name, "dropped_behind_camera": dropped,
-                           "best_cost": best, "target": target, "solvers": {}}
+    out.update(best_cost=best, target=target)
     for name, trs in runs.items():
         out["solvers"][name] = {
             "seconds_per_iteration": statistics.median(
@@ -464,6 +521,19 @@ def print_table(results: list[dict[str, Any]]) -> None:
     Args:
         results: Outputs of :func:`bench_file`.
     """
+    print(f"\nDefault runs (each solver to its own stopping tests):\n{'file':<32} {'solver':<9} "
+          f"{'seconds':>8} {'iters':>5} {'stop':<20} {'final cost':>13}  graphopt/ceres")
+    for r in results:
+        d = r["default_runs"]
+        for name in ("graphopt", "ceres"):
+            if name in d:
+                x = d[name]
+                ratio = (f"x{d['graphopt_over_ceres_seconds']:.2f}"
+                         if name == "graphopt" and "ceres" in d else "")
+                print(f"{r['file']:<32} {name:<9} {x['seconds']:8.3f} {x['iterations']:5d} "
+                      f"{x['stop']:<20} {x['final_cost']:13.6e}  {ratio}")
+    if not any(r["solvers"] for r in results):
+        return
     print(f"\n{'file':<32} {'solver':<12} {'s/iter':>8} {'s/work it':>9} {'s to 1e-4':>10} "
           f"{'final cost':>13} {'iters':>5}")
     for r in results:
@@ -501,6 +571,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep-behind", action="store_true",
                     help="keep observations behind their camera (pycolmap's cost then differs "
                          "from BAL's model on them)")
+    ap.add_argument("--default-iterations", type=int, default=100,
+                    help="cap of the default runs (stopping at convergence; default 100)")
+    ap.add_argument("--default-only", action="store_true",
+                    help="only the default runs (whole runs to each solver's stopping tests)")
     ap.add_argument("--json", help="write all results (with traces) to this file")
     args = ap.parse_args(argv)
     files = [Path(f) for f in args.files] or [DATA / f for f in DEFAULT_FILES]

@@ -189,6 +189,6 @@ def test_gtsam_schedule_divides_and_multiplies_lambda_by_its_factor() -> None:
     assert res.final_chi2 == pytest.approx(build_pose_graph("gn")[0].optimize(30).final_chi2,
                                            rel=1e-9)
     with pytest.raises(ValueError, match="unknown LM schedule"):
-        LevenbergConfig(schedule="ceres")
+        LevenbergConfig(schedule="nielsen")
     with pytest.raises(ValueError, match="factor must be > 1"):
         LevenbergConfig(schedule="gtsam", factor=1.0)

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from graphopt.algorithms import LevenbergConfig
 from graphopt.errors import GraphError
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
 from graphopt.optimizer import SparseOptimizer
@@ -382,7 +383,9 @@ def build_graph(graph: GraphFile, optimizer: SparseOptimizer | None = None,
 
     Args:
         graph: The records (canonical g2o tags, see :mod:`graphopt.io.g2o_records`).
-        optimizer: Add to this optimizer; a new ``SparseOptimizer()`` (LM) by default.
+        optimizer: Add to this optimizer; by default a new ``SparseOptimizer`` with LM and
+            GTSAM's damping schedule (the fastest on pose graphs: see
+            ``benchmarks/bench_schedules.py``).
         guess: Replace the estimates of all vertices that are not fixed by the spanning-tree
             guess. Required when edges name vertices that have no vertex line.
 
@@ -395,7 +398,8 @@ def build_graph(graph: GraphFile, optimizer: SparseOptimizer | None = None,
             wrong type, non-finite values, bad information matrices, unknown parameters.
     """
     _check_tags(graph)
-    opt = optimizer if optimizer is not None else SparseOptimizer()
+    opt = optimizer if optimizer is not None else SparseOptimizer(
+        LevenbergConfig(schedule="gtsam"))  # pose graphs' best schedule (bench_schedules.py)
     notes: list[str] = []
     shift = _point_offset(graph)
     if shift:
