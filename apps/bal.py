@@ -59,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lm-damping", choices=("diagonal", "identity"), default="diagonal",
                    help="LM damping: lambda*diag(H) (Marquardt, as Ceres; default) or "
                         "lambda*I (g2o)")
+    p.add_argument("--lm-schedule", choices=("g2o", "ceres", "gtsam"), default="g2o",
+                   help="LM damping schedule: g2o's Nielsen rule (default: fewest iterations on "
+                        "the BAL files, benchmarks/bench_schedules.py), Ceres' or GTSAM's")
     _cli.add_solver_option(p)
     p.add_argument("--robust", metavar="KERNEL", default=None,
                    help="robust kernel (huber, cauchy, pseudohuber, tukey, ...)")
@@ -182,7 +185,8 @@ def _build_optimizer(
     if args.algorithm == "lm":
         # BAL mixes parameters of very different scales (focal lengths ~1e3 px next to k2 as
         # small as 1e-7): λ·diag(H) damps each in its own units, λ·I starves the small ones.
-        algorithm = LevenbergConfig(diagonal_damping=args.lm_damping == "diagonal")
+        algorithm = LevenbergConfig(diagonal_damping=args.lm_damping == "diagonal",
+                                    schedule=args.lm_schedule)
     opt = SparseOptimizer(algorithm=algorithm, solver=args.solver, verbose=not args.quiet,
                           stream=sys.stderr, stopping=_cli.stopping_config(args))
     nc, npt = problem.num_cameras, problem.num_points

@@ -66,10 +66,10 @@ def build_parser() -> argparse.ArgumentParser:
     _cli.add_stopping_options(p)
     p.add_argument("--algorithm", choices=("gn", "lm", "dogleg"), default="lm",
                    help="Gauss-Newton, Levenberg-Marquardt (default) or Powell's dogleg")
-    p.add_argument("--lm-schedule", choices=("gtsam", "g2o"), default="gtsam",
+    p.add_argument("--lm-schedule", choices=("gtsam", "g2o", "ceres"), default="gtsam",
                    help="LM damping schedule: GTSAM's lambda/10 after a success, x10 after a "
                         "failure (default: converges in 8 iterations on w10000 where g2o's "
-                        "rule needs over 100), or g2o's")
+                        "rule needs over 100), g2o's or Ceres'")
     _cli.add_solver_option(p)
     p.add_argument("--robust-kernel", metavar="NAME", default=None,
                    help="robust kernel on every edge (huber, cauchy, pseudohuber, tukey, ...)")
