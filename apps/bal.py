@@ -299,6 +299,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "observations": problem.num_observations,
         "algorithm": args.algorithm,
         "lm_damping": args.lm_damping if args.algorithm == "lm" else None,
+        "lm_schedule": args.lm_schedule if args.algorithm == "lm" else None,
         "solver": solver,
         "solver_requested": args.solver,
         "solver_text": solver_text,

@@ -69,6 +69,7 @@ def test_quiet_robust_and_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert out == "" and err == ""
     s = json.loads(paths["json"].read_text())
     assert s["robust_kernel"] == "huber:0.5" and s["lm_damping"] == "diagonal"
+    assert s["lm_schedule"] == "g2o"
     assert s["final_chi2"] < 2 * s["final_cost"]  # Huber down-weights large residuals
     for ply in (before, after):
         head = ply.read_bytes().split(b"end_header\n")[0].decode()
