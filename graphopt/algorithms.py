@@ -8,6 +8,7 @@ damped systems, apply, evaluate, accept or restore — and reports what it did i
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -103,6 +104,10 @@ AlgorithmConfig = GaussNewtonConfig | LevenbergConfig | DoglegConfig
 #: Ceres' bounds on λ = 1 / trust-region radius (``max_/min_trust_region_radius``).
 _CERES_LAMBDA = (1e-16, 1e32)
 
+def _never() -> bool:
+    return False
+
+
 #: No stopping test (``iterate`` called without a config).
 _NO_TESTS = StoppingConfig.iterations_only()
 
@@ -167,6 +172,9 @@ class Algorithm:
         # accepted trial (the Jacobians are then reused), no after a rejected one (errors only,
         # as Ceres' unsuccessful step costs).
         self.trial_linearizes = True
+        #: Polled between the trials of an iteration; ``True`` ends the iteration with the
+        #: estimate restored and the stop reason ``interrupted`` (the optimizer's ``stop()``).
+        self.interrupted: Callable[[], bool] = _never
 
     def reset(self) -> None:
         """Forget state kept across iterations (λ, radius)."""
@@ -342,6 +350,8 @@ class LevenbergMarquardt(Algorithm):
                                      not_pd=not_pd, singular=singular, stop=stop)
             p.pop()
             self.trial_linearizes = False
+            if stop is None and self.interrupted():  # between trials: the estimate is restored
+                stop = StopReason.INTERRUPTED
             if stop is not None:  # a rejected step that changes nothing: converged
                 return IterationInfo(iteration, chi, lam=self.lam, trials=trial, not_pd=not_pd,
                                      singular=singular, failed=True, stop=stop)
@@ -445,6 +455,8 @@ class Dogleg(Algorithm):
                                      stop=stop)
             p.pop()
             self.trial_linearizes = False
+            if stop is None and self.interrupted():  # between trials: the estimate is restored
+                stop = StopReason.INTERRUPTED
             if stop is not None:  # a rejected step that changes nothing: converged
                 return IterationInfo(iteration, chi, lam=self.lam, trials=trial,
                                      radius=self.radius, not_pd=not_pd, singular=singular,

@@ -118,12 +118,15 @@ class SparseOptimizer:
 
     def stop(self) -> None:
         """Ask a running ``optimize`` to end at the next safe point — the end of the current
-        iteration, whose estimate is kept only if it was accepted — with the stop reason
-        ``interrupted``.
+        iteration, whose estimate is kept only if it was accepted, or after a rejected trial of
+        LM or Dogleg (the estimate restored) — with the stop reason ``interrupted``.
 
         Safe to call from a signal handler or another thread: it only sets a flag.
         """
         self._interrupt = True
+
+    def _interrupted(self) -> bool:
+        return self._interrupt
 
     @property
     def solver(self) -> LinearSolver | None:
@@ -342,6 +345,7 @@ class SparseOptimizer:
         t_start = time.perf_counter()
         p = self._ensure_problem()
         self._stop = self._interrupt = False
+        self.algorithm.interrupted = self._interrupted
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
         if not np.isfinite(initial):

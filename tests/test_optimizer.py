@@ -137,6 +137,30 @@ def test_problem_exists_after_initialisation_only() -> None:
     assert SparseOptimizer().optimize(0).iterations == 0  # library default solver: auto
 
 
+@pytest.mark.parametrize("algorithm", ["lm", "dogleg"])
+def test_stop_between_trials_restores_the_estimate(algorithm: str) -> None:
+    """A stop request during an iteration ends it after the rejected trial, state restored."""
+    opt, _, _ = build_pose_graph(algorithm)
+    opt.optimize(1)
+    start = opt.estimates_of(VertexSE2)
+    chi = opt.active_robust_chi2()
+    p = opt.problem
+    trial_chi2 = p.robust_chi2
+    calls = []
+
+    def rejecting(linearize: bool = True) -> float:  # the user presses Ctrl-C mid-iteration
+        calls.append(trial_chi2(linearize))
+        opt.stop()
+        return float("inf")
+
+    p.robust_chi2 = rejecting
+    res = opt.optimize(10)
+    assert res.stop_reason is StopReason.INTERRUPTED and len(calls) == 1
+    assert res.iterations == 1 and res.info[0].failed and res.info[0].trials == 1
+    np.testing.assert_array_equal(opt.estimates_of(VertexSE2), start)
+    assert res.final_chi2 == chi == opt.active_robust_chi2()
+
+
 def test_stop_ends_the_run_at_the_next_safe_point_as_interrupted() -> None:
     import threading
 
