@@ -308,12 +308,14 @@ def run_ceres(problem: BALProblem, iterations: int, instrument: bool,
 # --- scipy ------------------------------------------------------------------------------------
 
 
-def run_scipy(problem: BALProblem, iterations: int) -> Trace:
+def run_scipy(problem: BALProblem, iterations: int, default: bool = False) -> Trace:
     """``scipy.optimize.least_squares`` (trf) with finite differences over ``jac_sparsity``.
 
     Args:
         problem: The BAL problem.
         iterations: Maximum iterations (``max_nfev``; scipy's trf iterates once per evaluation).
+        default: Keep SciPy's default tolerances (``ftol = xtol = gtol = 1e-8``: a user's default
+            run); otherwise they are 1e-15 and SciPy runs ``iterations`` evaluations.
     """
     import scipy.sparse as sp
     from scipy.optimize import least_squares
@@ -342,9 +344,14 @@ def run_scipy(problem: BALProblem, iterations: int) -> Trace:
     def callback(intermediate_result: Any) -> None:
         stamps.append((time.perf_counter(), float(intermediate_result.cost)))
 
+    tol = 1e-8 if default else 1e-15
     t0 = time.perf_counter()
-    least_squares(fun, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
-                  max_nfev=iterations, ftol=1e-15, xtol=1e-15, gtol=1e-15, callback=callback)
+    out = least_squares(fun, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
+                        max_nfev=iterations, ftol=tol, xtol=tol, gtol=tol, callback=callback)
+    tr.total_seconds = time.perf_counter() - t0
+    tr.stop = {-1: "failed", 0: "iterations", 1: "gradient_tolerance",
+               2: "function_tolerance", 3: "parameter_tolerance",
+               4: "function+parameter"}.get(int(out.status), str(out.status))
     tr.costs = [0.5 * float(np.sum(fun(x0) ** 2))]
     tr.times = [0.0]
     prev = t0
@@ -397,19 +404,24 @@ def _default_runs(problem: BALProblem, args: argparse.Namespace,
     """What a user waits for: each solver's default run, to its own stopping tests.
 
     graphopt with :class:`~graphopt.StoppingConfig`'s defaults, Ceres with its own (the same
-    tolerances), both capped at ``--default-iterations``; whole-run seconds (graphopt: its
-    initialisation and ``optimize``; Ceres: ``total_time_in_seconds``), one warm-up, medians of
-    ``--repeats`` runs.
+    tolerances), SciPy's ``least_squares`` with its own (1e-8), all capped at
+    ``--default-iterations``; whole-run seconds (graphopt: its initialisation and ``optimize``;
+    Ceres: ``total_time_in_seconds``; SciPy: the call), one warm-up (not for SciPy), medians of
+    ``--repeats`` runs (``--scipy-repeats`` for SciPy).
     """
     runners: dict[str, Any] = {
         "graphopt": lambda: run_graphopt(problem, args.default_iterations, default=True)}
     if ceres:
         runners["ceres"] = lambda: run_ceres(problem, args.default_iterations, instrument=False,
                                              default=True)
+    if not args.skip_scipy:
+        runners["scipy"] = lambda: run_scipy(problem, args.default_iterations, default=True)
     result: dict[str, Any] = {}
     for name, run in runners.items():
-        run()  # warm-up
-        trs = [run() for _ in range(args.repeats)]
+        if name != "scipy":
+            run()  # warm-up (SciPy's runs take tens of seconds: no warm-up, --scipy-repeats)
+        repeats = args.scipy_repeats if name == "scipy" else args.repeats
+        trs = [run() for _ in range(repeats)]
         result[name] = {
             "seconds": statistics.median(t.total_seconds for t in trs),
             "iterations": len(trs[0].iter_seconds),
@@ -421,6 +433,9 @@ def _default_runs(problem: BALProblem, args: argparse.Namespace,
         r = result[name]
         print(f"   default run, {name}: {r['seconds']:.3f} s, {r['iterations']} iterations "
               f"({r['stop']}), final cost {r['final_cost']:.6e}", flush=True)
+    if "scipy" in result:
+        result["graphopt_over_scipy_seconds"] = (result["graphopt"]["seconds"]
+                                                 / result["scipy"]["seconds"])
     if "ceres" in result:
         g, c = result["graphopt"], result["ceres"]
         result["graphopt_over_ceres_seconds"] = g["seconds"] / c["seconds"]
@@ -525,7 +540,7 @@ def print_table(results: list[dict[str, Any]]) -> None:
           f"{'seconds':>8} {'iters':>5} {'stop':<20} {'final cost':>13}  graphopt/ceres")
     for r in results:
         d = r["default_runs"]
-        for name in ("graphopt", "ceres"):
+        for name in ("graphopt", "ceres", "scipy"):
             if name in d:
                 x = d[name]
                 ratio = (f"x{d['graphopt_over_ceres_seconds']:.2f}"
