@@ -68,7 +68,8 @@ class Problem:
                  schur: SchurConfig | None = None) -> None:
         self.stores = stores
         self.linearizer = Linearizer(stores, groups, positions)
-        self.system = LinearSystem(stores, groups, positions, schur)
+        self.system = LinearSystem(stores, groups, positions, schur,
+                                   matrix_free=solver.choose_matrix_free)
         self.solver = solver
         solver.analyze(self.system.pattern, self.system.udims)
         self.timing = Timing()

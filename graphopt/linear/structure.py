@@ -10,6 +10,7 @@ the edges and the *fill* (pairs of U blocks that share a V block); its scalar pa
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import combinations
 from typing import TYPE_CHECKING
@@ -59,7 +60,7 @@ class WClass:
         dv: V block dimension.
         ublock: ``(n,)`` global U block of every W block.
         vblock: ``(n,)`` block within the V class of every W block.
-        upos: ``(n, du)`` scalar rows of every W block's U block.
+        uoffset: The index's ``(n_ublocks + 1,)`` scalar offsets of the U blocks (shared).
         keys: ``(n,)`` sorted ``vblock · n_ublocks + ublock``.
         rhs: ``Σ_w W_w x[w]`` into the U blocks of the class (``Wᵀ`` used in place).
         rhs_dest: ``(n_u, du)`` scalar rows of those U blocks.
@@ -75,13 +76,19 @@ class WClass:
     dv: int
     ublock: np.ndarray
     vblock: np.ndarray
-    upos: np.ndarray
+    uoffset: np.ndarray
     keys: np.ndarray
     rhs: EdgeContraction
     rhs_dest: np.ndarray
     bsr_cols: np.ndarray
     bsr_indptr: np.ndarray
     ucols: slice
+
+    @property
+    def upos(self) -> np.ndarray:
+        """``(n, du)`` scalar rows of every W block's U block, computed on use (marginals): 72
+        bytes per W block that no iteration needs."""
+        return self.uoffset[self.ublock][:, None] + np.arange(self.du)
 
 
 class BlockIndex:
@@ -93,6 +100,10 @@ class BlockIndex:
         positions: Per group, per vertex position: ``(store index, slots (m,))``.
         spectral_max: Most U blocks ordered by co-visibility (see
             :func:`~graphopt.linear.ordering.co_visibility_order`).
+        matrix_free: Whether the reduced system is only ever used through products (an
+            implicit Schur solver): then ``S``'s fill is left out of the pattern, which holds
+            only the U blocks and the U-U blocks of edges (``H_uu``). A callable decides, given
+            this index once its U, V and W blocks are numbered (before the pattern is built).
 
     Attributes:
         stores: The vertex stores (as given).
@@ -109,33 +120,56 @@ class BlockIndex:
         ustore: ``(n_ublocks,)`` store of every U block.
         uoffset: ``(n_ublocks + 1,)`` scalar offset of every U block, then ``n``.
         n: Size of the reduced system.
-        pattern: The scalar pattern of ``S``.
+        matrix_free: Whether the pattern leaves out the fill (see the argument).
+        pattern: The scalar pattern of ``S`` (of ``H_uu`` when ``matrix_free``).
 
     Raises:
         GraphError: if an edge joins two different marginalised vertices.
     """
 
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
-                 spectral_max: int = 600) -> None:
+                 spectral_max: int = 600,
+                 matrix_free: bool | Callable[[BlockIndex], bool] = False) -> None:
         self.stores, self.groups, self.positions = stores, groups, positions
         self._number_blocks()
         nb = max(self.n_ublocks, 1)
         u_keys, w_found = self._scan_edges()
-        keys = [u_keys]
+        self._fill: dict[int, np.ndarray] = {}
+        self._inc: list[tuple[np.ndarray, np.ndarray]] = []
         for vc in range(len(self.vclasses)):
             v, u = self._incidence(vc, w_found)
-            # The fill: pairs of U blocks that share a V block, the structure of IncᵀInc.
-            inc = sp.csr_matrix((np.ones(len(v)), (v, u)), shape=(len(self.vclasses[vc].slots), nb))
-            fill = (inc.T @ inc).tocoo()
-            keys.append(fill.col.astype(np.int64) * nb + fill.row)
+            self._inc.append((v, u))  # the U pairs of the fill do not depend on V's numbering
             self._order_v_blocks(vc, v, u, w_found, spectral_max)
         self.wclass_of: dict[tuple[int, int], int] = {}
         self.wclasses: list[WClass] = []
         for key, found in w_found.items():
             self.wclass_of[key] = len(self.wclasses)
             self.wclasses.append(self._wclass(*key, found))
+        del w_found
+        self.matrix_free = bool(matrix_free(self) if callable(matrix_free) else matrix_free)
+        keys = [u_keys]
+        if not self.matrix_free:
+            keys += [self.fill_keys(vc) for vc in range(len(self.vclasses))]
+        self._inc, self._fill = [], {}  # only needed while the pattern is built
         self.pattern = ReducedPattern(self.uoffset, self.udims,
                                       unique_ints(np.concatenate(keys), nb * nb))
+
+    def fill_keys(self, vc: int) -> np.ndarray:
+        """The fill of V class ``vc`` (pairs of U blocks that share one of its V blocks, the
+        structure of ``IncᵀInc``) as keys ``col · n_ublocks + row``, both triangles with the
+        diagonal; computed once, and only while the index is built.
+
+        Args:
+            vc: The V class.
+        """
+        if vc not in self._fill:
+            nb = max(self.n_ublocks, 1)
+            v, u = self._inc[vc]
+            inc = sp.csr_matrix((np.ones(len(v)), (v, u)),
+                                shape=(len(self.vclasses[vc].slots), nb))
+            fill = (inc.T @ inc).tocoo()
+            self._fill[vc] = fill.col.astype(np.int64) * nb + fill.row
+        return self._fill[vc]
 
     def blocks_of(self, gi: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """U and V blocks of every edge of group ``gi``, per position (−1: none).
@@ -263,12 +297,11 @@ class BlockIndex:
         allp = np.concatenate(found)
         keys = unique_ints(allp[:, 1] * nb + allp[:, 0], n_v * nb)
         vblock, ublock = keys // nb, keys % nb
-        upos = (self.uoffset[ublock][:, None] + np.arange(du)).astype(np.int64)
         # rhs: Σ_w W_w y[w] per U block is Σ_w (Wᵀ_w)ᵀ y[w]: Wᵀ used in place.
         uu, inv = unique_ints(ublock, nb, True)
         rhs = EdgeContraction(np.arange(len(keys)), inv, len(uu), len(keys), dv, du)
         rhs_dest = self.uoffset[uu][:, None] + np.arange(du)
         ub_store = np.flatnonzero(self.ustore == ustore)  # a store's U blocks are contiguous
         ucols = slice(int(self.uoffset[ub_store[0]]), int(self.uoffset[ub_store[-1] + 1]))
-        return WClass(ustore, vclass, du, dv, ublock, vblock, upos, keys, rhs, rhs_dest,
+        return WClass(ustore, vclass, du, dv, ublock, vblock, self.uoffset, keys, rhs, rhs_dest,
                       ublock - ub_store[0], np.searchsorted(vblock, np.arange(n_v + 1)), ucols)

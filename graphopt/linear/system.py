@@ -5,17 +5,20 @@
 * *assembly*, once per linearisation: :class:`~graphopt.linear.assembly.Assembler` and the
   λ-free products of ``products.py``;
 * *Schur reduction*, once per λ: :class:`~graphopt.linear.schur.SchurComplement`, one
-  strategy per W class.
+  strategy per W class — or, for a matrix-free solver, the products of
+  :class:`~graphopt.linear.implicit.ImplicitSchur` (``S`` is never formed, nor its pattern).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 import graphopt.linear.products as products
 from graphopt.linear.assembly import Assembler, Assembly, GroupArrays
+from graphopt.linear.implicit import ImplicitSchur, SchurOperator
 from graphopt.linear.schur import SchurComplement
 from graphopt.linear.schur_config import SchurConfig
 from graphopt.linear.structure import BlockIndex, Positions
@@ -32,14 +35,22 @@ class LinearSystem:
         groups: The finalised edge groups.
         positions: Per group, per vertex position: ``(store index, slots (m,))``.
         config: How ``W V⁻¹ Wᵀ`` is formed (default: the cheapest per W class).
+        matrix_free: Whether the solver only needs products with ``S`` (see
+            :class:`~graphopt.linear.structure.BlockIndex`): then neither ``S``'s fill nor a
+            Schur strategy is built, and :meth:`reduce` hands over a
+            :class:`~graphopt.linear.implicit.SchurOperator`. A callable decides from the
+            block index.
 
     Attributes:
         index: The block index (U/V/W blocks, numbering, pattern).
         assembler: The edge groups' terms.
-        reduction: The Schur strategies.
+        reduction: The Schur strategies (``None`` when matrix-free).
+        implicit: The implicit products (``None`` unless matrix-free).
+        matrix_free: Whether the system is matrix-free.
         n: Size of the reduced system.
         udims: ``(n_ublocks,)`` dimension of every U block.
-        pattern: The reduced matrix's CSC pattern (both triangles).
+        pattern: The reduced matrix's CSC pattern (both triangles); ``H_uu``'s when
+            matrix-free.
         schur: Whether there is anything to eliminate (a V class).
 
     Raises:
@@ -48,11 +59,15 @@ class LinearSystem:
     """
 
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
-                 config: SchurConfig | None = None) -> None:
+                 config: SchurConfig | None = None,
+                 matrix_free: bool | Callable[[BlockIndex], bool] = False) -> None:
         self.config = config if config is not None else SchurConfig()
-        self.index = BlockIndex(stores, groups, positions, self.config.cost.spectral_max)
+        self.index = BlockIndex(stores, groups, positions, self.config.cost.spectral_max,
+                                matrix_free)
+        self.matrix_free = self.index.matrix_free
         self.assembler = Assembler(self.index, self.config.cost)
-        self.reduction = SchurComplement(self.index, self.config)
+        self.reduction = None if self.matrix_free else SchurComplement(self.index, self.config)
+        self.implicit = ImplicitSchur(self.index) if self.matrix_free else None
         self.n = self.index.n
         self.udims = self.index.udims
         self.pattern = self.index.pattern.csc
@@ -97,8 +112,9 @@ class LinearSystem:
 
     def reduce(self, asm: Assembly, lam: float,
                damp: tuple[np.ndarray, list[np.ndarray]] | None = None
-               ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-        """See :meth:`SchurComplement.reduce`: ``(s_data, rhs, vinv)``.
+               ) -> tuple[np.ndarray | SchurOperator, np.ndarray, list[np.ndarray]]:
+        """See :meth:`SchurComplement.reduce`: ``(s_data, rhs, vinv)``; when matrix-free,
+        ``S`` is a :class:`~graphopt.linear.implicit.SchurOperator` instead of its data.
 
         Args:
             asm: The assembled system.
@@ -108,6 +124,10 @@ class LinearSystem:
         Raises:
             NotPositiveDefiniteError: if a V block is not positive definite.
         """
+        if self.implicit is not None:
+            op = self.implicit.operator(asm, lam, damp)
+            return op, op.rhs, op.vinv
+        assert self.reduction is not None
         return self.reduction.reduce(asm, lam, damp)
 
     def back_substitute(self, asm: Assembly, du: np.ndarray, vinv: list[np.ndarray]

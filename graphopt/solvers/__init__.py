@@ -1,12 +1,15 @@
-"""Linear solvers by name: ``cholmod``, ``dense``, ``pcg``, ``scipy``."""
+"""Linear solvers by name: ``auto``, ``cholmod``, ``dense``, ``pcg``, ``scipy`` and the
+matrix-free ``iterative-schur`` (alias ``implicit-schur``)."""
 
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
 
+from graphopt.solvers.auto import ReducedCostModel, choose_implicit
 from graphopt.solvers.base import LinearSolver
 from graphopt.solvers.cholmod import (
     CHOLMOD_AVAILABLE,
@@ -15,53 +18,80 @@ from graphopt.solvers.cholmod import (
     cholmod_blas,
 )
 from graphopt.solvers.dense import LinearSolverDense
+from graphopt.solvers.implicit_schur import ImplicitSchurConfig, LinearSolverImplicitSchur
 from graphopt.solvers.pcg import LinearSolverPCG, PCGConfig
 from graphopt.solvers.scipy_sparse import LinearSolverScipy
 
-SOLVERS = ("auto", "cholmod", "dense", "pcg", "scipy")
+if TYPE_CHECKING:
+    from graphopt.linear.structure import BlockIndex
+
+#: The names the apps offer (``make_solver`` also takes ``implicit-schur``).
+SOLVERS = ("auto", "cholmod", "dense", "pcg", "scipy", "iterative-schur")
 
 
 class LinearSolverAuto(LinearSolver):
-    """Dense Cholesky for small, dense-ish reduced systems, CHOLMOD (or its fallback) otherwise.
+    """Implicit-Schur PCG when the explicit reduced system would not fit or would be slower;
+    otherwise dense Cholesky for small, dense-ish reduced systems and CHOLMOD (or its
+    fallback) for the rest.
 
-    The choice is made once, in :meth:`analyze`, from the pattern: dense when
-    ``n ≤ dense_max_size`` and at least ``dense_min_fill`` of the entries are structurally
-    non-zero (LAPACK on a 441x441 system is several times faster than a sparse factorisation).
+    The first choice is made in :meth:`choose_matrix_free`, before ``S``'s pattern exists, by
+    :func:`~graphopt.solvers.auto.choose_implicit` (a measured memory and time model; its
+    facts are kept in ``decision``). The second in :meth:`analyze`, from the pattern: dense
+    when ``n ≤ dense_max_size`` and at least ``dense_min_fill`` of the entries are
+    structurally non-zero (LAPACK on a 441x441 system is several times faster than a sparse
+    factorisation).
 
     Args:
         dense_max_size: Largest system size solved densely.
         dense_min_fill: Smallest fill ratio ``nnz / n²`` solved densely.
+        model: Constants of the explicit/implicit choice (default: the measured ones).
     """
 
     name = "auto"
 
-    def __init__(self, dense_max_size: int = 2000, dense_min_fill: float = 0.05) -> None:
+    def __init__(self, dense_max_size: int = 2000, dense_min_fill: float = 0.05,
+                 model: ReducedCostModel | None = None) -> None:
         self.dense_max_size = dense_max_size
         self.dense_min_fill = dense_min_fill
+        self.model = model or ReducedCostModel()
         self.chosen: LinearSolver | None = None
+        self.decision: dict[str, Any] = {}
+
+    def choose_matrix_free(self, index: BlockIndex) -> bool:
+        """Choose implicit-Schur PCG by the cost model (see the class).
+
+        Args:
+            index: The block index, without a pattern yet.
+        """
+        implicit, self.decision = choose_implicit(index, self.model)
+        self.chosen = LinearSolverImplicitSchur() if implicit else None
+        return implicit
 
     def analyze(self, pattern: sp.csc_matrix, block_sizes: np.ndarray) -> None:
-        """Choose and analyse.
+        """Choose (unless implicit-Schur PCG was chosen) and analyse.
 
         Args:
             pattern: Full symmetric CSC pattern.
             block_sizes: Diagonal block sizes.
         """
-        n = pattern.shape[0]
-        dense = n <= self.dense_max_size and pattern.nnz >= self.dense_min_fill * n * n
-        self.chosen = LinearSolverDense() if dense else make_solver("cholmod")
+        if not isinstance(self.chosen, LinearSolverImplicitSchur):
+            n = pattern.shape[0]
+            dense = n <= self.dense_max_size and pattern.nnz >= self.dense_min_fill * n * n
+            self.chosen = LinearSolverDense() if dense else make_solver("cholmod")
         self.chosen.analyze(pattern, block_sizes)
         self.pattern, self.block_sizes = pattern, block_sizes
 
-    def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    def solve(self, data: Any, rhs: np.ndarray) -> np.ndarray:
         """Solve with the chosen solver.
 
         Args:
-            data: Values in the analysed pattern.
+            data: Values in the analysed pattern (or the operator, when matrix-free).
             rhs: Right-hand side.
         """
         assert self.chosen is not None
         return self.chosen.solve(data, rhs)
+
+
 _warned = False
 
 
@@ -69,8 +99,8 @@ def make_solver(name: str | LinearSolver) -> LinearSolver:
     """Create a linear solver by name, falling back (once, with a warning) if CHOLMOD is missing.
 
     Args:
-        name: ``auto``, ``cholmod``, ``dense``, ``pcg``, ``scipy``, or a solver instance
-            (returned as is).
+        name: ``auto``, ``cholmod``, ``dense``, ``pcg``, ``scipy``, ``iterative-schur`` (or
+            ``implicit-schur``), or a solver instance (returned as is).
     """
     global _warned
     if isinstance(name, LinearSolver):
@@ -97,18 +127,23 @@ def make_solver(name: str | LinearSolver) -> LinearSolver:
         return LinearSolverPCG()
     if key == "scipy":
         return LinearSolverScipy()
+    if key in ("iterative-schur", "implicit-schur"):
+        return LinearSolverImplicitSchur()
     raise ValueError(f"unknown linear solver {name!r}; choose one of {', '.join(SOLVERS)}")
 
 
 __all__ = [
     "CHOLMOD_AVAILABLE",
+    "ImplicitSchurConfig",
     "LinearSolver",
     "LinearSolverAuto",
     "LinearSolverCholmod",
     "LinearSolverDense",
+    "LinearSolverImplicitSchur",
     "LinearSolverPCG",
     "LinearSolverScipy",
     "PCGConfig",
+    "ReducedCostModel",
     "SOLVERS",
     "cholmod_blas",
     "make_solver",

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import scipy.sparse as sp
 
 from graphopt.linear.pattern import with_data
+
+if TYPE_CHECKING:
+    from graphopt.linear.structure import BlockIndex
 
 
 class LinearSolver:
@@ -16,6 +21,18 @@ class LinearSolver:
     """
 
     name = "base"
+    #: Whether the solver works on products with ``S`` alone (an operator instead of values in
+    #: a pattern): then ``S``'s fill, the Schur strategies and any factorisation are never built.
+    matrix_free = False
+
+    def choose_matrix_free(self, index: BlockIndex) -> bool:
+        """Whether this solver wants the matrix-free system, asked once before ``S``'s pattern
+        is built (a solver that chooses, like ``auto``, decides here).
+
+        Args:
+            index: The block index, its U, V and W blocks numbered, without a pattern yet.
+        """
+        return self.matrix_free
 
     def analyze(self, pattern: sp.csc_matrix, block_sizes: np.ndarray) -> None:
         """Prepare for matrices with this pattern (symbolic work happens here).
