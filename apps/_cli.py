@@ -65,7 +65,8 @@ def add_solver_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--solver", choices=SOLVERS, default="auto",
         help="linear solver of the reduced camera system (default auto: dense Cholesky for a "
-             "small dense system, else CHOLMOD)",
+             "small dense system, else CHOLMOD, or iterative-schur — PCG on the implicit Schur "
+             "complement — when the explicit one would not fit or be slower)",
     )
 
 

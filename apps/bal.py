@@ -2,12 +2,14 @@
 
 Usage::
 
-    graphopt-bal [INPUT] [--iterations N] [--algorithm lm|gn|dogleg]
-                 [--solver auto|cholmod|dense|pcg|scipy] [--robust KERNEL --robust-delta D]
+    graphopt-bal [INPUT] [-i/--iterations N] [--algorithm lm|gn|dogleg]
+                 [--solver auto|cholmod|dense|pcg|scipy|iterative-schur]
+                 [--robust KERNEL --robust-delta D]
                  [--normalize] [--perturb R T P] [--seed S]
                  [--ply-before FILE] [--ply-after FILE] [--ply-drop-far] [--rrd FILE] [--json FILE]
-                 [--quiet]
-                 [--lm-damping diagonal|identity]
+                 [--quiet] [--lm-damping diagonal|identity] [--lm-schedule g2o|ceres|gtsam]
+                 [--function-tolerance T] [--gradient-tolerance T] [--parameter-tolerance T]
+                 [--gain G]
 
 Cameras are :class:`~graphopt.types.bal.VertexCameraBAL`, points
 :class:`~graphopt.types.vertices.VertexPointXYZ` (marginalised: the Schur complement eliminates
