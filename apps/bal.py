@@ -334,7 +334,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         _cli.write_json(args.json, summary)
     if not args.quiet:
         print(format_summary(summary))
-        if res.stop_reason == "failed":
+        if res.stop_reason in ("failed", "singular"):
             print(f"{PROG}: warning: no step was possible because the normal equations are "
                   "singular (bundle adjustment has a 7-dimensional gauge freedom); use "
                   "--algorithm lm or dogleg, which damp it", file=sys.stderr)

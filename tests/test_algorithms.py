@@ -28,7 +28,7 @@ from graphopt import (
     StoppingConfig,
 )
 from graphopt.algorithms import Dogleg, LevenbergMarquardt, make_algorithm
-from graphopt.solvers import LinearSolverDense
+from graphopt.solvers import CHOLMOD_AVAILABLE, LinearSolverDense
 
 
 @pytest.mark.parametrize("algorithm", ["lm", "dogleg"])
@@ -115,14 +115,23 @@ def test_lm_retries_when_not_positive_definite() -> None:
     assert res.final_chi2 < res.initial_chi2 / 10
 
 
-def test_gauss_newton_on_singular_system_reports_failure_without_nan() -> None:
+@pytest.mark.parametrize("solver", [
+    "dense",
+    pytest.param("cholmod", marks=pytest.mark.skipif(
+        not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed: 'cholmod' "
+        "would fall back to 'scipy'")),
+    "scipy",
+])
+def test_gauss_newton_on_singular_system_reports_failure_without_nan(solver: str) -> None:
     truth, init, edges, meas = pose_graph(10)
-    opt = SparseOptimizer("gn", "dense")
+    opt = SparseOptimizer("gn", solver)
     opt.add_vertices(VertexSE2, np.arange(10), init)  # no vertex fixed: gauge freedom
     opt.add_edges(EdgeSE2, edges, meas)
     res = opt.optimize(5)
-    assert res.stop_reason == "failed" and res.not_positive_definite >= 1
-    np.testing.assert_array_equal(opt.estimates_of(VertexSE2), init)
+    assert res.stop_reason == "singular"
+    assert len(res.info) == 1 and res.info[0].singular == 1 and res.not_positive_definite == 1
+    assert res.final_chi2 == res.initial_chi2 == pytest.approx(0.024341, rel=1e-4)
+    np.testing.assert_array_equal(opt.estimates_of(VertexSE2), init)  # no step applied, no NaN
 
 
 def test_lm_handles_gauge_freedom() -> None:

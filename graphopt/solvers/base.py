@@ -1,4 +1,7 @@
-"""The linear-solver interface: analyse a fixed pattern once, then solve with new numbers."""
+"""The linear-solver interface: analyse a fixed pattern once, then solve with new numbers.
+
+The direct solvers report a rank-deficient system by one rule, :mod:`graphopt.solvers.rank`.
+"""
 
 from __future__ import annotations
 
@@ -38,11 +41,27 @@ class LinearSolver:
         """Prepare for matrices with this pattern (symbolic work happens here).
 
         Args:
-            pattern: Full symmetric CSC pattern (both triangles).
+            pattern: Full symmetric CSC pattern (both triangles; the direct solvers and PCG
+                need every diagonal entry).
             block_sizes: Sizes of the diagonal blocks, in order.
         """
         self.pattern = pattern
         self.block_sizes = block_sizes
+        n = pattern.shape[0]
+        cols = np.repeat(np.arange(n), np.diff(pattern.indptr))
+        diag_pos = np.flatnonzero(pattern.indices == cols)
+        self._diag_pos = diag_pos if len(diag_pos) == n else None
+
+    @property
+    def diag_pos(self) -> np.ndarray:
+        """Data position of every diagonal entry ``A_kk``, ``k = 0..n-1``, in the pattern.
+
+        Raises:
+            ValueError: if the analysed pattern lacks one (the rank rule reads ``A``'s diagonal).
+        """
+        if self._diag_pos is None:
+            raise ValueError(f"{self.name}: the pattern lacks diagonal entries")
+        return self._diag_pos
 
     def matrix(self, data: np.ndarray) -> sp.csc_matrix:
         """The matrix with ``data`` in the analysed pattern.
@@ -60,6 +79,7 @@ class LinearSolver:
             rhs: ``(n,)`` or ``(n, k)`` right-hand side.
 
         Raises:
+            SingularSystemError: if the matrix is positive semi-definite but rank deficient.
             NotPositiveDefiniteError: if the matrix is not positive definite.
         """
         raise NotImplementedError

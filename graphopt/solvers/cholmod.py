@@ -10,6 +10,7 @@ import scipy.sparse as sp
 
 from graphopt.errors import NotPositiveDefiniteError
 from graphopt.solvers.base import LinearSolver
+from graphopt.solvers.rank import checked_solve, shift_diagonal
 
 try:  # scikit-sparse is optional: it needs SuiteSparse headers to build.
     from sksparse.cholmod import CholmodNotPositiveDefiniteError
@@ -51,6 +52,15 @@ class LinearSolverCholmod(LinearSolver):
     factorisation and solve, supernodal 71 ms; on the 3-D sphere (13,194 unknowns, 6x6 blocks)
     supernodal 131 ms, simplicial 319 ms.
 
+    Every factorisation is held to the rank rule of :mod:`graphopt.solvers.rank` through the
+    factor's diagonal (``Factor.D()`` reads it in place, ``L_kk²`` of a supernodal ``LLᵀ``, ``D``
+    of a simplicial ``LDLᵀ``, without converting the factor): CHOLMOD itself rejects only a
+    non-positive pivot of an ``LLᵀ`` factor, and only an exactly zero one of the simplicial
+    ``LDLᵀ``, which otherwise factorises indefinite and singular matrices alike. On w10000
+    (29,997 unknowns; factorisation 43 ms simplicial, 54 ms supernodal) reading and screening
+    the pivots takes 0.14 ms and 0.8 ms; the probe of a system with a pivot below the screen
+    (w10000's smallest ratio is about 1e-7) adds 0.8 ms (a second right-hand-side column).
+
     Args:
         mode: ``"auto"``, ``"simplicial"`` or ``"supernodal"``.
         ordering: CHOLMOD's ordering method: ``"default"`` (AMD, METIS where AMD fills badly),
@@ -83,6 +93,7 @@ class LinearSolverCholmod(LinearSolver):
         if mode == "auto" and len(block_sizes) and int(np.max(block_sizes)) <= 3:
             mode = "simplicial"
         self._factor = _cholmod_analyze(probe, mode=mode, ordering_method=self.ordering)
+        self._order = self._factor.P()  # the unknown eliminated at each step
 
     def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """See :meth:`LinearSolver.solve`.
@@ -92,11 +103,27 @@ class LinearSolverCholmod(LinearSolver):
             rhs: Right-hand side.
         """
         assert self._factor is not None
+        f = self._factor
+        stopped_at = None
         try:
-            self._factor.cholesky_inplace(self.matrix(data))
+            f.cholesky_inplace(self.matrix(data))
         except CholmodNotPositiveDefiniteError as exc:
-            raise NotPositiveDefiniteError(str(exc)) from exc
-        x = self._factor(rhs)
+            stopped_at = int(exc.column)  # L->minor: the step with the non-positive pivot
+        pivots = f.D()  # read in place: L_kk² of a supernodal LLᵀ, D of a simplicial LDLᵀ
+        x = checked_solve(self.name, pivots[:stopped_at], data[self.diag_pos], f, rhs,
+                          lambda s: self._shifted_is_definite(data, s),
+                          unknowns=self._order, stopped_at=stopped_at)
         if not np.all(np.isfinite(x)):
             raise NotPositiveDefiniteError("CHOLMOD produced non-finite values")
         return x
+
+    def _shifted_is_definite(self, data: np.ndarray, scale: np.ndarray) -> bool:
+        """Whether ``A + τ·S`` factorises with positive, finite pivots (the factor is left in
+        place: the next solve refactorises)."""
+        assert self._factor is not None
+        try:
+            self._factor.cholesky_inplace(self.matrix(shift_diagonal(data, self.diag_pos, scale)))
+        except CholmodNotPositiveDefiniteError:
+            return False
+        d = self._factor.D()
+        return bool(np.all(np.isfinite(d)) and np.all(d > 0))

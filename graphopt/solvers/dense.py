@@ -8,10 +8,16 @@ import scipy.sparse as sp
 
 from graphopt.errors import NotPositiveDefiniteError
 from graphopt.solvers.base import LinearSolver
+from graphopt.solvers.rank import checked_solve, shift_diagonal
 
 
 class LinearSolverDense(LinearSolver):
-    """Dense Cholesky factorisation; the fastest choice for small reduced systems."""
+    """Dense Cholesky factorisation; the fastest choice for small reduced systems.
+
+    ``dpotrf`` reports only a pivot that is not positive; the pivots ``L_kk²`` are also held to
+    the rank rule of :mod:`graphopt.solvers.rank`, which rejects the positive pivot of rounding
+    size that some BLAS kernels produce on a singular system.
+    """
 
     name = "dense"
 
@@ -27,6 +33,20 @@ class LinearSolverDense(LinearSolver):
         cols = np.repeat(np.arange(n), np.diff(pattern.indptr))
         self._flat = cols.astype(np.int64) * n + pattern.indices  # column-major position
 
+    def _factor(self, data: np.ndarray) -> tuple[np.ndarray, int]:
+        """``L`` (lower triangle of a column-major array; garbage above) and LAPACK's info."""
+        n = self.pattern.shape[0]
+        flat = np.zeros(n * n)
+        flat[self._flat] = data
+        a = flat.reshape(n, n).T  # column-major view: LAPACK factorises it in place
+        return sla.lapack.dpotrf(a, lower=1, overwrite_a=1, clean=0)
+
+    def _shifted_is_definite(self, data: np.ndarray, scale: np.ndarray) -> bool:
+        """Whether ``A + τ·S`` has a Cholesky factor with positive, finite pivots."""
+        c, info = self._factor(shift_diagonal(data, self.diag_pos, scale))
+        d = np.diagonal(c)
+        return info == 0 and bool(np.all(np.isfinite(d)) and np.all(d > 0))
+
     def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """See :meth:`LinearSolver.solve`.
 
@@ -34,16 +54,20 @@ class LinearSolverDense(LinearSolver):
             data: Values in the analysed pattern.
             rhs: Right-hand side.
         """
-        n = self.pattern.shape[0]
-        flat = np.zeros(n * n)
-        flat[self._flat] = data
-        a = flat.reshape(n, n).T  # column-major view: LAPACK factorises it in place
-        c, info = sla.lapack.dpotrf(a, lower=1, overwrite_a=1, clean=0)
-        if info != 0:
-            raise NotPositiveDefiniteError(f"dense Cholesky failed (LAPACK info {info})")
-        x, info = sla.lapack.dpotrs(c, rhs, lower=1)
-        if info != 0:
-            raise NotPositiveDefiniteError(f"dense Cholesky solve failed (LAPACK info {info})")
+        c, info = self._factor(data)
+        if info < 0:
+            raise ValueError(f"dpotrf: illegal argument {-info}")
+        done = info - 1 if info > 0 else len(c)  # dpotrf stops at pivot info - 1
+
+        def apply_inverse(b: np.ndarray) -> np.ndarray:
+            x, info = sla.lapack.dpotrs(c, b, lower=1)
+            if info != 0:
+                raise NotPositiveDefiniteError(f"dense Cholesky solve failed (LAPACK info {info})")
+            return x
+
+        x = checked_solve(self.name, np.diagonal(c)[:done] ** 2, data[self.diag_pos],
+                          apply_inverse, rhs, lambda s: self._shifted_is_definite(data, s),
+                          stopped_at=None if info == 0 else done)
         if not np.all(np.isfinite(x)):
             raise NotPositiveDefiniteError("dense Cholesky produced non-finite values")
         return x
