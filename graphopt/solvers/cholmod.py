@@ -61,15 +61,26 @@ class LinearSolverCholmod(LinearSolver):
     the pivots takes 0.14 ms and 0.8 ms; the probe of a system with a pivot below the screen
     (w10000's smallest ratio is about 1e-7) adds 0.8 ms (a second right-hand-side column).
 
+    ``ordering="auto"`` is CHOLMOD's default (AMD, METIS where AMD fills badly) for systems
+    whose blocks have at most 3 unknowns and NESDIS (CHOLMOD's nested dissection) for the
+    others. Measured, one thread, factorisation and solve: the sphere's supernodal factor
+    (13,194 unknowns, 6x6 blocks) 81–83 ms with NESDIS or METIS against 99 ms with AMD (fill
+    2.09M against 2.56M entries; NESDIS's analysis 24 ms against 9, once); w10000's simplicial
+    factor 46 ms with CHOLMOD's default against 87 ms with NESDIS (fill 1.23M against 1.26M);
+    a BAL street scene's reduced camera system (300 cameras, 9x9 blocks, 2,700 unknowns)
+    39 ms with NESDIS against 74 ms with AMD (fill 0.77M against 0.89M).
+    ``"best"`` (CHOLMOD tries AMD, METIS and NESDIS and keeps the least fill) matched these
+    choices at 4–10 times their analysis time.
+
     Args:
         mode: ``"auto"``, ``"simplicial"`` or ``"supernodal"``.
-        ordering: CHOLMOD's ordering method: ``"default"`` (AMD, METIS where AMD fills badly),
-            ``"amd"``, ``"colamd"``, ``"metis"``, ``"nesdis"``, ``"natural"`` or ``"best"``.
+        ordering: ``"auto"`` (above), or CHOLMOD's ordering method: ``"default"``, ``"amd"``,
+            ``"colamd"``, ``"metis"``, ``"nesdis"``, ``"natural"`` or ``"best"``.
     """
 
     name = "cholmod"
 
-    def __init__(self, mode: str = "auto", ordering: str = "default") -> None:
+    def __init__(self, mode: str = "auto", ordering: str = "auto") -> None:
         if not CHOLMOD_AVAILABLE:
             raise ImportError(f"CHOLMOD (scikit-sparse) is not available: {CHOLMOD_IMPORT_ERROR}")
         if mode not in ("auto", "simplicial", "supernodal"):
@@ -89,10 +100,12 @@ class LinearSolverCholmod(LinearSolver):
         # Analyse with a structurally full matrix (ones) so the symbolic factor covers all
         # entries of the pattern whatever the values become.
         probe = self.matrix(np.ones(pattern.nnz))
-        mode = self.mode
-        if mode == "auto" and len(block_sizes) and int(np.max(block_sizes)) <= 3:
-            mode = "simplicial"
-        self._factor = _cholmod_analyze(probe, mode=mode, ordering_method=self.ordering)
+        small_blocks = bool(len(block_sizes)) and int(np.max(block_sizes)) <= 3
+        mode = "simplicial" if self.mode == "auto" and small_blocks else self.mode
+        ordering = self.ordering
+        if ordering == "auto":
+            ordering = "default" if small_blocks else "nesdis"
+        self._factor = _cholmod_analyze(probe, mode=mode, ordering_method=ordering)
         self._order = self._factor.P()  # the unknown eliminated at each step
 
     def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
