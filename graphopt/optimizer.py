@@ -398,8 +398,11 @@ class SparseOptimizer:
     def _stop_reason(self, info: IterationInfo, last: float) -> StopReason | None:
         """Why to stop after this iteration, or ``None`` to go on."""
         if info.not_pd and info.failed and self.verbose:
-            print(f"# {self.algorithm.config.name}: the system was not positive definite "
-                  f"{info.not_pd} time(s); no acceptable step", file=self._out)
+            what = (f"singular (rank deficient) {info.singular} time(s)" if info.singular
+                    == info.not_pd else f"not positive definite {info.not_pd} time(s)"
+                    + (f", {info.singular} of them singular" if info.singular else ""))
+            print(f"# {self.algorithm.config.name}: the system was {what}; no acceptable step",
+                  file=self._out)
         if info.stop is not None:
             return info.stop
         if info.failed:

@@ -284,3 +284,13 @@ def test_singular_outcomes_under_openblas_core_types() -> None:
         loaded = sorted({line.strip() for line in stderr.splitlines() if "Core" in line})
         assert proc.returncode == 0, f"{core}: {stderr[-2000:]}"
         assert json.loads(stdout) == expected_outcomes(), f"OPENBLAS_CORETYPE={core} {loaded}"
+
+
+def test_verbose_gauss_newton_names_a_singular_system() -> None:
+    import io
+
+    opt, _ = loop_optimizer(6, 0, "gn", "dense")
+    opt.stream = io.StringIO()
+    opt.set_verbose(True)
+    assert opt.optimize(3).stop_reason == "singular"
+    assert "# gn: the system was singular (rank deficient) 1 time(s)" in opt.stream.getvalue()
