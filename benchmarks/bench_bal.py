@@ -121,6 +121,30 @@ def bal_cost(problem: BALProblem, cameras: np.ndarray, points: np.ndarray) -> fl
 # --- graphopt ---------------------------------------------------------------------------------
 
 
+def bal_optimizer(problem: BALProblem, algorithm: Any, solver: str = "auto") -> Any:
+    """A ``SparseOptimizer`` with the problem's cameras, marginalised points and projection
+    edges, as ``graphopt-bal`` builds it.
+
+    Args:
+        problem: The BAL problem.
+        algorithm: Algorithm name or config.
+        solver: Linear solver name.
+    """
+    from graphopt import SparseOptimizer
+    from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
+    from graphopt.types.vertices import VertexPointXYZ
+
+    nc = problem.num_cameras
+    opt = SparseOptimizer(algorithm=algorithm, solver=solver)
+    opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
+    opt.add_vertices(VertexPointXYZ, nc + np.arange(problem.num_points), problem.points,
+                     marginalized=True)
+    opt.add_edges(EdgeBALProjection,
+                  np.column_stack([problem.camera_index, nc + problem.point_index]),
+                  problem.observations)
+    return opt
+
+
 def run_graphopt(
     problem: BALProblem, iterations: int, solver: str = "auto", diagonal: bool = True,
     default: bool = False,
@@ -135,20 +159,10 @@ def run_graphopt(
         default: Stop at convergence with the library's default tests (a user's default run);
             otherwise run ``iterations`` iterations unless no step is found.
     """
-    from graphopt import LevenbergConfig, SparseOptimizer, StoppingConfig
-    from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
-    from graphopt.types.vertices import VertexPointXYZ
+    from graphopt import LevenbergConfig, StoppingConfig
 
-    nc = problem.num_cameras
-    stopping = StoppingConfig() if default else StoppingConfig.iterations_only()
-    opt = SparseOptimizer(algorithm=LevenbergConfig(diagonal_damping=diagonal), solver=solver,
-                          stopping=stopping)
-    opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
-    opt.add_vertices(VertexPointXYZ, nc + np.arange(problem.num_points), problem.points,
-                     marginalized=True)
-    opt.add_edges(EdgeBALProjection,
-                  np.column_stack([problem.camera_index, nc + problem.point_index]),
-                  problem.observations)
+    opt = bal_optimizer(problem, LevenbergConfig(diagonal_damping=diagonal), solver)
+    opt.stopping = StoppingConfig() if default else StoppingConfig.iterations_only()
     tr = Trace("graphopt" if diagonal else "graphopt-g2o")
     stamps: list[float] = []
     costs: list[float] = []

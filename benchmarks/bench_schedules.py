@@ -39,30 +39,19 @@ from graphopt import (  # noqa: E402
 )
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_bal, also under python -P
 Builder = Callable[[Any], SparseOptimizer]
 
 
 def _bal_builder(problem: Any) -> Builder:
-    from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
-    from graphopt.types.vertices import VertexPointXYZ
+    from bench_bal import bal_optimizer
 
-    def build(algorithm: Any) -> SparseOptimizer:
-        nc = problem.num_cameras
-        opt = SparseOptimizer(algorithm=algorithm)
-        opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
-        opt.add_vertices(VertexPointXYZ, nc + np.arange(problem.num_points), problem.points,
-                         marginalized=True)
-        opt.add_edges(EdgeBALProjection,
-                      np.column_stack([problem.camera_index, nc + problem.point_index]),
-                      problem.observations)
-        return opt
-    return build
+    return lambda algorithm: bal_optimizer(problem, algorithm)
 
 
 def bal_problems() -> dict[str, tuple[Builder, dict[str, Any]]]:
     """BAL files (observations behind their camera dropped, as bench_bal does) and a
     synthetic street scene; LM with Marquardt's diagonal damping, as graphopt-bal runs it."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_bal import drop_behind_camera
 
     from graphopt.apps.bal_scene import synthetic_scene
