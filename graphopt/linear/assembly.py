@@ -19,6 +19,7 @@ import scipy.sparse as sp
 from graphopt.linear.block_ops import EdgeContraction, GatheredGram
 from graphopt.linear.indexing import unique_ints
 from graphopt.linear.schur_config import SchurCostModel
+from graphopt.linear.structure import EdgeSums
 
 if TYPE_CHECKING:
     from graphopt.linear.structure import BlockIndex
@@ -48,19 +49,24 @@ class Assembly:
     wt: list[np.ndarray]
 
 
+#: A destination of blocks: indices, or every block of the class in order.
+Dest = np.ndarray | slice
+
+
 @dataclass
 class _HTerm:
     """Hessian blocks ``Lᵀ (ρ'ΩR)`` of one edge group's positions into one destination.
 
     ``left``/``right`` name the positions whose Jacobian (left) and weighted Jacobian (right)
-    form the block.
+    form the block. ``contraction`` is ``None`` for a U term summed by a Gram; a V term's
+    narrow blocks use the leaner :class:`EdgeSums`.
     """
 
     left: int
     right: int
     kind: str  # "U", "V" or "W"
-    contraction: EdgeContraction
-    dest: np.ndarray | None  # U: (t, dl·dr) data positions (None with a Gram); V/W: (t,) blocks
+    contraction: EdgeContraction | EdgeSums | None
+    dest: Dest | None  # U: (t, dl·dr) data positions (None with a Gram); V/W: (t,) blocks
     dest_t: np.ndarray | None = None  # U off-diagonal: positions of the transposed entries
     cls: int = -1  # V class or W class
     mirror: bool = False  # V term with left != right on the same vertex: add the transpose too
@@ -78,10 +84,9 @@ class _GTerm:
 
     a: int
     kind: str
-    contraction: EdgeContraction
-    dest: np.ndarray  # U: (t, d) vector positions; V: (t,) block index
+    sums: EdgeSums
+    dest: Dest  # U: (t, d) vector positions; V: (t,) block index
     cls: int = -1
-    shared: int = -1  # index of an H term with the same contraction
     identity: bool = False  # V term whose targets are all V blocks of its class, in order
 
 
@@ -91,7 +96,7 @@ class _GroupTerms:
     gterms: list[_GTerm] = field(default_factory=list)
 
 
-def _add_blocks(acc: list[np.ndarray | None], k: int, dest: np.ndarray, blk: np.ndarray,
+def _add_blocks(acc: list[np.ndarray | None], k: int, dest: Dest, blk: np.ndarray,
                 whole: bool, shape: tuple[int, ...]) -> None:
     """``acc[k][dest] += blk``, allocating ``acc[k]`` on first use — or taking ``blk`` itself
     when it is the first contribution and covers every block in order (``whole``)."""
@@ -113,6 +118,7 @@ class Assembler:
 
     def __init__(self, index: BlockIndex, cost: SchurCostModel) -> None:
         self.index, self.cost = index, cost
+        self._pointers: dict[int, np.ndarray] = {}  # EdgeSums' column pointers, by length
         self.terms = [self._group_terms(gi) for gi in range(len(index.groups))]
 
     @property
@@ -142,9 +148,10 @@ class Assembler:
                     cls = ix.vclass_of_store[pos[a][0]]
                     nvc = len(ix.vclasses[cls].slots)
                     uniq, inv = unique_ints(vb[a][sel], nvc, True)
+                    whole = len(uniq) == nvc
                     gt.hterms.append(_HTerm(
-                        a, b, "V", self._contraction(g, sel, inv, len(uniq), dims[a]), uniq,
-                        cls=cls, mirror=a != b, identity=len(uniq) == nvc))
+                        a, b, "V", self._sums(g, sel, inv, len(uniq)),
+                        slice(None) if whole else uniq, cls=cls, mirror=a != b, identity=whole))
         for a, b in combinations(range(g.k), 2):
             for ui, vi in ((a, b), (b, a)):
                 mask = isu[ui] & isv[vi]
@@ -157,7 +164,9 @@ class Assembler:
                     # Wᵀ block = J_vᵀ Ω J_u: the V position's Jacobian on the left.
                     con = self._contraction(g, sel, inv, len(uniq), ix.wclasses[k].dv)
                     ident = len(uniq) == len(keys) and len(inv) == len(uniq)
-                    gt.hterms.append(_HTerm(vi, ui, "W", con, uniq, cls=k, identity=ident))
+                    del keys, widx
+                    gt.hterms.append(_HTerm(vi, ui, "W", con, slice(None) if ident else uniq,
+                                            cls=k, identity=ident))
         for a in range(g.k):
             for kind, isx, xb in (("U", isu[a], ub[a]), ("V", isv[a], vb[a])):
                 if not isx.any():
@@ -166,14 +175,23 @@ class Assembler:
                 cls = ix.vclass_of_store[pos[a][0]] if kind == "V" else -1
                 size = nb if kind == "U" else len(ix.vclasses[cls].slots)
                 uniq, inv = unique_ints(xb[sel], size, True)
-                shared = next((i for i, t in enumerate(gt.hterms)
-                               if t.left == a and t.right == a and t.kind == kind), -1)
-                con = (gt.hterms[shared].contraction if shared >= 0 else
-                       self._contraction(g, sel, inv, len(uniq), dims[a]))
-                dest = uniq if kind == "V" else ix.uoffset[uniq][:, None] + np.arange(dims[a])
-                gt.gterms.append(_GTerm(a, kind, con, dest, cls, shared,
-                                        kind == "V" and len(uniq) == size))
+                whole = kind == "V" and len(uniq) == size
+                dest: Dest = (ix.uoffset[uniq][:, None] + np.arange(dims[a]) if kind == "U"
+                              else slice(None) if whole else uniq)
+                gt.gterms.append(_GTerm(a, kind, self._sums(g, sel, inv, len(uniq)), dest, cls,
+                                        whole))
         return gt
+
+    def _sums(self, g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int) -> EdgeSums:
+        """Σ over edges ``sel`` of ``Jᵀ · B`` for narrow ``B`` (errors, V blocks) into ``n_t``
+        targets; sums over all edges of a group share their column pointers."""
+        r = g.etype.jacobian_rows()
+        if len(sel) < g.size:
+            return EdgeSums(target, n_t, r, sel, g.size)
+        ptr = self._pointers.get(g.size * r)
+        if ptr is None:
+            ptr = self._pointers[g.size * r] = EdgeSums.pointers(g.size, r)
+        return EdgeSums(target, n_t, r, indptr=ptr)
 
     @staticmethod
     def _contraction(g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int, d_out: int
@@ -188,13 +206,13 @@ class Assembler:
         nb = max(self.index.n_ublocks, 1)
         pattern = self.index.pattern
         uniq, inv = unique_ints(ub[a][sel] * nb + ub[b][sel], nb * nb, True)
-        con = self._contraction(g, sel, inv, len(uniq), d)
         br, bc = uniq // nb, uniq % nb
         gram = self._u_gram(g, sel, inv, len(uniq), d) if a == b else None
         if gram is not None:  # diagonal blocks: (u, u) per output
             ub_out = br[gram.targets]
-            return _HTerm(a, b, "U", con, None, gram=gram, out=np.zeros((gram.n_out, d, d)),
+            return _HTerm(a, b, "U", None, None, gram=gram, out=np.zeros((gram.n_out, d, d)),
                           to_h=pattern.to_s(ub_out, ub_out))
+        con = self._contraction(g, sel, inv, len(uniq), d)
         pos, post = pattern.dest(br, bc)
         return _HTerm(a, b, "U", con, pos, post if a != b else None)
 
@@ -234,7 +252,6 @@ class Assembler:
         bv: list[np.ndarray | None] = [None] * len(ix.vclasses)
         wt: list[np.ndarray | None] = [None] * len(ix.wclasses)
         for gt, J, WJ, we in zip(self.terms, jacobians, weighted, weighted_errors, strict=True):
-            mats: list[sp.csc_matrix | None] = []
             for t in gt.hterms:
                 if t.gram is not None:  # diagonal U blocks by gathered Gram products
                     assert t.out is not None and t.to_h is not None
@@ -243,11 +260,9 @@ class Assembler:
                     t.gram(np.ascontiguousarray(ja).reshape(m, -1), t.out,
                            None if wjb is ja else np.ascontiguousarray(wjb).reshape(m, -1))
                     h += t.to_h @ t.out.reshape(-1)
-                    mats.append(None)
                     continue
-                M = t.contraction.matrix(np.ascontiguousarray(J[t.left]))
-                mats.append(M)
-                blk = t.contraction.apply(M, WJ[t.right])
+                assert t.contraction is not None
+                blk = t.contraction(np.ascontiguousarray(J[t.left]), WJ[t.right])
                 if t.kind == "U":
                     flat = blk.reshape(len(blk), -1)
                     h[t.dest] += flat
@@ -263,10 +278,8 @@ class Assembler:
                     _add_blocks(wt, t.cls, t.dest, blk, t.identity, (len(w.ublock), w.dv, w.du))
             we3 = we[:, :, None]
             for g in gt.gterms:
-                M = mats[g.shared] if g.shared >= 0 else None
-                if M is None:
-                    M = g.contraction.matrix(np.ascontiguousarray(J[g.a]))
-                gb = -g.contraction.apply(M, we3)[:, :, 0]
+                gb = g.sums(J[g.a], we3)[:, :, 0]
+                np.negative(gb, out=gb)
                 if g.kind == "U":
                     bu[g.dest] += gb
                 else:
