@@ -350,6 +350,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         _write_ply(args.ply_before, problem, args.ply_drop_far)
 
     opt, solver, solver_text = _build_optimizer(args, problem, kernel, source, progress)
+    # The graph has its own indices; the app's copies need not be 8 bytes each.
+    if problem.num_cameras < 2**31 and problem.num_points < 2**31:
+        problem.camera_index = problem.camera_index.astype(np.int32)
+        problem.point_index = problem.point_index.astype(np.int32)
     recording = _start_recording(args.rrd, opt, problem, initial_cost) if args.rrd else None
     res = _cli.optimize_recorded(opt, args.iterations, recording)
     est = BALProblem(opt.estimates_of(VertexCameraBAL), opt.estimates_of(VertexPointXYZ),

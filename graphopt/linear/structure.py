@@ -151,8 +151,9 @@ class WClass:
         vclass: The V class.
         du: U block dimension.
         dv: V block dimension.
-        ublock: ``(n,)`` global U block of every W block.
-        vblock: ``(n,)`` block within the V class of every W block.
+        ublock: ``(n,)`` global U block of every W block (``int32`` where ``u · (n_ublocks
+            + 1)`` and ``v · dv²`` fit in it, else ``int64``).
+        vblock: ``(n,)`` block within the V class of every W block (same type).
         upos: ``(n, du)`` scalar rows of every W block's U block (computed when indexed).
         rhs: ``Σ_w W_w x[w]`` into the U blocks of the class (``Wᵀ`` used in place).
         rhs_dest: ``(n_u, du)`` scalar rows of those U blocks.
@@ -221,18 +222,24 @@ class BlockIndex:
         nb = max(self.n_ublocks, 1)
         u_keys, w_found = self._scan_edges()
         keys = [u_keys]
+        # A V class with one W class: that class's blocks are the incidence, renumbered.
+        only: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         for vc in range(len(self.vclasses)):
             v, u = self._incidence(vc, w_found)
             # The fill: pairs of U blocks that share a V block, the structure of IncᵀInc.
             inc = sp.csr_matrix((np.ones(len(v)), (v, u)), shape=(len(self.vclasses[vc].slots), nb))
             fill = (inc.T @ inc).tocoo()
+            del inc
             keys.append(fill.col.astype(np.int64) * nb + fill.row)
-            self._order_v_blocks(vc, v, u, w_found, spectral_max)
+            single = sum(c == vc for _, c in w_found) == 1
+            order = self._order_v_blocks(vc, v, u, w_found, spectral_max, renumber=not single)
+            if single:
+                only[vc] = (v, u, order)
         self.wclass_of: dict[tuple[int, int], int] = {}
         self.wclasses: list[WClass] = []
         for key, found in w_found.items():
             self.wclass_of[key] = len(self.wclasses)
-            self.wclasses.append(self._wclass(*key, found))
+            self.wclasses.append(self._wclass(*key, found, only.pop(key[1], None)))
         self.pattern = ReducedPattern(self.uoffset, self.udims,
                                       unique_ints(np.concatenate(keys), nb * nb))
 
@@ -336,9 +343,10 @@ class BlockIndex:
 
     def _order_v_blocks(self, vc: int, v: np.ndarray, u: np.ndarray,
                         w_found: dict[tuple[int, int], list[np.ndarray]],
-                        spectral_max: int) -> None:
+                        spectral_max: int, renumber: bool = True) -> np.ndarray:
         """Renumber V class ``vc``'s blocks in co-visibility order (in ``vblock``, the class's
-        slots and the scanned pairs), given its incidence ``(v, u)``."""
+        slots and, if ``renumber``, the scanned pairs), given its incidence ``(v, u)``; return
+        the order (new block ``b`` is old block ``order[b]``)."""
         c = self.vclasses[vc]
         nv = len(c.slots)
         order = co_visibility_order(v, u, nv, self.n_ublocks, spectral_max)
@@ -348,21 +356,41 @@ class BlockIndex:
         vb[vb >= 0] = new_id[vb[vb >= 0]]
         c.slots = c.slots[order]
         for (_, cls), found in w_found.items():
-            if cls == vc:
+            if cls == vc and renumber:
                 for p in found:
                     p[:, 1] = new_id[p[:, 1]]
+        return order
 
-    def _wclass(self, ustore: int, vclass: int, found: list[np.ndarray]) -> WClass:
+    def _wclass(self, ustore: int, vclass: int, found: list[np.ndarray],
+                incidence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> WClass:
+        """The W class of ``(ustore, vclass)`` from its edges' ``(U block, V block)`` pairs,
+        or from the V class's incidence ``(v, u, order)`` when the class is its only one."""
         nb = max(self.n_ublocks, 1)
         du = self.stores[ustore].vtype.dimension
         dv = self.vclasses[vclass].dim
         n_v = len(self.vclasses[vclass].slots)
-        allp = found[0] if len(found) == 1 else np.concatenate(found)
-        found.clear()  # the pairs are in the keys now
-        keys = unique_ints(allp[:, 1] * nb + allp[:, 0], n_v * nb)
-        del allp
-        vblock, ublock = keys // nb, keys % nb
-        del keys
+        # int32 where every product the strategies form of them (u·n_ublocks + u,
+        # v·dv²) fits: 8 bytes less per W block.
+        small = nb * (nb + 1) < 2**31 and n_v * dv * dv < 2**31
+        blk_t = np.int32 if small else np.int64
+        if incidence is not None:  # the rows of the incidence in the new V order: no sort
+            found.clear()
+            v, u, order = incidence
+            start = np.searchsorted(v, np.arange(n_v + 1))
+            cnt = np.diff(start)[order]
+            first = np.cumsum(cnt) - cnt
+            rows = np.arange(int(cnt.sum()), dtype=np.int64)
+            rows += np.repeat(start[:-1][order] - first, cnt)
+            ublock = u[rows].astype(blk_t)
+            del rows
+            vblock = np.repeat(np.arange(n_v, dtype=blk_t), cnt)
+        else:
+            allp = found[0] if len(found) == 1 else np.concatenate(found)
+            found.clear()  # the pairs are in the keys now
+            keys = unique_ints(allp[:, 1] * nb + allp[:, 0], n_v * nb)
+            del allp
+            vblock, ublock = (keys // nb).astype(blk_t), (keys % nb).astype(blk_t)
+            del keys
         # rhs: Σ_w W_w y[w] per U block is Σ_w (Wᵀ_w)ᵀ y[w]: Wᵀ used in place.
         uu, inv = unique_ints(ublock, nb, True)
         rhs = EdgeSums(inv, len(uu), dv)
