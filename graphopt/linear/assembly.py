@@ -58,14 +58,13 @@ class _HTerm:
     """Hessian blocks ``Lᵀ (ρ'ΩR)`` of one edge group's positions into one destination.
 
     ``left``/``right`` name the positions whose Jacobian (left) and weighted Jacobian (right)
-    form the block. ``contraction`` is ``None`` for a U term summed by a Gram; a V term's
-    narrow blocks use the leaner :class:`EdgeSums`.
+    form the block. ``contraction`` is ``None`` for a U term summed by a Gram.
     """
 
     left: int
     right: int
     kind: str  # "U", "V" or "W"
-    contraction: EdgeContraction | EdgeSums | None
+    contraction: EdgeContraction | None
     dest: Dest | None  # U: (t, dl·dr) data positions (None with a Gram); V/W: (t,) blocks
     dest_t: np.ndarray | None = None  # U off-diagonal: positions of the transposed entries
     cls: int = -1  # V class or W class
@@ -149,8 +148,10 @@ class Assembler:
                     nvc = len(ix.vclasses[cls].slots)
                     uniq, inv = unique_ints(vb[a][sel], nvc, True)
                     whole = len(uniq) == nvc
+                    # The contraction, not EdgeSums: 32 bytes more per edge, half the time on
+                    # 3x3 blocks (3M observations: 0.11 s against 0.21 s per linearisation).
                     gt.hterms.append(_HTerm(
-                        a, b, "V", self._sums(g, sel, inv, len(uniq)),
+                        a, b, "V", self._contraction(g, sel, inv, len(uniq), dims[a]),
                         slice(None) if whole else uniq, cls=cls, mirror=a != b, identity=whole))
         for a, b in combinations(range(g.k), 2):
             for ui, vi in ((a, b), (b, a)):
@@ -183,8 +184,8 @@ class Assembler:
         return gt
 
     def _sums(self, g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int) -> EdgeSums:
-        """Σ over edges ``sel`` of ``Jᵀ · B`` for narrow ``B`` (errors, V blocks) into ``n_t``
-        targets; sums over all edges of a group share their column pointers."""
+        """Σ over edges ``sel`` of ``Jᵀ · e`` (a gradient) into ``n_t`` targets; sums over all
+        edges of a group share their column pointers."""
         r = g.etype.jacobian_rows()
         if len(sel) < g.size:
             return EdgeSums(target, n_t, r, sel, g.size)

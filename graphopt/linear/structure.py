@@ -47,14 +47,15 @@ class VClass:
 
 class EdgeSums:
     """``out[t] = Σ_{e ∈ sel, target(e) = t} A_eᵀ B_e`` for blocks ``A`` ``(m, r, d)`` and
-    ``B`` ``(m, r, d2)`` with few columns ``d2`` (a gradient, a V block, ``W x``).
+    ``B`` ``(m, r, d2)`` with few columns ``d2`` (a gradient ``Jᵀe``, ``Σ_w W_w x_w``).
 
     One product per column ``k`` of ``B`` with a constant CSC matrix: a column per row
     ``(e, i)`` of the blocks, holding ``B[e, i, k]`` in row ``target(e)``. SciPy's loop reads
     ``A`` once, in memory order, and sums its rows into the output, so nothing is gathered;
     the index is 4 bytes per row ``(e, i)`` (:class:`~graphopt.linear.block_ops.
     EdgeContraction` keeps ``4·d``), plus the column pointers, shared by sums over the same
-    rows. Against the contraction: as fast for ``d2 = 1``, about twice as slow for ``d2 = 3``.
+    rows. Against the contraction: as fast for ``d2 = 1``, twice as slow for ``d2 = 3`` (so the
+    V blocks keep the contraction).
 
     Args:
         target: Target of every block in ``sel``.
