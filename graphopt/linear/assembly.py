@@ -83,7 +83,7 @@ class _GTerm:
 
     a: int
     kind: str
-    sums: EdgeSums
+    sums: EdgeSums | EdgeContraction  # the H term's contraction where there is one
     dest: Dest  # U: (t, d) vector positions; V: (t,) block index
     cls: int = -1
     identity: bool = False  # V term whose targets are all V blocks of its class, in order
@@ -117,7 +117,10 @@ class Assembler:
 
     def __init__(self, index: BlockIndex, cost: SchurCostModel) -> None:
         self.index, self.cost = index, cost
-        self._pointers: dict[int, np.ndarray] = {}  # EdgeSums' column pointers, by length
+        # Arrays that terms over the same edges share: all edges' indices (by group size),
+        # EdgeSums' and contractions' column pointers (by length and width).
+        self._all: dict[int, np.ndarray] = {}
+        self._pointers: dict[tuple[int, int], np.ndarray] = {}
         self.terms = [self._group_terms(gi) for gi in range(len(index.groups))]
 
     @property
@@ -140,10 +143,10 @@ class Assembler:
             for b in range(a, g.k):
                 mask = isu[a] & isu[b]
                 if mask.any():
-                    gt.hterms.append(self._u_term(g, a, b, np.flatnonzero(mask), ub, dims[a]))
+                    gt.hterms.append(self._u_term(g, a, b, self._edges(mask), ub, dims[a]))
                 mask = isv[a] & isv[b]
                 if mask.any():
-                    sel = np.flatnonzero(mask)
+                    sel = self._edges(mask)
                     cls = ix.vclass_of_store[pos[a][0]]
                     nvc = len(ix.vclasses[cls].slots)
                     uniq, inv = unique_ints(vb[a][sel], nvc, True)
@@ -157,7 +160,7 @@ class Assembler:
             for ui, vi in ((a, b), (b, a)):
                 mask = isu[ui] & isv[vi]
                 if mask.any():
-                    sel = np.flatnonzero(mask)
+                    sel = self._edges(mask)
                     k = ix.wclass_of[(pos[ui][0], ix.vclass_of_store[pos[vi][0]])]
                     keys = ix.wclasses[k].keys
                     widx = np.searchsorted(keys, vb[vi][sel] * nb + ub[ui][sel])
@@ -172,16 +175,27 @@ class Assembler:
             for kind, isx, xb in (("U", isu[a], ub[a]), ("V", isv[a], vb[a])):
                 if not isx.any():
                     continue
-                sel = np.flatnonzero(isx)
+                sel = self._edges(isx)
                 cls = ix.vclass_of_store[pos[a][0]] if kind == "V" else -1
                 size = nb if kind == "U" else len(ix.vclasses[cls].slots)
                 uniq, inv = unique_ints(xb[sel], size, True)
                 whole = kind == "V" and len(uniq) == size
                 dest: Dest = (ix.uoffset[uniq][:, None] + np.arange(dims[a]) if kind == "U"
                               else slice(None) if whole else uniq)
-                gt.gterms.append(_GTerm(a, kind, self._sums(g, sel, inv, len(uniq)), dest, cls,
-                                        whole))
+                # The (a, a) H term's contraction has these edges and targets: reuse it.
+                con = next((t.contraction for t in gt.hterms if t.left == a and t.right == a
+                            and t.kind == kind and t.contraction is not None), None)
+                gt.gterms.append(_GTerm(a, kind, con or self._sums(g, sel, inv, len(uniq)),
+                                        dest, cls, whole))
         return gt
+
+    def _edges(self, mask: np.ndarray) -> np.ndarray:
+        """``flatnonzero(mask)``; one shared array for every term over all of a group's edges."""
+        if not mask.all():
+            return np.flatnonzero(mask)
+        if len(mask) not in self._all:
+            self._all[len(mask)] = np.arange(len(mask))
+        return self._all[len(mask)]
 
     def _sums(self, g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int) -> EdgeSums:
         """Σ over edges ``sel`` of ``Jᵀ · e`` (a gradient) into ``n_t`` targets; sums over all
@@ -189,17 +203,20 @@ class Assembler:
         r = g.etype.jacobian_rows()
         if len(sel) < g.size:
             return EdgeSums(target, n_t, r, sel, g.size)
-        ptr = self._pointers.get(g.size * r)
+        ptr = self._pointers.get((g.size * r, 1))
         if ptr is None:
-            ptr = self._pointers[g.size * r] = EdgeSums.pointers(g.size, r)
+            ptr = self._pointers[g.size * r, 1] = EdgeSums.pointers(g.size, r)
         return EdgeSums(target, n_t, r, indptr=ptr)
 
-    @staticmethod
-    def _contraction(g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int, d_out: int
-                     ) -> EdgeContraction:
+    def _contraction(self, g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int,
+                     d_out: int) -> EdgeContraction:
         """Σ over edges ``sel`` of ``Jᵀ · (ρ'ΩJ)`` blocks with ``d_out`` rows into ``n_t``
-        targets."""
-        return EdgeContraction(sel, target, n_t, g.size, g.etype.jacobian_rows(), d_out)
+        targets. Over all edges, the column pointers depend on the width alone: shared."""
+        r = g.etype.jacobian_rows()
+        con = EdgeContraction(sel, target, n_t, g.size, r, d_out)
+        if con.all:
+            con.indptr = self._pointers.setdefault((g.size * r, d_out), con.indptr)
+        return con
 
     def _u_term(self, g: EdgeGroup, a: int, b: int, sel: np.ndarray, ub: list[np.ndarray],
                 d: int) -> _HTerm:
