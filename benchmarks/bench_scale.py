@@ -54,9 +54,9 @@ DATA = ROOT / "out" / "scale"
 DEFAULT_SIZES = "1M,3M"
 ALL_SIDES = ("graphopt:cholmod", "graphopt:iterative-schur", "ceres:sparse-schur",
              "ceres:iterative-schur")
-#: Peak RSS of a Ceres side per observation (measured here at 1M and 3M, see docs/scale.md),
-#: to skip a size where Ceres would not fit.
-CERES_BYTES_PER_OBS = 1700
+#: Peak RSS of a Ceres side per observation (1.0-1.1 kB measured at 1M and 3M, see
+#: docs/scale.md, and a margin), to skip a size where Ceres would not fit.
+CERES_BYTES_PER_OBS = 1300
 
 
 def _rss() -> int:
