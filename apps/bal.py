@@ -24,9 +24,12 @@ with a one-line message on stderr and exit status 1 (2 for bad options).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
-from collections.abc import Sequence
+import threading
+import time
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -99,14 +102,76 @@ def _cameras_to_poses(cams: np.ndarray) -> np.ndarray:
     return make_transform(so3_exp(cams[:, :3]), cams[:, 3:6])
 
 
+#: Observations projected per pass when computing costs (bounds the temporary arrays).
+STATS_CHUNK = 1 << 20
+
+
 def _residual_stats(
     problem: BALProblem, cams: np.ndarray, pts: np.ndarray
 ) -> tuple[float, float, int]:
     """Cost ½Σ‖r‖², RMS pixel error and observations behind their camera."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # reported by the caller
-        r, pz = reprojection_errors(problem, cams, pts)
-        sq = np.einsum("ij,ij->i", r, r)
-    return 0.5 * float(sq.sum()), float(np.sqrt(sq.mean())), int(np.count_nonzero(pz >= 0))
+    total, behind = 0.0, 0
+    for lo in range(0, problem.num_observations, STATS_CHUNK):
+        part = BALProblem(cams, pts, problem.camera_index[lo:lo + STATS_CHUNK],
+                          problem.point_index[lo:lo + STATS_CHUNK],
+                          problem.observations[lo:lo + STATS_CHUNK])
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # the caller reports
+            r, pz = reprojection_errors(part)
+            total += float(np.einsum("ij,ij->", r, r))
+        behind += int(np.count_nonzero(pz >= 0))
+    m = max(problem.num_observations, 1)
+    return 0.5 * total, float(np.sqrt(total / m)), behind
+
+
+#: Seconds after which a loading or set-up step says what it is doing (and then how long it
+#: took): small problems print nothing.
+PROGRESS_DELAY = 3.0
+
+
+class _Progress:
+    """One line on stderr per slow step: ``graphopt-bal: STEP ... 12.3 s``.
+
+    The step's name appears once it has run for :data:`PROGRESS_DELAY` seconds (from a timer
+    thread), its seconds when it ends; a step that ends sooner prints nothing.
+
+    Args:
+        quiet: Print nothing.
+    """
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+
+    @contextlib.contextmanager
+    def step(self, what: str) -> Iterator[None]:
+        """Time one step.
+
+        Args:
+            what: What the step does (``reading FILE``).
+        """
+        if self.quiet:
+            yield
+            return
+        lock = threading.Lock()
+        state = {"shown": False, "done": False}
+
+        def show() -> None:
+            with lock:
+                if not state["done"]:
+                    print(f"{PROG}: {what} ...", end="", file=sys.stderr, flush=True)
+                    state["shown"] = True
+
+        t0 = time.perf_counter()
+        timer = threading.Timer(PROGRESS_DELAY, show)
+        timer.daemon = True
+        timer.start()
+        try:
+            yield
+        finally:
+            with lock:
+                state["done"] = True
+                timer.cancel()
+                if state["shown"]:
+                    print(f" {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
 
 
 def _first_bad_observation(problem: BALProblem, source: str) -> str:
@@ -161,7 +226,8 @@ class _BALRecording(_cli.RunRecording):
         self.rec.log_scalar("cost", cost)
 
 
-def _load(args: argparse.Namespace) -> tuple[BALProblem, BALProblem | None, str]:
+def _load(args: argparse.Namespace, progress: _Progress
+          ) -> tuple[BALProblem, BALProblem | None, str]:
     """The problem to solve (read or synthetic, then normalised/perturbed), its ground truth
     (synthetic scene only) and a description of its source."""
     truth = None
@@ -170,7 +236,8 @@ def _load(args: argparse.Namespace) -> tuple[BALProblem, BALProblem | None, str]
         problem, truth = scene.problem, scene.truth
         source = f"synthetic scene (seed {args.seed})"
     else:
-        problem = read_bal(args.input)  # BALFormatError is reported by main()
+        with progress.step(f"reading {args.input}"):
+            problem = read_bal(args.input)  # BALFormatError is reported by main()
         source = args.input
     if args.normalize:
         problem = normalize(problem)
@@ -180,9 +247,11 @@ def _load(args: argparse.Namespace) -> tuple[BALProblem, BALProblem | None, str]
 
 
 def _build_optimizer(
-    args: argparse.Namespace, problem: BALProblem, kernel: Any, source: str
-) -> SparseOptimizer:
-    """Cameras, marginalised points and one projection edge per observation."""
+    args: argparse.Namespace, problem: BALProblem, kernel: Any, source: str,
+    progress: _Progress,
+) -> tuple[SparseOptimizer, str, str]:
+    """Cameras, marginalised points and one projection edge per observation, initialised
+    (structure, Schur plan, symbolic factorisation); with the solver's name and description."""
     algorithm: Any = args.algorithm
     if args.algorithm == "lm":
         # BAL mixes parameters of very different scales (focal lengths ~1e3 px next to k2 as
@@ -192,19 +261,21 @@ def _build_optimizer(
     opt = SparseOptimizer(algorithm=algorithm, solver=args.solver, verbose=not args.quiet,
                           stream=sys.stderr, stopping=_cli.stopping_config(args))
     nc, npt = problem.num_cameras, problem.num_points
-    opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
-    opt.add_vertices(VertexPointXYZ, nc + np.arange(npt), problem.points, marginalized=True)
-    opt.add_edges(
-        EdgeBALProjection,
-        np.column_stack([problem.camera_index, nc + problem.point_index]),
-        problem.observations,
-        robust_kernel=kernel,
-    )
+    with progress.step(f"building the graph ({problem.num_observations:,} observations)"):
+        opt.add_vertices(VertexCameraBAL, np.arange(nc), problem.cameras)
+        opt.add_vertices(VertexPointXYZ, nc + np.arange(npt), problem.points, marginalized=True)
+        opt.add_edges(
+            EdgeBALProjection,
+            np.column_stack([problem.camera_index, nc + problem.point_index]),
+            problem.observations,
+            robust_kernel=kernel,
+        )
     try:
-        opt.initialize_optimization()
+        with progress.step("set-up (structure, Schur complement plan, symbolic factorisation)"):
+            solver, solver_text, _ = _cli.initialize(opt, args.solver)
     except GraphError as exc:
         raise _cli.AppError(f"{source}: {exc}") from None
-    return opt
+    return opt, solver, solver_text
 
 
 def _start_recording(
@@ -272,16 +343,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         except ValueError as exc:
             raise _cli.AppError(str(exc)) from None
 
-    problem, truth, source = _load(args)
-    initial_cost, initial_rms, behind0 = _residual_stats(problem, problem.cameras, problem.points)
+    progress = _Progress(args.quiet)
+    problem, truth, source = _load(args, progress)
+    with progress.step("initial cost"):
+        initial_cost, initial_rms, behind0 = _residual_stats(problem, problem.cameras,
+                                                             problem.points)
     if not math.isfinite(initial_cost):
         raise _cli.AppError(f"{_first_bad_observation(problem, source)}: the initial "
                             "reprojection error is not finite (a point at depth 0 in its camera?)")
     if args.ply_before:
         _write_ply(args.ply_before, problem, args.ply_drop_far)
 
-    opt = _build_optimizer(args, problem, kernel, source)
-    solver, solver_text, _ = _cli.initialize(opt, args.solver)
+    opt, solver, solver_text = _build_optimizer(args, problem, kernel, source, progress)
+    # The graph has its own indices; the app's copies need not be 8 bytes each.
+    if problem.num_cameras < 2**31 and problem.num_points < 2**31:
+        problem.camera_index = problem.camera_index.astype(np.int32)
+        problem.point_index = problem.point_index.astype(np.int32)
     recording = _start_recording(args.rrd, opt, problem, initial_cost) if args.rrd else None
     res = _cli.optimize_recorded(opt, args.iterations, recording)
     est = BALProblem(opt.estimates_of(VertexCameraBAL), opt.estimates_of(VertexPointXYZ),

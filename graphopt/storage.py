@@ -2,7 +2,9 @@
 edge type (and parameter object).
 
 Objects added one at a time and arrays added in bulk end up in the same arrays; chunks are
-concatenated lazily, so adding many single objects stays linear in time.
+concatenated lazily, so adding many single objects stays linear in time. A group made of one
+bulk chunk keeps the arrays it was given (no copy: do not modify them afterwards), and one
+robust kernel slot for all edges is one broadcast value, not a per-edge array.
 """
 
 from __future__ import annotations
@@ -15,6 +17,11 @@ from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.errors import GraphError
 from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
+
+
+def _join(chunks: list[np.ndarray]) -> np.ndarray:
+    """The chunks as one array: the only chunk itself, or their concatenation."""
+    return chunks[0] if len(chunks) == 1 else np.concatenate(chunks)
 
 
 class VertexStore:
@@ -223,7 +230,9 @@ class EdgeGroup:
         self._vids.append(vids)
         self._meas.append(meas)
         self._info.append(info)
-        self._kern.append(np.broadcast_to(np.asarray(kernel, dtype=np.int64), (n,)).copy())
+        kern = np.asarray(kernel, dtype=np.int64)
+        # One slot for the chunk: a broadcast value (no bytes per edge) until set_kernel.
+        self._kern.append(np.broadcast_to(kern, (n,)) if kern.ndim == 0 else kern.copy())
         self._data.append(data)
         self.size += n
         return start
@@ -234,9 +243,14 @@ class EdgeGroup:
         """Concatenate chunks into the group's arrays (idempotent)."""
         if self._finalized_size == self.size:
             return
-        self.vertex_ids = np.concatenate(self._vids) if self._vids else self.vertex_ids
-        self.measurements = np.concatenate(self._meas) if self._meas else self.measurements
-        self.kernel_index = np.concatenate(self._kern) if self._kern else self.kernel_index
+        self.vertex_ids = _join(self._vids) if self._vids else self.vertex_ids
+        self.measurements = _join(self._meas) if self._meas else self.measurements
+        if self._kern:
+            values = {int(k[0]) for k in self._kern if len(k)}
+            if len(values) == 1 and all(k.strides == (0,) for k in self._kern if len(k)):
+                self.kernel_index = np.broadcast_to(np.int64(values.pop()), (self.size,))
+            else:
+                self.kernel_index = _join(self._kern)
         shared = [i for i in self._info if i.ndim == 2]
         if len(shared) == len(self._info) and all(np.array_equal(shared[0], i) for i in shared):
             self.information = shared[0] if shared else np.eye(self.dim)
@@ -291,4 +305,7 @@ class EdgeGroup:
             kernel: The kernel or ``None``.
         """
         self.finalize()
+        if not self.kernel_index.flags.writeable:  # one broadcast slot so far
+            self.kernel_index = self.kernel_index.copy()
+            self._kern = [self.kernel_index]
         self.kernel_index[i] = self.kernel_slot(kernel)

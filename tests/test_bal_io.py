@@ -333,3 +333,110 @@ def test_recorder_focal_forms(tmp_path: Path) -> None:
         with pytest.raises(ValueError, match=r"focal must be .* got shape \(4,\)"):
             rec.log_cameras(T, focal=np.ones(4), resolution=(640, 480))
     assert (tmp_path / "f.rrd").stat().st_size > 0
+
+
+# --- streaming reader and writer --------------------------------------------------------------
+
+BAD_CASES = [  # (text, line, fragment) that every block size reports alike
+    (GOOD.replace("2 3 4\n", "2 3 5\n", 1), 6, "observation 4"),
+    (GOOD.replace("2 3 4\n", "2 4 4\n", 1), 18, "truncated"),
+    (GOOD.rsplit("\n", 2)[0] + "\n", 17, "truncated"),
+    (GOOD.replace("0 1 1e1 2E-1", "0 1 1e1"), 4, "observation 2"),
+    (GOOD.replace("1 0 3.0 -4.0", "1 0 3.0 abc"), 3, "not a number: 'abc'"),
+    (GOOD.replace("0.2\n", "nan\n", 1), 7, "non-finite value 'nan' in camera 0"),
+    (GOOD.replace("4 5 6", "4 inf 6"), 17, "point 1"),
+    (GOOD.replace("1 2 0 0", "1 3 0 0"), 5, "point index 3"),
+    (GOOD + "\n\n1\n", 21, "extra"),
+]
+
+
+@pytest.mark.parametrize("block", [1, 7, 40])
+def test_reader_blocks_do_not_change_the_result(tmp_path: Path, monkeypatch, block: int):
+    """The file is parsed in blocks of whole lines; results and errors (file, line, what) do
+    not depend on where the blocks end."""
+    import graphopt.io.bal as bal_io
+
+    ref = read_bal(_write(tmp_path, GOOD))
+    monkeypatch.setattr(bal_io, "CHUNK_BYTES", block)
+    p = read_bal(_write(tmp_path, GOOD))
+    for name in ("cameras", "points", "observations", "camera_index", "point_index"):
+        assert np.array_equal(getattr(p, name), getattr(ref, name)), name
+    for text, line, fragment in BAD_CASES:
+        path = _write(tmp_path, text)
+        with pytest.raises(BALFormatError) as info:
+            read_bal(path)
+        assert info.value.line == line and fragment in str(info.value), (block, str(info.value))
+
+
+def test_reader_holds_one_block_at_a_time(tmp_path: Path, monkeypatch) -> None:
+    """A large file goes through the parser in blocks of about CHUNK_BYTES, never whole, and a
+    broken token deep in it is reported with its own line."""
+    import graphopt.io.bal as bal_io
+
+    scene = synthetic_scene(num_cameras=6, num_points=400, seed=5)
+    path = tmp_path / "s.txt"
+    write_bal(path, scene.problem)
+    sizes: list[int] = []
+    real = bal_io._Block
+
+    def spy(data: bytes, line0: int) -> bal_io._Block:
+        sizes.append(len(data))
+        return real(data, line0)
+
+    monkeypatch.setattr(bal_io, "CHUNK_BYTES", 4096)
+    monkeypatch.setattr(bal_io, "_Block", spy)
+    back = read_bal(path)
+    assert np.array_equal(back.observations, scene.problem.observations)
+    assert len(sizes) > 10 and max(sizes) < 4096 + 100  # a block plus one line
+    lines = path.read_text().splitlines()
+    k = len(lines) - 200  # a point coordinate near the end
+    lines[k] = "1.5e"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(BALFormatError, match="not a number: '1.5e'") as info:
+        read_bal(path)
+    assert info.value.line == k + 1
+
+
+def test_format_fixed_and_quantize() -> None:
+    from graphopt.io.bal import format_fixed, quantize
+
+    x = np.array([-1.5, 0.0, -4e-7, 123456.7890004, 6e-7, -2.0, 9.9999996])
+    text = format_fixed([np.array([0, 10, -3, 1, 2, 3, 40]), x], [0, 6]).decode()
+    assert text.splitlines() == ["0 -1.500000", "10 0.000000", "-3 0.000000",
+                                 "1 123456.789000", "2 0.000001", "3 -2.000000",
+                                 "40 10.000000"]
+    q = quantize(x, 6)
+    assert np.array_equal(np.array([float(v.split()[1]) for v in text.splitlines()]), q)
+    with pytest.raises(ValueError, match="too large"):
+        format_fixed([np.array([1e300])], [6])
+
+
+def test_bal_writer_streams_atomically(tmp_path: Path) -> None:
+    from graphopt.io.bal import BALWriter, quantize
+
+    scene = synthetic_scene(num_cameras=4, num_points=60, seed=6)
+    p = scene.problem
+    path = tmp_path / "w.txt.gz"
+    with BALWriter(path, p.num_cameras, p.num_points, p.num_observations) as w:
+        half = p.num_observations // 2
+        for sl in (slice(0, half), slice(half, None)):
+            w.observations(p.camera_index[sl], p.point_index[sl], p.observations[sl])
+        w.cameras(p.cameras)
+        w.points(p.points[:10])
+        w.points(p.points[10:])
+        assert not path.exists()  # only complete files appear
+    back = read_bal(path)
+    assert np.array_equal(back.observations, quantize(p.observations, 6))
+    assert np.array_equal(back.points, quantize(p.points, 6))
+    assert np.array_equal(back.cameras, p.cameras)  # 17 significant digits: exact
+    assert np.array_equal(back.point_index, p.point_index)
+    # Wrong counts or order: an error, and the old file stays.
+    with pytest.raises(ValueError, match="header announces"), \
+            BALWriter(path, p.num_cameras, p.num_points, p.num_observations) as w:
+        w.cameras(p.cameras)
+    with pytest.raises(ValueError, match="then cameras"), \
+            BALWriter(path, p.num_cameras, p.num_points, p.num_observations) as w:
+        w.cameras(p.cameras)
+        w.observations(p.camera_index, p.point_index, p.observations)
+    assert np.array_equal(read_bal(path).observations, back.observations)
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["w.txt.gz"]

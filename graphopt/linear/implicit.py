@@ -8,7 +8,7 @@ are each one C loop over the W blocks:
 1. ``y = Wᵀ x`` per V block: a block-sparse (BSR) product whose data is the ``Wᵀ`` array as it
    is (rows: V blocks, columns: U blocks; the W blocks are sorted by V block);
 2. ``z = V_λ⁻¹ y``: batched ``(d_v, d_v)`` products;
-3. ``W z`` per U block: the W class's constant CSC contraction (``WClass.rhs``), whose data is
+3. ``W z`` per U block: the W class's sums (``WClass.rhs``, an ``EdgeSums``), whose data is
    again the ``Wᵀ`` array as it is, applied to ``z`` gathered per W block.
 
 The W blocks rather than the per-observation Jacobians: they are already assembled (one per
@@ -39,11 +39,9 @@ from graphopt.linear.block_ops import batched_cholesky_inverses
 
 try:  # SciPy's C kernels; they accumulate into a given output array.
     from scipy.sparse._sparsetools import bsr_matvec as _bsr_matvec
-    from scipy.sparse._sparsetools import csc_matvec as _csc_matvec
-    from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs
     from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
 except ImportError:  # pragma: no cover - private module: the public products below
-    _bsr_matvec = _csc_matvec = _csc_matvecs = _csr_matvec = None
+    _bsr_matvec = _csr_matvec = None
 
 if TYPE_CHECKING:
     from graphopt.linear.assembly import Assembly
@@ -196,8 +194,6 @@ class SchurOperator:
                      zip(asm.v, vdamp, strict=True)]
         self.products = 0
         self._wt = [np.ascontiguousarray(w).reshape(-1) for w in asm.wt]
-        # The contractions' CSC operators over the W arrays as they are (no copy).
-        self._w_ops = [wc.rhs.matrix(asm.wt[k]) for k, wc in enumerate(ix.wclasses)]
         self.rhs = asm.bu.copy()
         self._sub_w(self.rhs, [np.einsum("nij,nj->ni", vi, b)
                                for vi, b in zip(self.vinv, asm.bv, strict=True)])
@@ -239,13 +235,9 @@ class SchurOperator:
         """``out −= W z`` (``z`` per V class, ``(n_v, d_v)``)."""
         ix = self.structure.index
         for m, wc in zip(self.structure.maps, ix.wclasses, strict=True):
-            zw = np.take(z[wc.vclass], wc.vblock, axis=0).reshape(-1)  # per W block
-            op = self._w_ops[m.k]
-            if _csc_matvec is not None:
-                buf = np.zeros(m.n_t * wc.du)
-                _csc_matvec(op.shape[0], op.shape[1], op.indptr, op.indices, op.data, zw, buf)
-            else:  # pragma: no cover
-                buf = op @ zw
+            zw = np.take(z[wc.vclass], wc.vblock, axis=0)  # per W block
+            # The class's sums Σ_w (Wᵀ_w)ᵀ z_w per U block, over the W array as it is.
+            buf = wc.rhs(self.asm.wt[m.k], zw[:, :, None]).reshape(-1)
             if m.out_rows is None:
                 out[wc.ucols] -= buf
             else:
@@ -269,26 +261,22 @@ class SchurOperator:
     def _wvw_diagonal(self, m: _WMaps, vclass: int) -> np.ndarray:
         """``Σ_w Wᵀ_wᵀ V_λ⁻¹ Wᵀ_w`` per target U block of W class ``m.k``, ``(n_t, d_u, d_u)``.
 
-        Per chunk of W blocks, ``Yᵀ = V⁻¹Wᵀ`` (batched products), then the class's CSC
-        contraction over ``Wᵀ`` (a column range of it: no copy) sums ``Wᵀ_wᵀ Yᵀ_w`` into the
-        targets. Measured on BAL blocks: about 250 ns per W block (a batched ``YᵀY`` with
-        ``Y = L⁻¹Wᵀ`` took 660), i.e. about six products with ``S``.
+        Per chunk of W blocks, ``Yᵀ = V⁻¹Wᵀ`` and ``Wᵀ_wᵀ Yᵀ_w`` (batched products), summed
+        into the targets by a 0/1 sparse product over the chunk (once per solve).
         """
         wc = self.structure.index.wclasses[m.k]
-        du, dv = wc.du, wc.dv
+        du = wc.du
         wt = self.asm.wt[m.k]
         vinv = self.vinv[vclass]
-        op = self._w_ops[m.k]
-        acc = np.zeros((m.n_t, du, du))
+        acc = np.zeros((m.n_t, du * du))
         for c0 in range(0, len(wt), CHUNK):
             c1 = min(c0 + CHUNK, len(wt))
             yt = np.matmul(np.take(vinv, wc.vblock[c0:c1], axis=0), wt[c0:c1])
-            if _csc_matvecs is not None:
-                _csc_matvecs(m.n_t * du, (c1 - c0) * dv, du, op.indptr[c0 * dv:c1 * dv + 1],
-                             op.indices, op.data, yt.reshape(-1), acc.reshape(-1))
-            else:  # pragma: no cover
-                acc += (op[:, c0 * dv:c1 * dv] @ yt.reshape(-1, du)).reshape(acc.shape)
-        return acc
+            blocks = np.matmul(np.swapaxes(wt[c0:c1], 1, 2), yt).reshape(c1 - c0, -1)
+            scatter = sp.csr_matrix((np.ones(c1 - c0), (m.target[c0:c1], np.arange(c1 - c0))),
+                                    shape=(m.n_t, c1 - c0))
+            acc += scatter @ blocks
+        return acc.reshape(m.n_t, du, du)
 
     def preconditioner(self, kind: str) -> list[tuple[np.ndarray, np.ndarray]]:
         """The inverted diagonal blocks of the preconditioner, per U group ``(idx, inv)``.

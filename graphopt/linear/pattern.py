@@ -3,6 +3,12 @@
 ``S`` has a fixed pattern (both triangles): every diagonal U block, the U-U blocks that edges
 couple and the fill of the Schur complement. Everything that adds blocks into ``S`` does so
 through data positions resolved here, once.
+
+The pattern is built and looked up block by block: a scalar column of block column ``c``
+lists the rows of ``c``'s blocks one after the other, so the position of an entry is its
+column's start, plus the rows of the blocks above it in that column, plus its row within its
+block. Nothing is kept per scalar entry but the CSC indices (the pattern's data is zeros that
+the OS allocates on first touch).
 """
 
 from __future__ import annotations
@@ -10,9 +16,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from graphopt.linear.indexing import sorted_unique
-
-#: Largest ``n²`` for which data positions are looked up in a dense table.
+#: Largest ``n_ublocks²`` for which block positions are looked up in a dense table.
 POSMAP_MAX = 4_000_000
 
 
@@ -42,33 +46,66 @@ class ReducedPattern:
     """
 
     def __init__(self, uoffset: np.ndarray, udims: np.ndarray, block_keys: np.ndarray) -> None:
-        self.uoffset, self.udims, self.block_keys = uoffset, udims, block_keys
+        self.uoffset, self.udims = uoffset, udims
+        self.block_keys = np.asarray(block_keys, dtype=np.int64)
         n, nb = int(uoffset[-1]), max(len(udims), 1)
-        self.n = n
-        bc, br = block_keys // nb, block_keys % nb
-        rows_l, cols_l = [], []
-        for d1 in np.unique(udims):
-            for d2 in np.unique(udims):
-                sel = (udims[br] == d1) & (udims[bc] == d2)
-                if sel.any():
-                    r, c = self.block_entries(br[sel], bc[sel])
-                    rows_l.append(r.ravel())
-                    cols_l.append(c.ravel())
-        rows = np.concatenate(rows_l) if rows_l else np.zeros(0, np.int64)
-        cols = np.concatenate(cols_l) if cols_l else np.zeros(0, np.int64)
-        keys = sorted_unique(cols.astype(np.int64) * n + rows)
-        self._keys = keys
-        # Small systems: a dense (col, row) → position table is faster than binary searches.
-        self._posmap: np.ndarray | None = None
-        if n * n <= POSMAP_MAX:
-            self._posmap = np.full(n * n, -1, dtype=np.int64)
-            self._posmap[keys] = np.arange(len(keys))
-        indices = (keys % max(n, 1)).astype(np.int32)
-        indptr = np.searchsorted(keys // max(n, 1), np.arange(n + 1)).astype(np.int32)
-        self.csc = sp.csc_matrix((np.zeros(len(keys)), indices, indptr), shape=(n, n))
-        self.nnz = len(keys)
+        self.n, self._nb = n, nb
+        bc, br = self.block_keys // nb, self.block_keys % nb
+        rdim = udims[br] if len(br) else np.zeros(0, np.int64)
+        # Rows of the blocks above each block in its block column (keys are sorted by column).
+        col_first = np.searchsorted(self.block_keys, np.arange(nb + 1) * nb)
+        above = np.cumsum(rdim) - rdim
+        self._rowoff = above - above[np.repeat(col_first[:-1], np.diff(col_first))]
+        col_rows = np.bincount(bc, weights=rdim, minlength=nb).astype(np.int64)[:len(udims)]
+        # Scalar column j of block column c holds col_rows[c] entries.
+        per_col = np.repeat(col_rows, udims) if len(udims) else np.zeros(0, np.int64)
+        self._indptr = np.concatenate([[0], np.cumsum(per_col)]).astype(np.int64)
+        self.nnz = int(self._indptr[-1])
+        idx_t = np.int32 if max(n, self.nnz) < 2**31 else np.int64
+        indices = np.empty(self.nnz, dtype=idx_t)
+        # Small systems: a dense block → key-rank table is faster than binary searches.
+        self._table: np.ndarray | None = None
+        if nb * nb <= POSMAP_MAX:
+            self._table = np.full(nb * nb, -1, dtype=np.int32)
+            self._table[self.block_keys] = np.arange(len(self.block_keys))
+        for sel in self._shape_classes(br, bc):
+            pos, _ = self._block_positions(br[sel], bc[sel], sel)
+            d1 = int(udims[br[sel[0]]])
+            rows = uoffset[br[sel]][:, None] + np.repeat(np.arange(d1), pos.shape[1] // d1)
+            indices[pos.ravel()] = rows.ravel()
+        self.csc = sp.csc_matrix((np.zeros(self.nnz), indices, self._indptr.astype(idx_t)),
+                                 shape=(n, n))
         diag = np.arange(n)
         self.diag_pos = self.positions(diag, diag)
+
+    def _shape_classes(self, br: np.ndarray, bc: np.ndarray) -> list[np.ndarray]:
+        """Blocks grouped by shape ``(d_row, d_col)`` (one group when all U blocks match)."""
+        dims = np.unique(self.udims)
+        if len(dims) == 1:
+            return [np.arange(len(br))] if len(br) else []
+        shape = np.searchsorted(dims, self.udims[br]) * len(dims) + np.searchsorted(
+            dims, self.udims[bc])
+        return [s for s in (np.flatnonzero(shape == k) for k in range(len(dims) ** 2)) if len(s)]
+
+    def _lookup(self, keys: np.ndarray) -> np.ndarray:
+        """Rank of every block key among ``block_keys`` (−1: not in the pattern)."""
+        if self._table is not None:
+            return self._table[keys]
+        k = np.searchsorted(self.block_keys, keys).clip(0, max(len(self.block_keys) - 1, 0))
+        return np.where(self.block_keys[k] == keys, k, -1) if len(self.block_keys) else \
+            np.full(len(keys), -1, dtype=np.int64)
+
+    def _block_positions(self, br: np.ndarray, bc: np.ndarray, rank: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """Data positions ``(q, d1·d2)`` (row-major within a block) of blocks ``(br, bc)`` of
+        one shape, and their ranks (computed unless given)."""
+        if rank is None:
+            rank = self._lookup(bc.astype(np.int64) * self._nb + br)
+        d1, d2 = int(self.udims[br[0]]), int(self.udims[bc[0]])
+        start = self._indptr[self.uoffset[bc][:, None] + np.arange(d2)] + self._rowoff[rank][:,
+                                                                                             None]
+        pos = start[:, None, :] + np.arange(d1)[None, :, None]  # (q, i, j) → col j's start + i
+        return pos.reshape(len(br), d1 * d2), rank
 
     def positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Data positions of scalar entries ``(rows, cols)`` (which must be in the pattern).
@@ -77,10 +114,11 @@ class ReducedPattern:
             rows: Scalar rows.
             cols: Scalar columns, same shape.
         """
-        k = cols.astype(np.int64) * self.n + rows
-        if self._posmap is not None:
-            return self._posmap[k]
-        return np.searchsorted(self._keys, k)
+        rows, cols = np.asarray(rows), np.asarray(cols)
+        br = np.searchsorted(self.uoffset, rows, side="right") - 1
+        bc = np.searchsorted(self.uoffset, cols, side="right") - 1
+        rank = self._lookup(bc.astype(np.int64) * self._nb + br)
+        return self._indptr[cols] + self._rowoff[rank] + (rows - self.uoffset[br])
 
     def has_blocks(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Whether every U block ``(rows[i], cols[i])`` is in the pattern.
@@ -89,7 +127,7 @@ class ReducedPattern:
             rows: Row U blocks.
             cols: Column U blocks.
         """
-        return np.isin(cols * max(len(self.udims), 1) + rows, self.block_keys)
+        return self._lookup(np.asarray(cols, dtype=np.int64) * self._nb + rows) >= 0
 
     def block_entries(self, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Scalar (row, col) of every entry of blocks ``(r, c)`` (all of one shape),
@@ -114,11 +152,12 @@ class ReducedPattern:
             br: Row U blocks (all of one dimension).
             bc: Column U blocks (all of one dimension).
         """
-        r, c = self.block_entries(br, bc)
+        if len(br) == 0:
+            return np.zeros((0, 0), np.int64), np.zeros((0, 0), np.int64)
+        pos, _ = self._block_positions(br, bc)
+        post, _ = self._block_positions(bc, br)  # (q, j, i) of the transpose
         d1, d2 = int(self.udims[br[0]]), int(self.udims[bc[0]])
-        pos = self.positions(r, c)
-        post = self.positions(c.reshape(-1, d1, d2), r.reshape(-1, d1, d2))
-        return pos, post.reshape(len(br), -1)
+        return pos, post.reshape(len(br), d2, d1).transpose(0, 2, 1).reshape(len(br), -1)
 
     def to_s(self, tu1: np.ndarray, tu2: np.ndarray) -> sp.csr_matrix:
         """The constant 0/1 matrix that sums result blocks ``(tu1, tu2)`` (row-major, one after

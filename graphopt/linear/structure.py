@@ -19,8 +19,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from graphopt.errors import GraphError
-from graphopt.linear.block_ops import EdgeContraction
-from graphopt.linear.indexing import pairs_sharing_key, unique_ints
+from graphopt.linear.block_ops import csr_product_into
+from graphopt.linear.indexing import pairs_sharing_key, pairs_within_key, unique_ints
 from graphopt.linear.ordering import co_visibility_order
 from graphopt.linear.pattern import ReducedPattern
 
@@ -46,6 +46,101 @@ class VClass:
     slots: np.ndarray
 
 
+class EdgeSums:
+    """``out[t] = Σ_{e ∈ sel, target(e) = t} A_eᵀ B_e`` for blocks ``A`` ``(m, r, d)`` and
+    ``B`` ``(m, r, d2)`` with few columns ``d2`` (a gradient ``Jᵀe``, ``Σ_w W_w x_w``).
+
+    One product per column ``k`` of ``B`` with a constant CSC matrix: a column per row
+    ``(e, i)`` of the blocks, holding ``B[e, i, k]`` in row ``target(e)``. SciPy's loop reads
+    ``A`` once, in memory order, and sums its rows into the output, so nothing is gathered;
+    the index is 4 bytes per row ``(e, i)`` (:class:`~graphopt.linear.block_ops.
+    EdgeContraction` keeps ``4·d``), plus the column pointers, shared by sums over the same
+    rows. Against the contraction: as fast for ``d2 = 1``, twice as slow for ``d2 = 3`` (so the
+    V blocks keep the contraction).
+
+    Args:
+        target: Target of every block in ``sel``.
+        n_targets: Number of targets.
+        r: Rows of a block.
+        sel: Sorted blocks that take part (``None``: all, ``target`` per block).
+        m: Number of blocks (with ``sel``).
+        indptr: ``arange(m·r + 1)`` to share (all blocks only), or ``None``.
+    """
+
+    def __init__(self, target: np.ndarray, n_targets: int, r: int,
+                 sel: np.ndarray | None = None, m: int | None = None,
+                 indptr: np.ndarray | None = None) -> None:
+        m = len(target) if sel is None else int(m if m is not None else len(target))
+        idx_t = np.int32 if max(n_targets, m * r) < 2**31 else np.int64
+        self.indices = np.repeat(np.asarray(target).astype(idx_t), r)
+        if sel is None or len(sel) == m:
+            self.indptr = indptr if indptr is not None else np.arange(m * r + 1, dtype=idx_t)
+            self._rows = None
+        else:
+            has = np.zeros(m * r, dtype=idx_t)
+            self._rows = (np.asarray(sel)[:, None] * r + np.arange(r)).ravel()
+            has[self._rows] = 1
+            self.indptr = np.concatenate([np.zeros(1, idx_t), np.cumsum(has, dtype=idx_t)])
+        self.n_targets, self.m, self.r = n_targets, m, r
+
+    @staticmethod
+    def pointers(m: int, r: int) -> np.ndarray:
+        """``arange(m·r + 1)``: column pointers to share between sums over all of ``m``
+        blocks of ``r`` rows.
+
+        Args:
+            m: Blocks.
+            r: Rows of a block.
+        """
+        return np.arange(m * r + 1, dtype=np.int32 if m * r < 2**31 else np.int64)
+
+    def __call__(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """``out`` as ``(n_targets, d, d2)``.
+
+        Args:
+            A: ``(m, r, d)`` blocks.
+            B: ``(m, r, d2)`` blocks.
+        """
+        m, r, d = A.shape
+        d2 = B.shape[2]
+        a = np.ascontiguousarray(A).reshape(-1)
+        out = np.empty((d2, self.n_targets * d))
+        for k in range(d2):
+            data = B[:, :, k].reshape(-1)  # a copy unless d2 == 1
+            if self._rows is not None:
+                data = data[self._rows]
+            csr_product_into(self.n_targets, m * r, d, self.indptr, self.indices, data, a,
+                             out[k], csc=True)
+        if d2 == 1:
+            return out.reshape(self.n_targets, d, 1)
+        return np.ascontiguousarray(out.reshape(d2, self.n_targets, d).transpose(1, 2, 0))
+
+
+class BlockRows:
+    """``(n, du)`` scalar rows of the U block of every W block, computed when indexed (an
+    ``(n, du)`` array would cost ``8·du`` bytes per W block).
+
+    Args:
+        ublock: ``(n,)`` U block of every W block.
+        uoffset: Scalar offset of every U block.
+        du: U block dimension.
+    """
+
+    def __init__(self, ublock: np.ndarray, uoffset: np.ndarray, du: int) -> None:
+        self._ublock, self._uoffset, self._du = ublock, uoffset, du
+        self.shape = (len(ublock), du)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, w: object) -> np.ndarray:
+        return self._uoffset[self._ublock[w]][..., None] + np.arange(self._du)
+
+    def __array__(self, dtype: object = None, copy: object = None) -> np.ndarray:
+        out = self[slice(None)]
+        return out if dtype is None else out.astype(dtype)
+
+
 @dataclass
 class WClass:
     """The W blocks between the U vertices of one store and one V class.
@@ -58,16 +153,17 @@ class WClass:
         vclass: The V class.
         du: U block dimension.
         dv: V block dimension.
-        ublock: ``(n,)`` global U block of every W block.
-        vblock: ``(n,)`` block within the V class of every W block.
-        uoffset: The index's ``(n_ublocks + 1,)`` scalar offsets of the U blocks (shared).
-        keys: ``(n,)`` sorted ``vblock · n_ublocks + ublock``.
+        ublock: ``(n,)`` global U block of every W block (``int32`` where ``u · (n_ublocks
+            + 1)`` and ``v · dv²`` fit in it, else ``int64``).
+        vblock: ``(n,)`` block within the V class of every W block (same type).
+        upos: ``(n, du)`` scalar rows of every W block's U block (computed when indexed).
         rhs: ``Σ_w W_w x[w]`` into the U blocks of the class (``Wᵀ`` used in place).
         rhs_dest: ``(n_u, du)`` scalar rows of those U blocks.
         bsr_cols: ``(n,)`` column block of every W block among the store's U blocks: ``Wᵀ``
             of the class is a BSR matrix whose data is the W array as it is.
         bsr_indptr: ``(n_v + 1,)`` W blocks of every V block.
         ucols: The store's scalar U entries.
+        n_ublocks: U blocks of the graph (the base of :attr:`keys`).
     """
 
     ustore: int
@@ -76,19 +172,18 @@ class WClass:
     dv: int
     ublock: np.ndarray
     vblock: np.ndarray
-    uoffset: np.ndarray
-    keys: np.ndarray
-    rhs: EdgeContraction
+    upos: BlockRows
+    rhs: EdgeSums
     rhs_dest: np.ndarray
     bsr_cols: np.ndarray
     bsr_indptr: np.ndarray
     ucols: slice
+    n_ublocks: int
 
     @property
-    def upos(self) -> np.ndarray:
-        """``(n, du)`` scalar rows of every W block's U block, computed on use (marginals): 72
-        bytes per W block that no iteration needs."""
-        return self.uoffset[self.ublock][:, None] + np.arange(self.du)
+    def keys(self) -> np.ndarray:
+        """``(n,)`` sorted ``vblock · n_ublocks + ublock`` (computed on use, at set-up)."""
+        return self.vblock.astype(np.int64) * max(self.n_ublocks, 1) + self.ublock
 
 
 class BlockIndex:
@@ -136,15 +231,20 @@ class BlockIndex:
         u_keys, w_found = self._scan_edges()
         self._fill: dict[int, np.ndarray] = {}
         self._inc: list[tuple[np.ndarray, np.ndarray]] = []
+        # A V class with one W class: that class's blocks are the incidence, renumbered.
+        only: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         for vc in range(len(self.vclasses)):
             v, u = self._incidence(vc, w_found)
             self._inc.append((v, u))  # the U pairs of the fill do not depend on V's numbering
-            self._order_v_blocks(vc, v, u, w_found, spectral_max)
+            single = sum(c == vc for _, c in w_found) == 1
+            order = self._order_v_blocks(vc, v, u, w_found, spectral_max, renumber=not single)
+            if single:
+                only[vc] = (v, u, order)
         self.wclass_of: dict[tuple[int, int], int] = {}
         self.wclasses: list[WClass] = []
         for key, found in w_found.items():
             self.wclass_of[key] = len(self.wclasses)
-            self.wclasses.append(self._wclass(*key, found))
+            self.wclasses.append(self._wclass(*key, found, only.pop(key[1], None)))
         del w_found
         self.matrix_free = bool(matrix_free(self) if callable(matrix_free) else matrix_free)
         keys = [u_keys]
@@ -168,6 +268,7 @@ class BlockIndex:
             inc = sp.csr_matrix((np.ones(len(v)), (v, u)),
                                 shape=(len(self.vclasses[vc].slots), nb))
             fill = (inc.T @ inc).tocoo()
+            del inc
             self._fill[vc] = fill.col.astype(np.int64) * nb + fill.row
         return self._fill[vc]
 
@@ -192,11 +293,9 @@ class BlockIndex:
             k2: A W class of the same V class.
         """
         c1, c2 = self.wclasses[k1], self.wclasses[k2]
-        w1, w2 = pairs_sharing_key(c1.vblock, c2.vblock)
-        if k1 == k2:
-            keep = c1.ublock[w1] < c2.ublock[w2]
-            w1, w2 = w1[keep], w2[keep]
-        return w1, w2
+        if k1 == k2:  # a V block's W blocks are sorted by U block: u(w1) < u(w2) is w1 < w2
+            return pairs_within_key(c1.vblock)
+        return pairs_sharing_key(c1.vblock, c2.vblock)
 
     # --- construction ------------------------------------------------------------------------
 
@@ -273,9 +372,10 @@ class BlockIndex:
 
     def _order_v_blocks(self, vc: int, v: np.ndarray, u: np.ndarray,
                         w_found: dict[tuple[int, int], list[np.ndarray]],
-                        spectral_max: int) -> None:
+                        spectral_max: int, renumber: bool = True) -> np.ndarray:
         """Renumber V class ``vc``'s blocks in co-visibility order (in ``vblock``, the class's
-        slots and the scanned pairs), given its incidence ``(v, u)``."""
+        slots and, if ``renumber``, the scanned pairs), given its incidence ``(v, u)``; return
+        the order (new block ``b`` is old block ``order[b]``)."""
         c = self.vclasses[vc]
         nv = len(c.slots)
         order = co_visibility_order(v, u, nv, self.n_ublocks, spectral_max)
@@ -285,23 +385,50 @@ class BlockIndex:
         vb[vb >= 0] = new_id[vb[vb >= 0]]
         c.slots = c.slots[order]
         for (_, cls), found in w_found.items():
-            if cls == vc:
+            if cls == vc and renumber:
                 for p in found:
                     p[:, 1] = new_id[p[:, 1]]
+        return order
 
-    def _wclass(self, ustore: int, vclass: int, found: list[np.ndarray]) -> WClass:
+    def _wclass(self, ustore: int, vclass: int, found: list[np.ndarray],
+                incidence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> WClass:
+        """The W class of ``(ustore, vclass)`` from its edges' ``(U block, V block)`` pairs,
+        or from the V class's incidence ``(v, u, order)`` when the class is its only one."""
         nb = max(self.n_ublocks, 1)
         du = self.stores[ustore].vtype.dimension
         dv = self.vclasses[vclass].dim
         n_v = len(self.vclasses[vclass].slots)
-        allp = np.concatenate(found)
-        keys = unique_ints(allp[:, 1] * nb + allp[:, 0], n_v * nb)
-        vblock, ublock = keys // nb, keys % nb
+        # int32 where every product the strategies form of them (u·n_ublocks + u,
+        # v·dv²) fits: 8 bytes less per W block.
+        small = nb * (nb + 1) < 2**31 and n_v * dv * dv < 2**31
+        blk_t = np.int32 if small else np.int64
+        if incidence is not None:  # the rows of the incidence in the new V order: no sort
+            found.clear()
+            v, u, order = incidence
+            start = np.searchsorted(v, np.arange(n_v + 1))
+            cnt = np.diff(start)[order]
+            first = np.cumsum(cnt) - cnt
+            rows = np.arange(int(cnt.sum()), dtype=np.int64)
+            rows += np.repeat(start[:-1][order] - first, cnt)
+            ublock = u[rows].astype(blk_t)
+            del rows
+            vblock = np.repeat(np.arange(n_v, dtype=blk_t), cnt)
+        else:
+            allp = found[0] if len(found) == 1 else np.concatenate(found)
+            found.clear()  # the pairs are in the keys now
+            keys = unique_ints(allp[:, 1] * nb + allp[:, 0], n_v * nb)
+            del allp
+            vblock, ublock = (keys // nb).astype(blk_t), (keys % nb).astype(blk_t)
+            del keys
         # rhs: Σ_w W_w y[w] per U block is Σ_w (Wᵀ_w)ᵀ y[w]: Wᵀ used in place.
         uu, inv = unique_ints(ublock, nb, True)
-        rhs = EdgeContraction(np.arange(len(keys)), inv, len(uu), len(keys), dv, du)
+        rhs = EdgeSums(inv, len(uu), dv)
         rhs_dest = self.uoffset[uu][:, None] + np.arange(du)
         ub_store = np.flatnonzero(self.ustore == ustore)  # a store's U blocks are contiguous
         ucols = slice(int(self.uoffset[ub_store[0]]), int(self.uoffset[ub_store[-1] + 1]))
-        return WClass(ustore, vclass, du, dv, ublock, vblock, self.uoffset, keys, rhs, rhs_dest,
-                      ublock - ub_store[0], np.searchsorted(vblock, np.arange(n_v + 1)), ucols)
+        # BSR indices in int32 where they fit (SciPy would convert them at every product).
+        bsr_t = np.int32 if max(len(ublock), len(ub_store)) < 2**31 else np.int64
+        return WClass(ustore, vclass, du, dv, ublock, vblock,
+                      BlockRows(ublock, self.uoffset, du), rhs, rhs_dest,
+                      (ublock - ub_store[0]).astype(bsr_t),
+                      np.searchsorted(vblock, np.arange(n_v + 1)).astype(bsr_t), ucols, nb)
