@@ -20,10 +20,8 @@ from __future__ import annotations
 import bz2
 import dataclasses
 import gzip
-import lzma
 import os
 import warnings
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +31,7 @@ import numpy as np
 
 from graphopt.io.atomic import atomic_path
 from graphopt.io.bal_stream import BALWriter, format_fixed, quantize
-from graphopt.io.text import WHITESPACE, FileFormatError
+from graphopt.io.text import DECOMPRESSION_ERRORS, WHITESPACE, FileFormatError, open_stream
 from graphopt.lie import angle_axis_rotate
 
 __all__ = ["BALFormatError", "BALProblem", "BALWriter", "format_fixed", "quantize", "read_bal",
@@ -114,38 +112,13 @@ class BALProblem:
 CHUNK_BYTES = 1 << 22
 
 
-def _open(path: Path) -> BinaryIO:
-    """The file as a binary stream, decompressed when its magic bytes say bzip2, gzip or xz."""
-    try:
-        f = open(path, "rb")  # noqa: SIM115 - closed by read_bal
-    except FileNotFoundError:
-        raise BALFormatError(path, "file not found") from None
-    except IsADirectoryError:
-        raise BALFormatError(path, f"is a directory, not a {BALFormatError.kind}") from None
-    except OSError as exc:
-        raise BALFormatError(path, f"cannot read file: {exc.strerror or exc}") from None
-    try:
-        magic = f.read(6)
-        f.seek(0)
-    except OSError as exc:
-        f.close()
-        raise BALFormatError(path, f"cannot read file: {exc.strerror or exc}") from None
-    if magic[:3] == b"BZh":
-        return bz2.BZ2File(f)  # type: ignore[return-value]
-    if magic[:2] == b"\x1f\x8b":
-        return gzip.GzipFile(fileobj=f)  # type: ignore[return-value]
-    if magic == b"\xfd7zXZ\x00":
-        return lzma.LZMAFile(f)  # type: ignore[return-value]
-    return f
-
-
 def _line_blocks(path: Path, f: BinaryIO) -> Iterator[bytes]:
     """The text in blocks of about :data:`CHUNK_BYTES` that end at a line end (or the file's)."""
     rest = b""
     while True:
         try:
             block = f.read(CHUNK_BYTES)
-        except (OSError, EOFError, ValueError, zlib.error, lzma.LZMAError) as exc:
+        except DECOMPRESSION_ERRORS as exc:
             raise BALFormatError(path, f"corrupt or truncated compressed file ({exc})") from None
         if not block:
             if rest:
@@ -390,7 +363,7 @@ def read_bal(path: str | os.PathLike[str]) -> BALProblem:
     path = Path(path)
     reader = _Reader(path)
     line0, last_line = 0, 0
-    with _open(path) as f:
+    with open_stream(path, BALFormatError) as f:
         for data in _line_blocks(path, f):
             blk = _Block(data, line0)
             if len(blk):

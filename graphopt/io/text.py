@@ -9,6 +9,7 @@ import lzma
 import os
 import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -36,15 +37,21 @@ class FileFormatError(ValueError):
         super().__init__(f"{where}: {message}")
 
 
-def read_bytes(path: Path, error: type[FileFormatError]) -> bytes:
-    """The file's content, decompressed when its magic bytes say bzip2, gzip or xz.
+#: What a truncated or corrupt compressed stream raises while it is read.
+DECOMPRESSION_ERRORS = (OSError, EOFError, ValueError, zlib.error, lzma.LZMAError)
+
+
+def open_stream(path: Path, error: type[FileFormatError]) -> BinaryIO:
+    """The file as a binary stream, decompressed when its magic bytes say bzip2, gzip or xz.
+
+    Reading it may raise one of :data:`DECOMPRESSION_ERRORS` on a corrupt compressed file.
 
     Args:
         path: The file.
-        error: The reader's error class (raised naming the file).
+        error: The reader's error class (raised naming the file when it cannot be opened).
     """
     try:
-        raw = path.read_bytes()
+        f = open(path, "rb")  # noqa: SIM115 - the caller closes the stream
     except FileNotFoundError:
         raise error(path, "file not found") from None
     except IsADirectoryError:
@@ -52,15 +59,34 @@ def read_bytes(path: Path, error: type[FileFormatError]) -> bytes:
     except OSError as exc:
         raise error(path, f"cannot read file: {exc.strerror or exc}") from None
     try:
-        if raw[:3] == b"BZh":
-            return bz2.decompress(raw)
-        if raw[:2] == b"\x1f\x8b":
-            return gzip.decompress(raw)
-        if raw[:6] == b"\xfd7zXZ\x00":
-            return lzma.decompress(raw)
-    except (OSError, EOFError, ValueError, zlib.error, lzma.LZMAError) as exc:
-        raise error(path, f"corrupt or truncated compressed file ({exc})") from None
-    return raw
+        magic = f.read(6)
+        f.seek(0)
+    except OSError as exc:
+        f.close()
+        raise error(path, f"cannot read file: {exc.strerror or exc}") from None
+    if magic[:3] == b"BZh":
+        return bz2.BZ2File(f)  # type: ignore[return-value]
+    if magic[:2] == b"\x1f\x8b":
+        return gzip.GzipFile(fileobj=f)  # type: ignore[return-value]
+    if magic == b"\xfd7zXZ\x00":
+        return lzma.LZMAFile(f)  # type: ignore[return-value]
+    return f
+
+
+def read_bytes(path: Path, error: type[FileFormatError]) -> bytes:
+    """The file's content, decompressed when its magic bytes say bzip2, gzip or xz.
+
+    Args:
+        path: The file.
+        error: The reader's error class (raised naming the file).
+    """
+    with open_stream(path, error) as f:
+        try:
+            return f.read()
+        except DECOMPRESSION_ERRORS as exc:
+            raise error(path, f"corrupt or truncated compressed file ({exc})") from None
+        except OSError as exc:  # pragma: no cover - a read error of a plain file
+            raise error(path, f"cannot read file: {exc.strerror or exc}") from None
 
 
 def token_layout(data: bytes) -> tuple[np.ndarray, np.ndarray]:
