@@ -50,6 +50,7 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_bal, also under python -P
 DATA = ROOT / "out" / "scale"
 DEFAULT_SIZES = "1M,3M"
 ALL_SIDES = ("graphopt:cholmod", "graphopt:iterative-schur", "ceres:sparse-schur",
@@ -118,49 +119,6 @@ def side_graphopt(path: str, solver: str, iterations: int) -> dict[str, Any]:
             "rss_after_read": rss_read, "rss_after_setup": rss_setup}
 
 
-def _colmap_reconstruction(problem: Any) -> Any:
-    """A pycolmap Reconstruction equal to the BAL problem (as ``bench_bal.py``'s, grouped by
-    sorting: linear in the observations).
-
-    BAL's camera looks down −z with y up, COLMAP's down +z with y down: the camera frame turns
-    by π about x and observed y changes sign; COLMAP's RADIAL camera with ``c = 0`` is then
-    BAL's projection.
-    """
-    import numpy as np
-    import pycolmap
-
-    from graphopt.lie import so3_exp
-
-    flip = np.diag([1.0, -1.0, -1.0])
-    R = flip @ so3_exp(problem.cameras[:, :3])
-    t = problem.cameras[:, 3:6] @ flip
-    obs = problem.observations * np.array([1.0, -1.0])
-    ci, pi = problem.camera_index, problem.point_index
-    m, nc = problem.num_observations, problem.num_cameras
-    order = np.argsort(ci, kind="stable")
-    cstart = np.searchsorted(ci[order], np.arange(nc + 1))
-    kp = np.empty(m, np.int64)  # keypoint of every observation within its image
-    kp[order] = np.arange(m) - np.repeat(cstart[:-1], np.diff(cstart))
-    rec = pycolmap.Reconstruction()
-    for i in range(nc):
-        sel = order[cstart[i]:cstart[i + 1]]
-        size = int(2 * np.abs(problem.observations[sel]).max()) + 2 if len(sel) else 2
-        c = problem.cameras[i]
-        cam = pycolmap.Camera(model="RADIAL", width=size, height=size,
-                              params=[c[6], 0.0, 0.0, c[7], c[8]], camera_id=i + 1)
-        rec.add_camera_with_trivial_rig(cam)
-        img = pycolmap.Image(name=str(i), keypoints=obs[sel], camera_id=i + 1, image_id=i + 1)
-        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(pycolmap.Rotation3d(R[i]), t[i]))
-    po = np.argsort(pi, kind="stable")
-    pstart = np.searchsorted(pi[po], np.arange(problem.num_points + 1)).tolist()
-    img_ids, kps = (ci[po] + 1).tolist(), kp[po].tolist()
-    element = pycolmap.TrackElement
-    for j, xyz in enumerate(problem.points):
-        a, b = pstart[j], pstart[j + 1]
-        rec.add_point3D(xyz, pycolmap.Track([element(img_ids[k], kps[k]) for k in range(a, b)]))
-    return rec
-
-
 def side_ceres(path: str, linear_solver: str, iterations: int) -> dict[str, Any]:
     """Ceres (pycolmap's BAL-equivalent RADIAL cost, pyceres), one thread.
 
@@ -171,6 +129,7 @@ def side_ceres(path: str, linear_solver: str, iterations: int) -> dict[str, Any]
     """
     import pyceres
     import pycolmap
+    from bench_bal import _colmap_reconstruction
 
     from graphopt.io.bal import read_bal
 
@@ -178,7 +137,7 @@ def side_ceres(path: str, linear_solver: str, iterations: int) -> dict[str, Any]
     problem = read_bal(path)
     t_read = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rec = _colmap_reconstruction(problem)
+    rec, _ = _colmap_reconstruction(problem)
     m = problem.num_observations
     del problem
     opts = pycolmap.BundleAdjustmentOptions()
