@@ -11,6 +11,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.sparse as sp
 
+try:  # SciPy's BSR kernel, called on the arrays directly (see wt_product)
+    from scipy.sparse._sparsetools import bsr_matvec as _bsr_matvec
+except ImportError:  # pragma: no cover - a SciPy without it: the public product
+    _bsr_matvec = None
+
 from graphopt.linear.pattern import with_data
 
 if TYPE_CHECKING:
@@ -84,9 +89,17 @@ def wt_product(index: BlockIndex, asm: Assembly, k: int, xu: np.ndarray) -> np.n
     wc = index.wclasses[k]
     n_v = len(wc.bsr_indptr) - 1
     n_u = (wc.ucols.stop - wc.ucols.start) // wc.du
-    m = sp.bsr_matrix((asm.wt[k], wc.bsr_cols, wc.bsr_indptr),
+    x = np.ascontiguousarray(xu[wc.ucols], dtype=float)
+    if _bsr_matvec is not None and wc.bsr_cols.dtype == wc.bsr_indptr.dtype:
+        # SciPy's kernel on the W array as it is: no bsr_matrix object (its checks cost tens
+        # of µs a call, most of a small problem's back-substitution).
+        out = np.zeros(n_v * wc.dv)
+        _bsr_matvec(n_v, n_u, wc.dv, wc.du, wc.bsr_indptr, wc.bsr_cols,
+                    np.ascontiguousarray(asm.wt[k]).reshape(-1), x, out)
+        return out.reshape(n_v, wc.dv)
+    m = sp.bsr_matrix((asm.wt[k], wc.bsr_cols, wc.bsr_indptr),  # pragma: no cover
                       shape=(n_v * wc.dv, n_u * wc.du))
-    return (m @ xu[wc.ucols]).reshape(n_v, wc.dv)
+    return (m @ x).reshape(n_v, wc.dv)
 
 
 def w_product(index: BlockIndex, asm: Assembly, k: int, xv: np.ndarray) -> np.ndarray:
