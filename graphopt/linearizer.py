@@ -120,10 +120,17 @@ class Linearizer:
         """Versions of every store's estimates: the key of cached linearisations."""
         return tuple(st.version for st in self.stores)
 
-    def _linearization(self, gi: int) -> Linearization:
-        """Group ``gi``'s linearisation, reusing a trial's if the state is the same."""
+    def _linearization(self, gi: int, consume: bool = False) -> Linearization:
+        """Group ``gi``'s linearisation, reusing a trial's if the state is the same.
+
+        Args:
+            gi: Group index.
+            consume: Drop the cached trial linearisation once used (the assembly's): its
+                Jacobians would otherwise stay alive through the solves, next to the normal
+                equations formed from them.
+        """
         key = self._state()
-        hit = self._lin_cache.get(gi)
+        hit = self._lin_cache.pop(gi, None) if consume else self._lin_cache.get(gi)
         if hit is not None and hit[0] == key:
             return hit[1]
         g = self.groups[gi]
@@ -306,7 +313,7 @@ class Linearizer:
         jac, wjac, wes = [], [], []
         totals = [0.0, 0.0, 0.0]
         for gi, g in enumerate(self.groups):
-            out = self._linearization(gi)
+            out = self._linearization(gi, consume=True)
             e, J = out.error, out.jacobians
             oe, s = self._sq(g, e)
             if g.etype.linearization_rows is not None:
