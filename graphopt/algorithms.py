@@ -139,13 +139,15 @@ class _Tests:
         tol = self.stopping.gradient_tolerance
         return tol > 0 and self.stopping.gradient_converged(self.p.max_abs(b))
 
-    def step(self, step: Step) -> bool:
-        """The step is negligible against the estimates."""
+    def step(self, step: Step, norm: float | None = None) -> bool:
+        """The step is negligible against the estimates (``norm``: ``‖step‖`` if known)."""
         if self.stopping.parameter_tolerance <= 0:
             return False
         if self._state_norm is None:
             self._state_norm = self.p.state_norm()
-        return self.stopping.parameters_converged(self.p.step_norm(step), self._state_norm)
+        if norm is None:
+            norm = math.sqrt(_dot(step, step))
+        return self.stopping.parameters_converged(norm, self._state_norm)
 
     def function(self, chi: float, new_chi: float) -> bool:
         """The trial changed chi2 by a negligible fraction."""
@@ -434,7 +436,8 @@ class Dogleg(Algorithm):
                 a0 = sd_norm**2 - self.radius**2
                 beta = (-a1 + math.sqrt(max(a1 * a1 - 4 * a2 * a0, 0.0))) / (2 * a2)
                 step = _axpy(1.0, sd, beta, d)
-            if tests.step(step):
+            step_norm = math.sqrt(_dot(step, step))
+            if tests.step(step, step_norm):
                 return IterationInfo(iteration, chi, lam=self.lam, trials=trial,
                                      radius=self.radius, not_pd=not_pd, singular=singular,
                                      failed=True, stop=StopReason.PARAMETER_TOLERANCE)
@@ -442,7 +445,6 @@ class Dogleg(Algorithm):
             linear_gain = 2.0 * _dot(b, step) - _dot(step, hstep)  # in chi2 units
             new_chi = self._trial(p, step)
             rho = (chi - new_chi) / linear_gain if linear_gain > 0 else -1.0
-            step_norm = math.sqrt(_dot(step, step))
             if rho > 0.75:
                 self.radius = max(self.radius, 3.0 * step_norm)
             elif rho < 0.25:

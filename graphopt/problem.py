@@ -226,16 +226,6 @@ class Problem:
         return math.sqrt(total)
 
     @staticmethod
-    def step_norm(step: Step) -> float:
-        """``‖Δ‖`` of a step.
-
-        Args:
-            step: A vector in the step layout.
-        """
-        du, dv = step
-        return math.sqrt(float(du @ du) + sum(float(np.vdot(x, x)) for x in dv))
-
-    @staticmethod
     def max_abs(step: Step) -> float:
         """``max |Δ|`` of a step (0 for an empty one).
 
