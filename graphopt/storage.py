@@ -177,6 +177,7 @@ class EdgeGroup:
         self.measurements = np.zeros((0, *self.mshape))
         self.information: np.ndarray | None = None  # (e, e) shared, or (m, e, e)
         self.info_is_identity = True
+        self.info_diagonal: np.ndarray | None = None  # (e,) when the shared matrix is diagonal
         self.kernel_index = np.zeros(0, dtype=np.int64)
         self.data: dict[str, np.ndarray] = {}
         self.last_chi2 = np.zeros(0)
@@ -255,13 +256,21 @@ class EdgeGroup:
         if len(shared) == len(self._info) and all(np.array_equal(shared[0], i) for i in shared):
             self.information = shared[0] if shared else np.eye(self.dim)
         else:
-            self.information = np.concatenate(
+            info = np.concatenate(
                 [np.broadcast_to(i, (len(v), self.dim, self.dim)) for i, v in
                  zip(self._info, self._vids, strict=True)]
             )
+            # Files give a matrix per edge, mostly one and the same (every edge of w10000 and
+            # Victoria Park): one shared matrix makes the weighting a broadcast, not m products.
+            same = bool(len(info)) and bool((info == info[0]).all())
+            self.information = info[0].copy() if same else info
         self.info_is_identity = self.information.ndim == 2 and np.array_equal(
             self.information, np.eye(self.dim)
         )
+        self.info_diagonal = None
+        if self.information.ndim == 2 and not np.count_nonzero(
+                self.information - np.diag(np.diag(self.information))):
+            self.info_diagonal = np.diag(self.information).copy()
         if self._data:
             self.data = {key: np.concatenate([d[key] for d in self._data]) for key in self._data[0]}
         # Keep one chunk so further appends concatenate onto the consolidated arrays.

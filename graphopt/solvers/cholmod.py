@@ -9,6 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from graphopt.errors import NotPositiveDefiniteError
+from graphopt.linear.pattern import with_data
 from graphopt.solvers.base import LinearSolver
 from graphopt.solvers.rank import checked_solve, shift_diagonal
 
@@ -97,9 +98,20 @@ class LinearSolverCholmod(LinearSolver):
             block_sizes: Diagonal block sizes.
         """
         super().analyze(pattern, block_sizes)
+        # CHOLMOD reads one triangle of a symmetric matrix (sksparse passes the lower one), and
+        # its numeric factorisation first permutes and transposes what it is given: handing it
+        # the lower triangle alone halves that copy (w10000: 42.6 ms against 46.3 a
+        # factorisation, the gather of the triangle included).
+        cols = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
+        lower = pattern.indices >= cols
+        self._lower = np.flatnonzero(lower)
+        self._lower_pattern = sp.csc_matrix(
+            (np.zeros(len(self._lower)), pattern.indices[self._lower],
+             np.concatenate([[0], np.cumsum(np.bincount(cols[lower], minlength=pattern.shape[1]))]
+                            ).astype(pattern.indptr.dtype)), shape=pattern.shape)
         # Analyse with a structurally full matrix (ones) so the symbolic factor covers all
         # entries of the pattern whatever the values become.
-        probe = self.matrix(np.ones(pattern.nnz))
+        probe = self._lower_matrix(np.ones(pattern.nnz))
         small_blocks = bool(len(block_sizes)) and int(np.max(block_sizes)) <= 3
         mode = "simplicial" if self.mode == "auto" and small_blocks else self.mode
         ordering = self.ordering
@@ -119,7 +131,7 @@ class LinearSolverCholmod(LinearSolver):
         f = self._factor
         stopped_at = None
         try:
-            f.cholesky_inplace(self.matrix(data))
+            f.cholesky_inplace(self._lower_matrix(data))
         except CholmodNotPositiveDefiniteError as exc:
             stopped_at = int(exc.column)  # L->minor: the step with the non-positive pivot
         pivots = f.D()  # read in place: L_kk² of a supernodal LLᵀ, D of a simplicial LDLᵀ
@@ -130,12 +142,17 @@ class LinearSolverCholmod(LinearSolver):
             raise NotPositiveDefiniteError("CHOLMOD produced non-finite values")
         return x
 
+    def _lower_matrix(self, data: np.ndarray) -> sp.csc_matrix:
+        """The lower triangle of the matrix with ``data`` in the analysed (full) pattern."""
+        return with_data(self._lower_pattern, data[self._lower])
+
     def _shifted_is_definite(self, data: np.ndarray, scale: np.ndarray) -> bool:
         """Whether ``A + τ·S`` factorises with positive, finite pivots (the factor is left in
         place: the next solve refactorises)."""
         assert self._factor is not None
         try:
-            self._factor.cholesky_inplace(self.matrix(shift_diagonal(data, self.diag_pos, scale)))
+            self._factor.cholesky_inplace(
+                self._lower_matrix(shift_diagonal(data, self.diag_pos, scale)))
         except CholmodNotPositiveDefiniteError:
             return False
         d = self._factor.D()
