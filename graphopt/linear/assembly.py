@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.sparse as sp
 
-from graphopt.linear.block_ops import EdgeContraction, GatheredGram
+from graphopt.linear.block_ops import EdgeContraction, GatheredGram, csr_matvec_into
 from graphopt.linear.indexing import unique_ints
 from graphopt.linear.schur_config import SchurCostModel
 from graphopt.linear.structure import EdgeSums
@@ -67,6 +67,7 @@ class _HTerm:
     contraction: EdgeContraction | None
     dest: Dest | None  # U: (t, dl·dr) data positions (None with a Gram); V/W: (t,) blocks
     dest_t: np.ndarray | None = None  # U off-diagonal: positions of the transposed entries
+    span: slice | None = None  # U contraction: its outputs' place in the assembler's buffer
     cls: int = -1  # V class or W class
     mirror: bool = False  # V term with left != right on the same vertex: add the transpose too
     identity: bool = False  # V/W term whose targets are all blocks of its class, in order
@@ -122,6 +123,7 @@ class Assembler:
         self._all: dict[int, np.ndarray] = {}
         self._pointers: dict[tuple[int, int], np.ndarray] = {}
         self.terms = [self._group_terms(gi) for gi in range(len(index.groups))]
+        self._u_buffer, self._u_map = self._u_scatter()
 
     @property
     def u_gram_terms(self) -> int:
@@ -188,6 +190,33 @@ class Assembler:
                 gt.gterms.append(_GTerm(a, kind, con or self._sums(g, sel, inv, len(uniq)),
                                         dest, cls, whole))
         return gt
+
+    def _u_scatter(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """One buffer for the outputs of every U contraction, and the 0/1 CSR map (rows:
+        ``H_uu``'s data positions) that adds them, transposes included, into ``H_uu``: one C loop
+        instead of two fancy-index additions per term (w10000, 64k edges: 3 ms against 10)."""
+        rows, off = [], 0
+        for gt in self.terms:
+            for t in gt.hterms:
+                if t.kind != "U" or t.contraction is None:
+                    continue
+                assert isinstance(t.dest, np.ndarray)
+                size = t.dest.size
+                t.span = slice(off, off + size)
+                rows.append((t.dest.reshape(-1), off))
+                if t.dest_t is not None:
+                    rows.append((t.dest_t.reshape(-1), off))
+                t.dest = t.dest_t = None  # kept in the map
+                off += size
+        if not rows:
+            return np.zeros(0), None
+        nnz = self.index.pattern.nnz
+        r = np.concatenate([d for d, _ in rows])
+        c = np.concatenate([o + np.arange(len(d)) for d, o in rows])
+        order = np.argsort(r, kind="stable")
+        itype = np.int32 if max(nnz, off) < 2**31 else np.int64
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=nnz))]).astype(itype)
+        return np.empty(off), (indptr, c[order].astype(itype), np.ones(len(r)))
 
     def _edges(self, mask: np.ndarray) -> np.ndarray:
         """``flatnonzero(mask)``; one shared array for every term over all of a group's edges."""
@@ -280,13 +309,12 @@ class Assembler:
                     h += t.to_h @ t.out.reshape(-1)
                     continue
                 assert t.contraction is not None
+                if t.kind == "U":  # into the buffer, added to h below
+                    t.contraction(np.ascontiguousarray(J[t.left]), WJ[t.right],
+                                  self._u_buffer[t.span])
+                    continue
                 blk = t.contraction(np.ascontiguousarray(J[t.left]), WJ[t.right])
-                if t.kind == "U":
-                    flat = blk.reshape(len(blk), -1)
-                    h[t.dest] += flat
-                    if t.dest_t is not None:
-                        h[t.dest_t] += flat
-                elif t.kind == "V":
+                if t.kind == "V":
                     if t.mirror:
                         blk = blk + np.swapaxes(blk, 1, 2)
                     c = ix.vclasses[t.cls]
@@ -303,6 +331,8 @@ class Assembler:
                 else:
                     c = ix.vclasses[g.cls]
                     _add_blocks(bv, g.cls, g.dest, gb, g.identity, (len(c.slots), c.dim))
+        if self._u_map is not None:
+            csr_matvec_into(len(h), len(self._u_buffer), *self._u_map, self._u_buffer, h)
         vfull = [x if x is not None else np.zeros((len(c.slots), c.dim, c.dim))
                  for x, c in zip(v, ix.vclasses, strict=True)]
         bvfull = [x if x is not None else np.zeros((len(c.slots), c.dim))

@@ -10,9 +10,10 @@ from graphopt.errors import NotPositiveDefiniteError
 try:  # SciPy's C kernels of ``csr @ dense`` and ``csc @ dense``; they accumulate into a
     # given output array.
     from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs
+    from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
     from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs
 except ImportError:  # pragma: no cover - private module: fall back to the public product
-    _csr_matvecs = _csc_matvecs = None
+    _csr_matvecs = _csc_matvecs = _csr_matvec = None
 
 
 def batched_cholesky_inverses(
@@ -117,6 +118,25 @@ def csr_product_into(
     kernel(n_rows, n_cols, width, indptr, indices, data, b, out)
 
 
+def csr_matvec_into(n_rows: int, n_cols: int, indptr: np.ndarray, indices: np.ndarray,
+                    data: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
+    """``out += A @ x`` for a CSR matrix ``A`` given by its arrays (no ``csr_matrix`` object).
+
+    Args:
+        n_rows: Rows of ``A``.
+        n_cols: Columns of ``A``.
+        indptr: Row pointer (same integer type as ``indices``).
+        indices: Column indices.
+        data: Values (float64).
+        x: ``(n_cols,)`` vector.
+        out: ``(n_rows,)`` vector added to.
+    """
+    if _csr_matvec is None:  # pragma: no cover
+        out += sp.csr_matrix((data, indices, indptr), shape=(n_rows, n_cols)) @ x
+        return
+    _csr_matvec(n_rows, n_cols, indptr, indices, data, x, out)
+
+
 class _CscContraction:
     """A constant-structure CSC operator ``M`` (rows ``(t, i)``, ``shape[1]`` rows of ``B``) whose
     values come from ``A``: ``out[t] = Σ A-blocksᵀ · B-blocks`` is ``M @ B``, the scatter-add
@@ -152,7 +172,8 @@ class _CscContraction:
         out = M @ B.reshape(self.shape[1], d2)
         return np.asarray(out).reshape(self.n_targets, self.d1, d2)
 
-    def __call__(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    def __call__(self, A: np.ndarray, B: np.ndarray, out: np.ndarray | None = None
+                 ) -> np.ndarray:
         """``out[t]`` as ``(n_targets, d1, d2)``: SciPy's CSC kernel on the values directly
         (no ``csc_matrix`` object: its constructor's checks cost 20–40 µs a call, most of an
         assembly on small graphs).
@@ -160,13 +181,19 @@ class _CscContraction:
         Args:
             A: ``(nA, r, d1)`` blocks.
             B: ``(nB, r, d2)`` blocks.
+            out: Flat ``(n_targets · d1 · d2,)`` array to write into (overwritten); a new one
+                when ``None``.
         """
         d2 = B.shape[-1]
         if self.indptr.dtype != self.indices.dtype:  # the kernel takes one index type
-            return self.apply(self.matrix(A), B)
+            res = self.apply(self.matrix(A), B)
+            if out is not None:
+                out[:] = res.reshape(-1)
+            return res
         b = np.ascontiguousarray(B, dtype=float).reshape(-1)
         data = np.ascontiguousarray(self._values(A), dtype=float)
-        out = np.empty(self.shape[0] * d2)
+        if out is None:
+            out = np.empty(self.shape[0] * d2)
         csr_product_into(self.shape[0], self.shape[1], d2, self.indptr, self.indices, data, b,
                          out, csc=True)
         return out.reshape(self.n_targets, self.d1, d2)
