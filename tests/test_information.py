@@ -1,0 +1,97 @@
+"""Information matrices: per-edge matrices that are all the same are stored once, a diagonal
+shared matrix weights the Jacobians by a row scaling, and every form assembles the same
+``H = Σ JᵀΩJ`` and ``b = −Σ JᵀΩe`` as a dense sum computed here edge by edge."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graphopt import SparseOptimizer
+from graphopt.edge import EdgeContext
+from graphopt.linear.pattern import with_data
+from graphopt.types import EdgeSE2, VertexSE2
+
+N = 6  # poses on a loop, the first fixed
+LOOP = np.array([[i, (i + 1) % N] for i in range(N)] + [[0, 3], [1, 4]])
+
+
+def _poses(rng: np.random.Generator) -> np.ndarray:
+    xy = rng.normal(scale=2.0, size=(N, 2))
+    return np.column_stack([xy, rng.uniform(-np.pi, np.pi, N)])
+
+
+def _build(info: np.ndarray | None) -> tuple[SparseOptimizer, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(7)
+    x = _poses(rng)
+    z = rng.normal(scale=0.5, size=(len(LOOP), 3))
+    opt = SparseOptimizer(solver="dense")
+    for i in range(N):
+        opt.add_vertex(VertexSE2(i, x[i], fixed=i == 0))
+    opt.add_edges(EdgeSE2, LOOP, z, information=info)
+    opt.initialize_optimization()
+    return opt, x, z
+
+
+def _dense(x: np.ndarray, z: np.ndarray, infos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``H`` and ``b`` over the free poses 1..N-1, summed edge by edge."""
+    lin = EdgeSE2.linearize((x[LOOP[:, 0]], x[LOOP[:, 1]]), z, EdgeContext({}, {}))
+    H, b = np.zeros((3 * N, 3 * N)), np.zeros(3 * N)
+    for k, (i, j) in enumerate(LOOP):
+        J = np.zeros((3, 3 * N))
+        J[:, 3 * i:3 * i + 3] = lin.jacobians[0][k]
+        J[:, 3 * j:3 * j + 3] = lin.jacobians[1][k]
+        H += J.T @ infos[k] @ J
+        b -= J.T @ infos[k] @ lin.error[k]
+    return H[3:, 3:], b[3:]
+
+
+def _assembled(opt: SparseOptimizer) -> tuple[np.ndarray, np.ndarray]:
+    assert opt.problem is not None and opt.linear_system is not None
+    asm, _ = opt.problem.linearize()
+    return with_data(opt.linear_system.pattern, asm.h_data).toarray(), asm.bu
+
+
+DIAG = np.diag([100.0, 500.0, 500.0])
+FULL = np.array([[40.0, 3.0, -2.0], [3.0, 25.0, 1.5], [-2.0, 1.5, 60.0]])
+
+
+@pytest.mark.parametrize(("given", "stored_ndim", "diagonal"), [
+    ("per-edge diagonal, all equal", 2, True),
+    ("per-edge full, all equal", 2, False),
+    ("per-edge, one differs", 3, False),
+    ("shared full", 2, False),
+])
+def test_information_forms_assemble_the_dense_sum(given: str, stored_ndim: int,
+                                                  diagonal: bool) -> None:
+    m = len(LOOP)
+    infos = np.broadcast_to(DIAG if "diagonal" in given else FULL, (m, 3, 3)).copy()
+    if "differs" in given:
+        infos[3] = 2.0 * FULL
+    arg = infos[0] if given.startswith("shared") else infos
+    opt, x, z = _build(arg)
+    g = opt.edge_groups()[0]
+    assert g.information is not None and g.information.ndim == stored_ndim
+    assert (g.info_diagonal is not None) == diagonal
+    if diagonal:
+        np.testing.assert_array_equal(g.info_diagonal, np.diag(DIAG))
+    H_ref, b_ref = _dense(x, z, infos)
+    H, b = _assembled(opt)
+    scale = np.abs(H_ref).max()
+    np.testing.assert_allclose(H, H_ref, rtol=1e-12, atol=1e-13 * scale)
+    np.testing.assert_allclose(b, b_ref, rtol=1e-12, atol=1e-13 * np.abs(b_ref).max())
+    # chi2 = Σ e'Ωe with each edge's own matrix.
+    e = EdgeSE2.error((x[LOOP[:, 0]], x[LOOP[:, 1]]), z, EdgeContext({}, {}))
+    chi2 = float(np.einsum("mi,mij,mj->", e, infos, e))
+    assert opt.chi2() == pytest.approx(chi2, rel=1e-13)
+
+
+def test_edge_reads_back_its_information_after_the_collapse() -> None:
+    infos = np.broadcast_to(DIAG, (len(LOOP), 3, 3)).copy()
+    opt, _, _ = _build(infos)
+    g = opt.edge_groups()[0]
+    for i in (0, len(LOOP) - 1):
+        got = g.information_of(i)
+        np.testing.assert_array_equal(got, DIAG)
+        got[0, 0] = -1.0  # a copy: the shared matrix is not changed through it
+    np.testing.assert_array_equal(g.information, DIAG)
