@@ -9,10 +9,12 @@ from graphopt.errors import NotPositiveDefiniteError
 
 try:  # SciPy's C kernels of ``csr @ dense`` and ``csc @ dense``; they accumulate into a
     # given output array.
+    from scipy.sparse._sparsetools import csc_matvec as _csc_matvec
     from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs
+    from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
     from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs
 except ImportError:  # pragma: no cover - private module: fall back to the public product
-    _csr_matvecs = _csc_matvecs = None
+    _csr_matvecs = _csc_matvecs = _csr_matvec = _csc_matvec = None
 
 
 def batched_cholesky_inverses(
@@ -114,6 +116,9 @@ def csr_product_into(
         out[:] = (a @ b[:n_cols * width].reshape(n_cols, width)).reshape(-1)
         return
     out.fill(0.0)
+    if width == 1:  # the one-vector kernel: the same sums in the same order, a third faster
+        (_csc_matvec if csc else _csr_matvec)(n_rows, n_cols, indptr, indices, data, b, out)
+        return
     kernel(n_rows, n_cols, width, indptr, indices, data, b, out)
 
 
