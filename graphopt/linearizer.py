@@ -139,6 +139,9 @@ class Linearizer:
         hit = self._lin_cache.pop(gi, None) if consume else self._lin_cache.get(gi)
         if hit is not None and hit[0] == key:
             return hit[1]
+        # A stale trial's (a rejected step's) Jacobians: not alive next to the new ones.
+        self._lin_cache.pop(gi, None)
+        del hit
         g = self.groups[gi]
         out = self._run(gi, "linearize")
         if g.etype.linearize_on_trial:

@@ -352,8 +352,12 @@ class GatheredGram:
         out_of = np.empty(n_out, dtype=np.int64)
         out_of[porder] = np.arange(n_out)  # output row of every piece
         dest = slot[out_of[piece]] + pos
-        self.ia = np.zeros(p0, dtype=np.intp)  # padding slots gather block 0, then are zeroed
-        self.ib = np.zeros(p0, dtype=np.intp)
+        # Padding slots gather block 0, then are zeroed; int32 where it fits (np.take widens a
+        # chunk's indices, at most max_blocks, on the fly): 8 bytes per term fewer.
+        idx_t = np.int32 if max(len(target), int(a_idx.max(initial=0)),
+                                int(b_idx.max(initial=0))) < 2**31 else np.intp
+        self.ia = np.zeros(p0, dtype=idx_t)
+        self.ib = np.zeros(p0, dtype=idx_t)
         self.ia[dest], self.ib[dest] = a_idx, b_idx
         filled = np.zeros(p0, dtype=bool)
         filled[dest] = True
