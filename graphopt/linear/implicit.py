@@ -14,9 +14,13 @@ matrix-free system keeps, per W term of an edge group, the edges' ``J_v`` and ``
 The same multiply-adds as with the W blocks (``r·(d_u + d_v)`` = 24 per BAL observation each
 way, against 27 per W block), but the W blocks (216 bytes per BAL observation) are never
 assembled next to the Jacobians (192): the Jacobians are what the system keeps. Measured at 1M
-BAL observations (city-1M, one thread): the linearisation's peak 683 → 480 MiB of numpy
-arrays, peak RSS 952 → 690 B/obs (``benchmarks/bal_memory.py``), seconds per iteration the
-same within the machine's noise.
+BAL observations (city-1M, one thread, with the chunked linearisation and ``int32`` indices):
+the linearisation's peak 683 → 434 MiB of numpy arrays, ``bal_memory.py``'s peak RSS 952 → 637
+B/obs; a product with ``S`` 33 → 39 ms (``Wᵀx`` takes two passes), the linearisation and the
+damped reduction faster (no W assembly), 5 LM iterations 15.4 → 16.6 s at 1M and 41.6 →
+40.6 s at 3M (``docs/scale.md``, section 4). The V blocks are numbered in the order the
+edges first reach them (``BlockIndex``), so that the per-edge products read and write them
+about in memory order.
 
 Nothing of ``S``'s structure is built: the block index leaves out the fill
 (``BlockIndex(matrix_free=True)``), so the U part lives in ``H_uu``'s pattern, and no Schur
