@@ -328,6 +328,7 @@ class Graph:
                         f"({first.vtype.__name__} and {other}, vertex {bad}); use one type per "
                         "position within an edge type"
                     )
-                pos.append((si, order[loc]))
+                slots = order[loc]  # int32 where it fits: 4 bytes per edge and position fewer
+                pos.append((si, slots.astype(np.int32) if len(sids) < 2**31 else slots))
             positions.append(pos)
         return stores, groups, positions

@@ -19,6 +19,12 @@ from graphopt.storage import EdgeGroup, VertexStore
 
 Positions = list[list[tuple[int, np.ndarray]]]
 
+#: Edges per call of an edge type's ``evaluate``/``linearize`` in a larger group. Only one
+#: chunk's gathered estimates and derived values are alive at a time (a few MB, against 168
+#: bytes per BAL edge for the whole group: cameras, rotations and points); the results are
+#: copied into the group's arrays.
+CHUNK_EDGES = 65536
+
 
 @dataclass
 class Evaluation:
@@ -133,35 +139,87 @@ class Linearizer:
         hit = self._lin_cache.pop(gi, None) if consume else self._lin_cache.get(gi)
         if hit is not None and hit[0] == key:
             return hit[1]
+        # A stale trial's (a rejected step's) Jacobians: not alive next to the new ones.
+        self._lin_cache.pop(gi, None)
+        del hit
         g = self.groups[gi]
-        out = self._call(g, "linearize", self.gather(gi), self.context(gi))
+        out = self._run(gi, "linearize")
         if g.etype.linearize_on_trial:
             self._lin_cache[gi] = (key, out)
         return out
 
     # --- checking what edge types return ------------------------------------------------------
 
+    def _run(self, gi: int, method: str) -> Linearization:
+        """Group ``gi``'s ``evaluate`` or ``linearize``, in chunks of :data:`CHUNK_EDGES`
+        edges when it is larger (one call per chunk, not per edge; the results are the same
+        as one call's for types that treat every edge on its own, as batched types do).
+
+        Args:
+            gi: Group index.
+            method: ``"evaluate"`` or ``"linearize"``.
+        """
+        g = self.groups[gi]
+        if g.size <= CHUNK_EDGES:
+            return self._call(g, method, self.gather(gi), self.context(gi))
+        full: list[np.ndarray | None] = []
+        for c0 in range(0, g.size, CHUNK_EDGES):
+            sl = slice(c0, min(c0 + CHUNK_EDGES, g.size))
+            x = tuple(self._gather_rows(si, "estimates", slots[sl])  # type: ignore[misc]
+                      for si, slots in self.positions[gi])
+            ctx = g.context().subset(sl)
+            if g.etype.uses_derived:
+                ctx.derived = tuple(self._gather_rows(si, "derived", slots[sl])
+                                    for si, slots in self.positions[gi])
+            out = self._call(g, method, x, ctx, sl)
+            del x, ctx
+            parts = [out.error, *out.jacobians, out.reduced_error, out.active]
+            if not full:
+                full = [None if a is None else np.empty((g.size, *np.shape(a)[1:]),
+                                                        dtype=np.asarray(a).dtype)
+                        for a in parts]
+            for i, a in enumerate(parts):
+                if a is None and full[i] is None:
+                    continue
+                if full[i] is None:  # an active mask from this chunk on: the others' are all
+                    full[i] = np.ones(g.size, dtype=bool)
+                target = full[i]
+                assert target is not None
+                target[sl] = True if a is None else a
+        nj = len(full) - 3
+        return Linearization(full[0], tuple(full[1:1 + nj]), full[-2],  # type: ignore[arg-type]
+                             full[-1])
+
     def _call(self, g: EdgeGroup, method: str, x: tuple[np.ndarray, ...],
-              ctx: EdgeContext) -> Linearization:
-        """Call the type's ``evaluate`` or ``linearize`` on group ``g`` and check the result.
+              ctx: EdgeContext, chunk: slice | None = None) -> Linearization:
+        """Call the type's ``evaluate`` or ``linearize`` on group ``g`` (or a chunk of its
+        edges) and check the result.
+
+        Args:
+            g: The group.
+            method: ``"evaluate"`` or ``"linearize"``.
+            x: The estimates of the call's edges, per position.
+            ctx: Their context.
+            chunk: The call's edges (``None``: all of the group's).
 
         Raises:
             GraphError: a result of the wrong kind or shape (naming the type and the group's
                 first edge), also when raised inside the call (numeric differences check
                 ``error`` and ``oplus``).
         """
+        meas = g.measurements if chunk is None else g.measurements[chunk]
         try:
-            out = getattr(g.etype, method)(x, g.measurements, ctx)
+            out = getattr(g.etype, method)(x, meas, ctx)
         except GraphError as exc:
             raise GraphError(f"{exc} ({self._where(g)})") from exc
-        return self._checked(g, out, method)
+        return self._checked(g, out, method, len(meas))
 
     @staticmethod
     def _where(g: EdgeGroup) -> str:
         ids = g.vertex_ids[0].tolist() if g.size else []
         return f"{g.size} edges of the group, the first on vertices {ids}"
 
-    def _checked(self, g: EdgeGroup, out: object, method: str) -> Linearization:
+    def _checked(self, g: EdgeGroup, out: object, method: str, m: int) -> Linearization:
         """``out`` as a :class:`Linearization` whose arrays have the documented shapes.
 
         Shape and dtype comparisons only, once per group and call. An error that is not an
@@ -175,7 +233,7 @@ class Linearizer:
                 raise GraphError(f"{name} returned a {type(out).__name__}, expected a "
                                  f"Linearization ({self._where(g)})")
             out = Linearization(*out)  # a plain (error, jacobians[, ...]) tuple
-        m, dim = g.size, et.dimension
+        dim = et.dimension
         e = out.error
         if type(e) is not np.ndarray or e.dtype.kind != "f":
             try:
@@ -294,7 +352,7 @@ class Linearizer:
             if linearize_trial and g.etype.linearize_on_trial:
                 out = self._linearization(gi)
             else:
-                out = self._call(g, "evaluate", self.gather(gi), self.context(gi))
+                out = self._run(gi, "evaluate")
             _, s = self._sq(g, out.error)
             rho, _ = self._robustify(g, s)
             self._record(g, s, rho, out.active, totals)

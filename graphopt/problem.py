@@ -69,7 +69,8 @@ class Problem:
         self.stores = stores
         self.linearizer = Linearizer(stores, groups, positions)
         self.system = LinearSystem(stores, groups, positions, schur,
-                                   matrix_free=solver.choose_matrix_free)
+                                   matrix_free=solver.choose_matrix_free
+                                   if solver.decides_matrix_free else solver.matrix_free)
         self.solver = solver
         solver.analyze(self.system.pattern, self.system.udims)
         self.timing = Timing()

@@ -18,6 +18,7 @@ import scipy.sparse as sp
 
 from graphopt.linear.block_ops import EdgeContraction, GatheredGram, csr_matvec_into
 from graphopt.linear.indexing import unique_ints
+from graphopt.linear.jacobian_w import JacobianProducts, JacobianW
 from graphopt.linear.schur_config import SchurCostModel
 from graphopt.linear.structure import EdgeSums
 
@@ -39,14 +40,17 @@ class Assembly:
         bu: Right-hand side (``−Jᵀ ρ' Ω e``) of the U part.
         v: Per V class ``(n, d, d)`` blocks.
         bv: Per V class ``(n, d)``.
-        wt: Per W class ``(n, dv, du)`` transposed W blocks.
+        wt: Per W class ``(n, dv, du)`` transposed W blocks; ``None`` for a matrix-free
+            system, whose W products come from the Jacobians (``wjac``).
+        wjac: The W products from the per-edge Jacobians (matrix-free systems only).
     """
 
     h_data: np.ndarray
     bu: np.ndarray
     v: list[np.ndarray]
     bv: list[np.ndarray]
-    wt: list[np.ndarray]
+    wt: list[np.ndarray] | None
+    wjac: JacobianProducts | None = None
 
 
 #: A destination of blocks: indices, or every block of the class in order.
@@ -94,6 +98,7 @@ class _GTerm:
 class _GroupTerms:
     hterms: list[_HTerm] = field(default_factory=list)
     gterms: list[_GTerm] = field(default_factory=list)
+    wterms: list[int] = field(default_factory=list)  # matrix-free: terms of ``Assembler.jw``
 
 
 def _add_blocks(acc: list[np.ndarray | None], k: int, dest: Dest, blk: np.ndarray,
@@ -111,9 +116,15 @@ def _add_blocks(acc: list[np.ndarray | None], k: int, dest: Dest, blk: np.ndarra
 class Assembler:
     """The terms of every edge group, built once, and the per-linearisation assembly.
 
+    A matrix-free index (an implicit Schur solver) gets no W terms: the W blocks are never
+    formed, and the assembly keeps the Jacobians their products need instead (``jw``).
+
     Args:
         index: The block index.
         cost: Decides where gathered Gram products sum U diagonal blocks.
+
+    Attributes:
+        jw: The W terms from the Jacobians (``None`` unless the index is matrix-free).
     """
 
     def __init__(self, index: BlockIndex, cost: SchurCostModel) -> None:
@@ -122,8 +133,11 @@ class Assembler:
         # EdgeSums' and contractions' column pointers (by length and width).
         self._all: dict[int, np.ndarray] = {}
         self._pointers: dict[tuple[int, int], np.ndarray] = {}
+        self.jw = JacobianW(index) if index.matrix_free else None
         self.terms = [self._group_terms(gi) for gi in range(len(index.groups))]
         self._u_buffer, self._u_map = self._u_scatter()
+        if self.jw is not None:
+            self.jw.finish()
 
     @property
     def u_gram_terms(self) -> int:
@@ -158,10 +172,13 @@ class Assembler:
                     gt.hterms.append(_HTerm(
                         a, b, "V", self._contraction(g, sel, inv, len(uniq), dims[a]),
                         slice(None) if whole else uniq, cls=cls, mirror=a != b, identity=whole))
+        wspecs = []
         for a, b in combinations(range(g.k), 2):
             for ui, vi in ((a, b), (b, a)):
                 mask = isu[ui] & isv[vi]
-                if mask.any():
+                if mask.any() and self.jw is not None:
+                    wspecs.append((vi, ui, self._edges(mask)))
+                elif mask.any():
                     sel = self._edges(mask)
                     k = ix.wclass_of[(pos[ui][0], ix.vclass_of_store[pos[vi][0]])]
                     keys = ix.wclasses[k].keys
@@ -189,6 +206,8 @@ class Assembler:
                             and t.kind == kind and t.contraction is not None), None)
                 gt.gterms.append(_GTerm(a, kind, con or self._sums(g, sel, inv, len(uniq)),
                                         dest, cls, whole))
+        for vi, ui, sel in wspecs:
+            gt.wterms.append(self._w_term(gi, gt, vi, ui, sel))
         return gt
 
     def _u_scatter(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
@@ -217,6 +236,32 @@ class Assembler:
         itype = np.int32 if max(nnz, off) < 2**31 else np.int64
         indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=nnz))]).astype(itype)
         return np.empty(off), (indptr, c[order].astype(itype), np.ones(len(r)))
+
+    def _w_term(self, gi: int, gt: _GroupTerms, vi: int, ui: int, sel: np.ndarray) -> int:
+        """Add the matrix-free W term of positions ``(vi, ui)``; its sums are the gradient's
+        (or the V term's contraction) where those run over the same edges and targets."""
+        assert self.jw is not None
+        ix = self.index
+        g = ix.groups[gi]
+        r = g.etype.jacobian_rows()
+        ptr = self._pointers.get((g.size * r, 1))
+        if ptr is None:
+            ptr = self._pointers[g.size * r, 1] = EdgeSums.pointers(g.size, r)
+        to_u = to_v = None
+        if len(sel) == g.size:
+            us = ix.positions[gi][ui][0]
+            ub = np.flatnonzero(ix.ustore == us)
+            rows = ix.uoffset[ub]
+            for t in gt.gterms:
+                if not t.sums.all:
+                    continue
+                if (t.kind == "U" and t.a == ui and isinstance(t.dest, np.ndarray)
+                        and t.dest.shape[0] == len(ub) and np.array_equal(t.dest[:, 0], rows)):
+                    to_u = t.sums  # targets: the store's U blocks in order
+                elif t.kind == "V" and t.a == vi and t.identity:
+                    to_v = t.sums
+        self.jw.add(gi, vi, ui, sel, g.size, r, ptr, to_u, to_v)
+        return len(self.jw.terms) - 1
 
     def _edges(self, mask: np.ndarray) -> np.ndarray:
         """``flatnonzero(mask)``; one shared array for every term over all of a group's edges."""
@@ -298,6 +343,7 @@ class Assembler:
         v: list[np.ndarray | None] = [None] * len(ix.vclasses)
         bv: list[np.ndarray | None] = [None] * len(ix.vclasses)
         wt: list[np.ndarray | None] = [None] * len(ix.wclasses)
+        warrays: list[tuple[np.ndarray, np.ndarray]] = []  # matrix-free: per W term
         for gt, J, WJ, we in zip(self.terms, jacobians, weighted, weighted_errors, strict=True):
             for t in gt.hterms:
                 if t.gram is not None:  # diagonal U blocks by gathered Gram products
@@ -322,6 +368,13 @@ class Assembler:
                 else:
                     w = ix.wclasses[t.cls]
                     _add_blocks(wt, t.cls, t.dest, blk, t.identity, (len(w.ublock), w.dv, w.du))
+            if self.jw is not None:
+                for ti in gt.wterms:
+                    w = self.jw.terms[ti]
+                    jv, wju = J[w.v_pos], WJ[w.u_pos]
+                    if w.sel is not None:
+                        jv, wju = jv[w.sel], wju[w.sel]
+                    warrays.append((np.ascontiguousarray(jv), np.ascontiguousarray(wju)))
             we3 = we[:, :, None]
             for g in gt.gterms:
                 gb = g.sums(J[g.a], we3)[:, :, 0]
@@ -337,6 +390,8 @@ class Assembler:
                  for x, c in zip(v, ix.vclasses, strict=True)]
         bvfull = [x if x is not None else np.zeros((len(c.slots), c.dim))
                   for x, c in zip(bv, ix.vclasses, strict=True)]
+        if self.jw is not None:
+            return Assembly(h, bu, vfull, bvfull, None, self.jw.bind(warrays))
         wfull = [x if x is not None else np.zeros((len(c.ublock), c.dv, c.du))
                  for x, c in zip(wt, ix.wclasses, strict=True)]
         return Assembly(h, bu, vfull, bvfull, wfull)

@@ -1,29 +1,33 @@
 """The implicit Schur complement: products with ``S = U_λ − W V_λ⁻¹ Wᵀ`` without forming ``S``.
 
 For an iterative solver (``ITERATIVE_SCHUR`` in Ceres, the "Bundle Adjustment in the Large"
-paper) only products ``S x`` are needed. They are computed from the assembled W blocks
-(``Wᵀ``, ``(n_w, d_v, d_u)``, one per linked pair of a U and a V block), in three steps that
-are each one C loop over the W blocks:
+paper) only products ``S x`` are needed. The W blocks are not formed either: the assembly of a
+matrix-free system keeps, per W term of an edge group, the edges' ``J_v`` and ``ρ'ΩJ_u``
+(:mod:`graphopt.linear.jacobian_w`), and a product is
 
-1. ``y = Wᵀ x`` per V block: a block-sparse (BSR) product whose data is the ``Wᵀ`` array as it
-   is (rows: V blocks, columns: U blocks; the W blocks are sorted by V block);
+1. ``y = Wᵀ x`` per V block: ``t_e = ρ'ΩJ_u,e x_u(e)`` (a BSR product over the Jacobian array
+   as it is), then ``Σ_e J_v,eᵀ t_e`` per V block (the V term's contraction);
 2. ``z = V_λ⁻¹ y``: batched ``(d_v, d_v)`` products;
-3. ``W z`` per U block: the W class's sums (``WClass.rhs``, an ``EdgeSums``), whose data is
-   again the ``Wᵀ`` array as it is, applied to ``z`` gathered per W block.
+3. ``W z`` per U block: ``s_e = J_v,e z_v(e)`` (BSR), then ``Σ_e (ρ'ΩJ_u,e)ᵀ s_e`` per U
+   block (the gradient's sums).
 
-The W blocks rather than the per-observation Jacobians: they are already assembled (one per
-camera–point pair, fewer than the observations when a pair is observed twice), take 27 values
-per BAL observation against 48 for ``J`` and ``ρ'ΩJ`` of both vertices, and cost the same
-multiply-adds per product (27 each way); the Jacobians are then not kept after the assembly.
-Measured at 1M BAL-like W blocks on this machine (one thread): step 1 11 ms, step 3 28 ms (a
-BSR product of a transposed copy of ``Wᵀ`` takes 12 ms, but the copy costs 150 ms and 216 bytes
-per W block every linearisation), step 2 3 ms.
+The same multiply-adds as with the W blocks (``r·(d_u + d_v)`` = 24 per BAL observation each
+way, against 27 per W block), but the W blocks (216 bytes per BAL observation) are never
+assembled next to the Jacobians (192): the Jacobians are what the system keeps. Measured at 1M
+BAL observations (city-1M, one thread, with the chunked linearisation and ``int32`` indices):
+the linearisation's peak 683 → 434 MiB of numpy arrays, ``bal_memory.py``'s peak RSS 952 → 637
+B/obs; a product with ``S`` 33 → 39 ms (``Wᵀx`` takes two passes), the linearisation and the
+damped reduction faster (no W assembly), 5 LM iterations 15.4 → 16.6 s at 1M and 41.6 →
+40.6 s at 3M (``docs/scale.md``, section 4). The V blocks are numbered in the order the
+edges first reach them (``BlockIndex``), so that the per-edge products read and write them
+about in memory order.
 
 Nothing of ``S``'s structure is built: the block index leaves out the fill
 (``BlockIndex(matrix_free=True)``), so the U part lives in ``H_uu``'s pattern, and no Schur
 strategy or symbolic factorisation exists. The preconditioners are block-Jacobi on the damped
-U blocks, or Schur-Jacobi: the diagonal blocks of ``S``,
-``U_λ,uu − Σ_w Wᵀ_wᵀ V_λ⁻¹ Wᵀ_w``, summed in chunks of W blocks (bounded memory).
+U blocks, or Schur-Jacobi: the diagonal blocks of ``S``, ``U_λ,uu − Σ_w W_w V_λ⁻¹ W_wᵀ``,
+summed from the edges' own ``Wᵀ_e = J_v,eᵀ ρ'ΩJ_u,e`` in chunks (bounded memory), the
+repeated pairs' edges summed per pair first.
 """
 
 from __future__ import annotations
@@ -37,11 +41,10 @@ import scipy.sparse as sp
 from graphopt.errors import NotPositiveDefiniteError
 from graphopt.linear.block_ops import batched_cholesky_inverses
 
-try:  # SciPy's C kernels; they accumulate into a given output array.
-    from scipy.sparse._sparsetools import bsr_matvec as _bsr_matvec
+try:  # SciPy's C kernel; it accumulates into a given output array.
     from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
-except ImportError:  # pragma: no cover - private module: the public products below
-    _bsr_matvec = _csr_matvec = None
+except ImportError:  # pragma: no cover - private module: the public product below
+    _csr_matvec = None
 
 if TYPE_CHECKING:
     from graphopt.linear.assembly import Assembly
@@ -49,9 +52,6 @@ if TYPE_CHECKING:
 
 #: Preconditioner names: block-Jacobi on the damped U blocks, or on the diagonal blocks of S.
 PRECONDITIONERS = ("jacobi", "schur-jacobi")
-
-#: W blocks per chunk of the Schur-Jacobi sums (about 6 MB of ``(c, 9, 9)`` products for BAL).
-CHUNK = 8192
 
 
 @dataclass
@@ -72,31 +72,14 @@ class _UGroup:
 
 
 @dataclass
-class _WMaps:
-    """The index arrays one W class's products need (int32 where SciPy's kernels take them).
+class _StoreRows:
+    """Where the U blocks of one W class's store are among the U groups.
 
     Args:
-        k: The W class.
-        n_v: V blocks of its V class.
-        n_u: U blocks of its U store.
-        indptr: ``(n_v + 1,)`` BSR row pointer (W blocks of every V block).
-        cols: ``(n_w,)`` BSR column (U block within the store) of every W block.
-        out_rows: ``(n_t · d_u,)`` scalar rows of the U blocks the class reaches (the targets of
-            ``WClass.rhs``), or ``None`` when those are the store's U blocks in order.
-        target: ``(n_w,)`` target (index into those U blocks) of every W block.
-        n_t: Targets.
-        group: The U group of the store's blocks.
-        rows: ``(n_t,)`` the targets' rows in that group.
+        group: The U group of the store's blocks (one dimension per store).
+        rows: ``(n_u,)`` the blocks' rows in that group.
     """
 
-    k: int
-    n_v: int
-    n_u: int
-    indptr: np.ndarray
-    cols: np.ndarray
-    out_rows: np.ndarray | None
-    target: np.ndarray
-    n_t: int
     group: int
     rows: np.ndarray
 
@@ -130,17 +113,10 @@ class ImplicitSchur:
         for gi, g in enumerate(self.groups):
             group_of[g.blocks] = gi
             row_of[g.blocks] = np.arange(len(g.blocks))
-        self.maps: list[_WMaps] = []
-        for k, wc in enumerate(index.wclasses):
-            n_u = (wc.ucols.stop - wc.ucols.start) // wc.du
-            uu = np.searchsorted(index.uoffset, wc.rhs_dest[:, 0])  # targets of WClass.rhs
-            rows = wc.rhs_dest.reshape(-1)
-            whole = len(uu) == n_u and bool(np.all(np.diff(uu) == 1))
-            self.maps.append(_WMaps(
-                k, len(wc.bsr_indptr) - 1, n_u, wc.bsr_indptr.astype(np.int32),
-                wc.bsr_cols.astype(np.int32), None if whole else rows,
-                np.searchsorted(uu, wc.ublock).astype(np.int32), len(uu),
-                int(group_of[uu[0]]), row_of[uu]))
+        self.maps: list[_StoreRows] = []
+        for wc in index.wclasses:
+            ub = np.flatnonzero(index.ustore == wc.ustore)
+            self.maps.append(_StoreRows(int(group_of[ub[0]]), row_of[ub]))
 
     def operator(self, asm: Assembly, lam: float,
                  damp: tuple[np.ndarray, list[np.ndarray]] | None = None) -> SchurOperator:
@@ -193,10 +169,12 @@ class SchurOperator:
         self.vinv = [batched_cholesky_inverses(vb, d)[1] for vb, d in
                      zip(asm.v, vdamp, strict=True)]
         self.products = 0
-        self._wt = [np.ascontiguousarray(w).reshape(-1) for w in asm.wt]
         self.rhs = asm.bu.copy()
-        self._sub_w(self.rhs, [np.einsum("nij,nj->ni", vi, b)
-                               for vi, b in zip(self.vinv, asm.bv, strict=True)])
+        if ix.wclasses:
+            assert asm.wjac is not None, "a matrix-free assembly keeps the W terms' Jacobians"
+            asm.wjac.w_product([np.einsum("nij,nj->ni", vi, b)
+                                for vi, b in zip(self.vinv, asm.bv, strict=True)],
+                               self.rhs, -1.0)
 
     # --- products ----------------------------------------------------------------------------
 
@@ -217,31 +195,11 @@ class SchurOperator:
                                  shape=(self.n, self.n)) @ x
         if not ix.wclasses:
             return out
-        y = [np.zeros((len(c.slots), c.dim)) for c in ix.vclasses]
-        for m, wc in zip(self.structure.maps, ix.wclasses, strict=True):
-            xu = x[wc.ucols]
-            if _bsr_matvec is not None:
-                _bsr_matvec(m.n_v, m.n_u, wc.dv, wc.du, m.indptr, m.cols, self._wt[m.k], xu,
-                            y[wc.vclass].reshape(-1))
-            else:  # pragma: no cover
-                w = sp.bsr_matrix((self.asm.wt[m.k], m.cols, m.indptr),
-                                  shape=(m.n_v * wc.dv, m.n_u * wc.du))
-                y[wc.vclass] += (w @ xu).reshape(m.n_v, wc.dv)
+        assert self.asm.wjac is not None
+        y = self.asm.wjac.wt_product(x)
         z = [np.einsum("nij,nj->ni", vi, yc) for vi, yc in zip(self.vinv, y, strict=True)]
-        self._sub_w(out, z)
+        self.asm.wjac.w_product(z, out, -1.0)
         return out
-
-    def _sub_w(self, out: np.ndarray, z: list[np.ndarray]) -> None:
-        """``out −= W z`` (``z`` per V class, ``(n_v, d_v)``)."""
-        ix = self.structure.index
-        for m, wc in zip(self.structure.maps, ix.wclasses, strict=True):
-            zw = np.take(z[wc.vclass], wc.vblock, axis=0)  # per W block
-            # The class's sums Σ_w (Wᵀ_w)ᵀ z_w per U block, over the W array as it is.
-            buf = wc.rhs(self.asm.wt[m.k], zw[:, :, None]).reshape(-1)
-            if m.out_rows is None:
-                out[wc.ucols] -= buf
-            else:
-                out[m.out_rows] -= buf
 
     # --- preconditioners ---------------------------------------------------------------------
 
@@ -249,34 +207,15 @@ class SchurOperator:
         """The diagonal blocks of ``U_λ`` or of ``S``, per U group ``(n_g, d, d)``.
 
         Args:
-            schur: Subtract ``Σ_w Wᵀ_wᵀ V_λ⁻¹ Wᵀ_w`` (the diagonal blocks of ``S``).
+            schur: Subtract ``Σ_w W_w V_λ⁻¹ W_wᵀ`` (the diagonal blocks of ``S``).
         """
         st = self.structure
         blocks = [self.u_data[g.pos] for g in st.groups]
-        if schur:
-            for m, wc in zip(st.maps, st.index.wclasses, strict=True):
-                blocks[m.group][m.rows] -= self._wvw_diagonal(m, wc.vclass)
+        if schur and st.index.wclasses:
+            assert self.asm.wjac is not None
+            for m, wvw in zip(st.maps, self.asm.wjac.schur_diagonal(self.vinv), strict=True):
+                blocks[m.group][m.rows] -= wvw
         return blocks
-
-    def _wvw_diagonal(self, m: _WMaps, vclass: int) -> np.ndarray:
-        """``Σ_w Wᵀ_wᵀ V_λ⁻¹ Wᵀ_w`` per target U block of W class ``m.k``, ``(n_t, d_u, d_u)``.
-
-        Per chunk of W blocks, ``Yᵀ = V⁻¹Wᵀ`` and ``Wᵀ_wᵀ Yᵀ_w`` (batched products), summed
-        into the targets by a 0/1 sparse product over the chunk (once per solve).
-        """
-        wc = self.structure.index.wclasses[m.k]
-        du = wc.du
-        wt = self.asm.wt[m.k]
-        vinv = self.vinv[vclass]
-        acc = np.zeros((m.n_t, du * du))
-        for c0 in range(0, len(wt), CHUNK):
-            c1 = min(c0 + CHUNK, len(wt))
-            yt = np.matmul(np.take(vinv, wc.vblock[c0:c1], axis=0), wt[c0:c1])
-            blocks = np.matmul(np.swapaxes(wt[c0:c1], 1, 2), yt).reshape(c1 - c0, -1)
-            scatter = sp.csr_matrix((np.ones(c1 - c0), (m.target[c0:c1], np.arange(c1 - c0))),
-                                    shape=(m.n_t, c1 - c0))
-            acc += scatter @ blocks
-        return acc.reshape(m.n_t, du, du)
 
     def preconditioner(self, kind: str) -> list[tuple[np.ndarray, np.ndarray]]:
         """The inverted diagonal blocks of the preconditioner, per U group ``(idx, inv)``.

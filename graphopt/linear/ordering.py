@@ -1,7 +1,10 @@
-"""The co-visibility order of a V class's blocks, chosen once.
+"""The order of a V class's blocks, chosen once.
 
-Vertices seen by the same U blocks become neighbours, which keeps the dense Schur panels
-narrow and lets vertices with identical U sets share a panel (``schur_dense.py``).
+For an explicit Schur complement, the co-visibility order: vertices seen by the same U blocks
+become neighbours, which keeps the dense Schur panels narrow and lets vertices with identical U
+sets share a panel (``schur_dense.py``). For products from the edges' Jacobians (matrix-free),
+the order in which the edges first reach them: the products then read and write the V blocks
+about in memory order (at 1M BAL observations, ``J_v z`` per edge 14.5 → 6 ms).
 """
 
 from __future__ import annotations
@@ -56,3 +59,16 @@ def _u_rank(v: np.ndarray, u: np.ndarray, n_v: int, n_u: int, spectral_max: int
     rank = np.empty(n_u, dtype=np.int64)
     rank[order] = np.arange(n_u)
     return rank
+
+
+def first_seen_order(stream: np.ndarray, n_v: int) -> np.ndarray:
+    """V blocks in the order a stream of edges first reaches them (unreached ones last, in
+    their own order): new block ``b`` is old block ``order[b]``.
+
+    Args:
+        stream: V block of every edge, in the edges' order.
+        n_v: Blocks in the V class.
+    """
+    first = np.full(n_v, len(stream), dtype=np.int64)
+    np.minimum.at(first, stream, np.arange(len(stream), dtype=np.int64))
+    return np.argsort(first, kind="stable")

@@ -1,7 +1,9 @@
 """Products of one assembled linearisation that do not depend on the damping λ.
 
 The W blocks enter as a SciPy BSR matrix whose data *is* the ``Wᵀ`` array (``wt_product``) or
-as each W class's constant contraction (``WClass.rhs``): no gather, no segment sum.
+as each W class's constant contraction (``WClass.rhs``): no gather, no segment sum. A
+matrix-free assembly has no W blocks: its products come from the W terms' Jacobians
+(:class:`~graphopt.linear.jacobian_w.JacobianProducts`).
 """
 
 from __future__ import annotations
@@ -20,7 +22,14 @@ from graphopt.linear.pattern import with_data
 
 if TYPE_CHECKING:
     from graphopt.linear.assembly import Assembly
+    from graphopt.linear.jacobian_w import JacobianProducts
     from graphopt.linear.structure import BlockIndex
+
+
+def _wjac(asm: Assembly) -> JacobianProducts:
+    """The W products of a matrix-free assembly (which has no W blocks)."""
+    assert asm.wjac is not None, "an assembly has W blocks or the W terms' Jacobians"
+    return asm.wjac
 
 
 def is_finite(asm: Assembly) -> bool:
@@ -74,7 +83,8 @@ def class_y_transposed(index: BlockIndex, asm: Assembly, vinv: list[np.ndarray],
         k: The W class.
     """
     wc = index.wclasses[k]
-    return np.matmul(vinv[wc.vclass][wc.vblock], asm.wt[k])
+    wt = asm.wt[k] if asm.wt is not None else _wjac(asm).class_wt(k)
+    return np.matmul(vinv[wc.vclass][wc.vblock], wt)
 
 
 def wt_product(index: BlockIndex, asm: Assembly, k: int, xu: np.ndarray) -> np.ndarray:
@@ -87,6 +97,8 @@ def wt_product(index: BlockIndex, asm: Assembly, k: int, xu: np.ndarray) -> np.n
         xu: A vector over the U part.
     """
     wc = index.wclasses[k]
+    if asm.wt is None:
+        return _wjac(asm).wt_product(xu, k)[wc.vclass]
     n_v = len(wc.bsr_indptr) - 1
     n_u = (wc.ucols.stop - wc.ucols.start) // wc.du
     x = np.ascontiguousarray(xu[wc.ucols], dtype=float)
@@ -104,7 +116,7 @@ def wt_product(index: BlockIndex, asm: Assembly, k: int, xu: np.ndarray) -> np.n
 
 def w_product(index: BlockIndex, asm: Assembly, k: int, xv: np.ndarray) -> np.ndarray:
     """``Σ_w W_w xv[w]`` per U block of W class ``k``, as ``(n_u, du)`` (rows
-    ``WClass.rhs_dest``).
+    ``WClass.rhs_dest``; an assembly with W blocks).
 
     Args:
         index: The block index.
@@ -126,7 +138,10 @@ def back_substitute(index: BlockIndex, asm: Assembly, du: np.ndarray, vinv: list
         vinv: Inverted damped V blocks per class.
     """
     r = [b.copy() for b in asm.bv]
-    for k, wc in enumerate(index.wclasses):
+    if asm.wt is None and index.wclasses:  # one pass over the W terms' Jacobians
+        for rc, y in zip(r, _wjac(asm).wt_product(du), strict=True):
+            rc -= y
+    for k, wc in enumerate(index.wclasses if asm.wt is not None else []):
         r[wc.vclass] -= wt_product(index, asm, k, du)
     return [np.matmul(vi, ri[:, :, None])[:, :, 0] for vi, ri in zip(vinv, r, strict=True)]
 
@@ -143,6 +158,13 @@ def hessian_product(index: BlockIndex, asm: Assembly, xu: np.ndarray, xv: list[n
     """
     hu = with_data(index.pattern.csc, asm.h_data) @ xu
     hv = [np.matmul(vb, x[:, :, None])[:, :, 0] for vb, x in zip(asm.v, xv, strict=True)]
+    if asm.wt is None:
+        if index.wclasses:
+            wj = _wjac(asm)
+            wj.w_product(xv, hu)
+            for h, y in zip(hv, wj.wt_product(xu), strict=True):
+                h += y
+        return hu, hv
     for k, wc in enumerate(index.wclasses):
         hu[wc.rhs_dest] += w_product(index, asm, k, xv[wc.vclass][wc.vblock])
         hv[wc.vclass] += wt_product(index, asm, k, xu)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from itertools import combinations
 from typing import TYPE_CHECKING
 
@@ -21,7 +22,7 @@ import scipy.sparse as sp
 from graphopt.errors import GraphError
 from graphopt.linear.block_ops import csr_product_into
 from graphopt.linear.indexing import pairs_sharing_key, pairs_within_key, unique_ints
-from graphopt.linear.ordering import co_visibility_order
+from graphopt.linear.ordering import co_visibility_order, first_seen_order
 from graphopt.linear.pattern import ReducedPattern
 
 if TYPE_CHECKING:
@@ -82,6 +83,11 @@ class EdgeSums:
             has[self._rows] = 1
             self.indptr = np.concatenate([np.zeros(1, idx_t), np.cumsum(has, dtype=idx_t)])
         self.n_targets, self.m, self.r = n_targets, m, r
+
+    @property
+    def all(self) -> bool:
+        """Whether every block takes part."""
+        return self._rows is None
 
     @staticmethod
     def pointers(m: int, r: int) -> np.ndarray:
@@ -157,13 +163,14 @@ class WClass:
             + 1)`` and ``v · dv²`` fit in it, else ``int64``).
         vblock: ``(n,)`` block within the V class of every W block (same type).
         upos: ``(n, du)`` scalar rows of every W block's U block (computed when indexed).
-        rhs: ``Σ_w W_w x[w]`` into the U blocks of the class (``Wᵀ`` used in place).
-        rhs_dest: ``(n_u, du)`` scalar rows of those U blocks.
-        bsr_cols: ``(n,)`` column block of every W block among the store's U blocks: ``Wᵀ``
-            of the class is a BSR matrix whose data is the W array as it is.
         bsr_indptr: ``(n_v + 1,)`` W blocks of every V block.
         ucols: The store's scalar U entries.
         n_ublocks: U blocks of the graph (the base of :attr:`keys`).
+        ub0: The store's first U block (its U blocks are contiguous).
+        uoffset: Scalar offset of every U block (the block index's).
+
+    :attr:`rhs`, :attr:`rhs_dest` and :attr:`bsr_cols`, which only products with assembled W
+    blocks use, are computed on first use (a matrix-free system never builds them).
     """
 
     ustore: int
@@ -173,12 +180,34 @@ class WClass:
     ublock: np.ndarray
     vblock: np.ndarray
     upos: BlockRows
-    rhs: EdgeSums
-    rhs_dest: np.ndarray
-    bsr_cols: np.ndarray
     bsr_indptr: np.ndarray
     ucols: slice
     n_ublocks: int
+    ub0: int
+    uoffset: np.ndarray
+
+    @cached_property
+    def _targets(self) -> tuple[np.ndarray, np.ndarray]:
+        return unique_ints(self.ublock, max(self.n_ublocks, 1), True)
+
+    @cached_property
+    def rhs(self) -> EdgeSums:
+        """``Σ_w W_w x[w]`` into the U blocks of the class (``Wᵀ`` used in place: it is
+        ``Σ_w (Wᵀ_w)ᵀ x[w]``)."""
+        uu, inv = self._targets
+        return EdgeSums(inv, len(uu), self.dv)
+
+    @cached_property
+    def rhs_dest(self) -> np.ndarray:
+        """``(n_u, du)`` scalar rows of the U blocks :attr:`rhs` sums into."""
+        return self.uoffset[self._targets[0]][:, None] + np.arange(self.du)
+
+    @cached_property
+    def bsr_cols(self) -> np.ndarray:
+        """``(n,)`` column block of every W block among the store's U blocks: ``Wᵀ`` of the
+        class is a BSR matrix whose data is the W array as it is (the type of
+        :attr:`bsr_indptr`: SciPy would convert mixed indices at every product)."""
+        return (self.ublock - self.ub0).astype(self.bsr_indptr.dtype)
 
     @property
     def keys(self) -> np.ndarray:
@@ -237,7 +266,8 @@ class BlockIndex:
             v, u = self._incidence(vc, w_found)
             self._inc.append((v, u))  # the U pairs of the fill do not depend on V's numbering
             single = sum(c == vc for _, c in w_found) == 1
-            order = self._order_v_blocks(vc, v, u, w_found, spectral_max, renumber=not single)
+            order = self._order_v_blocks(vc, v, u, w_found, spectral_max, renumber=not single,
+                                         stream=matrix_free is True)
             if single:
                 only[vc] = (v, u, order)
         self.wclass_of: dict[tuple[int, int], int] = {}
@@ -372,13 +402,20 @@ class BlockIndex:
 
     def _order_v_blocks(self, vc: int, v: np.ndarray, u: np.ndarray,
                         w_found: dict[tuple[int, int], list[np.ndarray]],
-                        spectral_max: int, renumber: bool = True) -> np.ndarray:
+                        spectral_max: int, renumber: bool = True, stream: bool = False
+                        ) -> np.ndarray:
         """Renumber V class ``vc``'s blocks in co-visibility order (in ``vblock``, the class's
         slots and, if ``renumber``, the scanned pairs), given its incidence ``(v, u)``; return
-        the order (new block ``b`` is old block ``order[b]``)."""
+        the order (new block ``b`` is old block ``order[b]``). With ``stream`` (a system known
+        to be matrix-free), in the order the edges first reach them instead."""
         c = self.vclasses[vc]
         nv = len(c.slots)
-        order = co_visibility_order(v, u, nv, self.n_ublocks, spectral_max)
+        if stream:
+            seen = [p[:, 1] for (_, cls), found in w_found.items() if cls == vc for p in found]
+            order = first_seen_order(np.concatenate(seen) if seen else np.zeros(0, np.int64),
+                                     nv)
+        else:
+            order = co_visibility_order(v, u, nv, self.n_ublocks, spectral_max)
         new_id = np.empty(nv, dtype=np.int64)
         new_id[order] = np.arange(nv)
         vb = self.vblock[c.store]
@@ -420,15 +457,11 @@ class BlockIndex:
             del allp
             vblock, ublock = (keys // nb).astype(blk_t), (keys % nb).astype(blk_t)
             del keys
-        # rhs: Σ_w W_w y[w] per U block is Σ_w (Wᵀ_w)ᵀ y[w]: Wᵀ used in place.
-        uu, inv = unique_ints(ublock, nb, True)
-        rhs = EdgeSums(inv, len(uu), dv)
-        rhs_dest = self.uoffset[uu][:, None] + np.arange(du)
         ub_store = np.flatnonzero(self.ustore == ustore)  # a store's U blocks are contiguous
         ucols = slice(int(self.uoffset[ub_store[0]]), int(self.uoffset[ub_store[-1] + 1]))
         # BSR indices in int32 where they fit (SciPy would convert them at every product).
         bsr_t = np.int32 if max(len(ublock), len(ub_store)) < 2**31 else np.int64
         return WClass(ustore, vclass, du, dv, ublock, vblock,
-                      BlockRows(ublock, self.uoffset, du), rhs, rhs_dest,
-                      (ublock - ub_store[0]).astype(bsr_t),
-                      np.searchsorted(vblock, np.arange(n_v + 1)).astype(bsr_t), ucols, nb)
+                      BlockRows(ublock, self.uoffset, du),
+                      np.searchsorted(vblock, np.arange(n_v + 1)).astype(bsr_t), ucols, nb,
+                      int(ub_store[0]), self.uoffset)

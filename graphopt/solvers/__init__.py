@@ -57,6 +57,8 @@ class LinearSolverAuto(LinearSolver):
         self.chosen: LinearSolver | None = None
         self.decision: dict[str, Any] = {}
 
+    decides_matrix_free = True
+
     def choose_matrix_free(self, index: BlockIndex) -> bool:
         """Choose implicit-Schur PCG by the cost model (see the class).
 

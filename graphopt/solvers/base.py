@@ -27,6 +27,10 @@ class LinearSolver:
     #: Whether the solver works on products with ``S`` alone (an operator instead of values in
     #: a pattern): then ``S``'s fill, the Schur strategies and any factorisation are never built.
     matrix_free = False
+    #: Whether :meth:`choose_matrix_free` decides from the block index (``auto``); else the
+    #: answer is :attr:`matrix_free`, known before the index is built (it then numbers the V
+    #: blocks for the products it will compute).
+    decides_matrix_free = False
 
     def choose_matrix_free(self, index: BlockIndex) -> bool:
         """Whether this solver wants the matrix-free system, asked once before ``S``'s pattern
