@@ -144,7 +144,7 @@ class Linearizer:
         del hit
         g = self.groups[gi]
         out = self._run(gi, "linearize")
-        if g.etype.linearize_on_trial:
+        if g.etype.linearize_on_trial and not consume:  # the assembly's is not kept
             self._lin_cache[gi] = (key, out)
         return out
 

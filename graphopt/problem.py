@@ -21,6 +21,7 @@ from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linearizer import Evaluation, Linearizer, Positions
 from graphopt.numeric import checked_oplus
 from graphopt.solvers import LinearSolver
+from graphopt.solvers.auto import available_memory
 from graphopt.storage import EdgeGroup, VertexStore
 
 #: ``(u part (n,), [v part (n_c, d_c) per V class])``.
@@ -52,6 +53,36 @@ class _StoreUpdate:
     vslots: np.ndarray  # (n_c,) store slots of the V class, by V block
 
 
+
+#: A trial linearises only while one set of its Jacobians takes at most this share of the
+#: memory available when the problem is built (matrix-free solvers only; see below).
+TRIAL_JACOBIAN_SHARE = 1 / 8
+
+
+def trial_linearization_allowed(groups: list[EdgeGroup], matrix_free: bool,
+                                available: float) -> bool:
+    """Whether trial steps may linearise (``linearize_on_trial`` types) rather than evaluate
+    errors only.
+
+    A matrix-free (implicit-Schur) solver keeps the assembly's Jacobians for its products until
+    the step is accepted, so a trial that linearises holds a second set beside them: that pair
+    is the peak of a large run (at 29M BAL observations 2 × 5.6 GB). When one set exceeds
+    :data:`TRIAL_JACOBIAN_SHARE` of the available memory, trials evaluate errors only; an
+    accepted step is then linearised again (about 7 % of a BAL iteration) instead.
+
+    Args:
+        groups: The edge groups.
+        matrix_free: Whether the solver works on products with ``S`` alone.
+        available: Bytes of memory available.
+    """
+    if not matrix_free:
+        return True
+    jac = sum(8 * g.size * g.etype.jacobian_rows() * sum(vt.dimension for vt in
+                                                        g.etype.vertex_types)
+              for g in groups if g.etype.linearize_on_trial)
+    return jac <= TRIAL_JACOBIAN_SHARE * available
+
+
 class Problem:
     """Linearisation, damped solves and state updates of one initialised graph.
 
@@ -73,6 +104,8 @@ class Problem:
                                    if solver.decides_matrix_free else solver.matrix_free)
         self.solver = solver
         solver.analyze(self.system.pattern, self.system.udims)
+        self.trial_linearization = trial_linearization_allowed(
+            groups, self.system.matrix_free, available_memory())
         self.timing = Timing()
         self._saved: list[np.ndarray] = []
         index = self.system.index
@@ -117,7 +150,7 @@ class Problem:
             linearize: Let edge types that linearise on trial do so (their Jacobians are then
                 reused by the next :meth:`linearize` at this state).
         """
-        return self.linearizer.evaluate(linearize)
+        return self.linearizer.evaluate(linearize and self.trial_linearization)
 
     def robust_chi2(self, linearize: bool = True) -> float:
         """Robust chi2 at the current state (``inf`` if any error is not finite).
@@ -131,7 +164,7 @@ class Problem:
                 non-finite estimates (naming the type and ids); the estimates saved by
                 :meth:`push` are restored first.
         """
-        chi = self.linearizer.evaluate(linearize).robust_chi2
+        chi = self.linearizer.evaluate(linearize and self.trial_linearization).robust_chi2
         if not math.isfinite(chi):  # only then look for the cause in the estimates
             self._check_finite_estimates()
         return chi

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import graphopt.linearizer as linearizer_module
+import graphopt.problem as problem_module
 from graphopt import (
     BaseEdge,
     LevenbergConfig,
@@ -19,6 +20,7 @@ from graphopt import (
 from graphopt.apps.bal_scene import synthetic_scene
 from graphopt.linear.implicit import SchurOperator
 from graphopt.linear.pattern import with_data
+from graphopt.problem import trial_linearization_allowed
 from graphopt.solvers import ImplicitSchurConfig, LinearSolverImplicitSchur
 from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL
 from graphopt.types.vertices import VertexPointXYZ
@@ -178,20 +180,60 @@ def test_linearisation_in_chunks_equals_one_call(monkeypatch, etype) -> None:
                   sc.observations)
     opt.initialize_optimization()
     lin = opt.problem.linearizer
-    one = lin._run(0, "linearize")
-    ev_one = lin._run(0, "evaluate")
+    group = opt.edge_groups()[0]
+
+    def run() -> tuple:
+        w, ev = lin.linearize()
+        chi_lin, active_lin = group.last_chi2.copy(), group.active_count
+        ev_e = lin.evaluate(linearize_trial=False)
+        return w, ev, chi_lin, active_lin, ev_e, group.last_chi2.copy(), group.active_count
+
+    one = run()
     monkeypatch.setattr(linearizer_module, "CHUNK_EDGES", 7)  # the last chunk is shorter
-    assert opt.graph.groups[next(iter(opt.graph.groups))].size % 7
-    many = lin._run(0, "linearize")
-    ev_many = lin._run(0, "evaluate")
-    assert np.array_equal(one.error, many.error) and np.array_equal(ev_one.error, ev_many.error)
-    for a, b in zip(one.jacobians, many.jacobians, strict=True):
+    assert group.size % 7
+    many = run()
+    for a, b in zip(one[0].jacobians[0] + one[0].weighted[0],
+                    many[0].jacobians[0] + many[0].weighted[0], strict=True):
         assert np.array_equal(a, b)
-    assert one.active is None and many.reduced_error is None
+    assert np.array_equal(one[0].weighted_errors[0], many[0].weighted_errors[0])
+    assert np.array_equal(one[2], many[2]) and np.array_equal(one[5], many[5])
+    assert one[1].robust_chi2 == many[1].robust_chi2 == one[4].robust_chi2
+    assert one[3] == one[6] == group.size  # one call: no mask (7 edges are not a call's size)
     if etype is EdgeSometimesInactive:  # the last, shorter chunk reports none: all active
-        m = len(many.error)
+        m = group.size
         expect = np.arange(m) % 7 < 3
         expect[m - m % 7:] = True
-        assert many.active is not None and np.array_equal(many.active, expect)
+        assert many[3] == int(expect.sum())  # linearize reports the masks
+        assert many[6] == group.size  # its evaluate (the base class's) reports none
     else:
-        assert many.active is None
+        assert many[3] == many[6] == group.size
+
+
+def test_trial_linearisation_rule() -> None:
+    opt = awkward_ba("dense")
+    opt.initialize_optimization()
+    groups = opt.edge_groups()
+    # 8 bytes x rows x (camera 9 + point 3) per projection; the second type does not
+    # linearise on trial.
+    proj = sum(g.size for g in groups if g.etype is EdgeBALProjection)
+    jac = 8 * proj * 2 * 12
+    assert trial_linearization_allowed(groups, False, 1.0)
+    assert trial_linearization_allowed(groups, True, 8 * jac)
+    assert not trial_linearization_allowed(groups, True, 8 * jac - 8)
+
+
+def test_errors_only_trials_under_memory_pressure_give_the_same_run(monkeypatch) -> None:
+    """With too little memory for a second set of Jacobians, an implicit-Schur run's trials
+    evaluate errors only; an accepted step is linearised again at the same state, so every
+    iteration is the same to the last bit."""
+    def run() -> tuple[bool, list[float]]:
+        opt = awkward_ba("iterative-schur")
+        opt.initialize_optimization()
+        res = opt.optimize(5)
+        return opt.problem.trial_linearization, [r.chi2 for r in res.info]
+
+    allowed, ref = run()
+    monkeypatch.setattr(problem_module, "available_memory", lambda: 1.0)
+    refused, got = run()
+    assert allowed and not refused
+    assert got == ref and ref[-1] < 0.5 * ref[0]
