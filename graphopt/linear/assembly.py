@@ -69,7 +69,9 @@ class _HTerm:
     right: int
     kind: str  # "U", "V" or "W"
     contraction: EdgeContraction | None
-    dest: Dest | None  # U: (t, dl·dr) data positions (None with a Gram); V/W: (t,) blocks
+    # U: (t, dl·dr) data positions until the assembler's map takes them (then None, as with a
+    # Gram); V/W: (t,) blocks
+    dest: Dest | None
     dest_t: np.ndarray | None = None  # U off-diagonal: positions of the transposed entries
     span: slice | None = None  # U contraction: its outputs' place in the assembler's buffer
     cls: int = -1  # V class or W class
