@@ -53,7 +53,6 @@ class _StoreUpdate:
     vslots: np.ndarray  # (n_c,) store slots of the V class, by V block
 
 
-
 #: A trial linearises only while one set of its Jacobians takes at most this share of the
 #: memory available when the problem is built (matrix-free solvers only; see below).
 TRIAL_JACOBIAN_SHARE = 1 / 8

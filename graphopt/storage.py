@@ -256,14 +256,10 @@ class EdgeGroup:
         if len(shared) == len(self._info) and all(np.array_equal(shared[0], i) for i in shared):
             self.information = shared[0] if shared else np.eye(self.dim)
         else:
-            info = np.concatenate(
+            self.information = np.concatenate(
                 [np.broadcast_to(i, (len(v), self.dim, self.dim)) for i, v in
                  zip(self._info, self._vids, strict=True)]
             )
-            # Files give a matrix per edge, mostly one and the same (every edge of w10000 and
-            # Victoria Park): one shared matrix makes the weighting a broadcast, not m products.
-            same = bool(len(info)) and bool((info == info[0]).all())
-            self.information = info[0].copy() if same else info
         self.info_is_identity = self.information.ndim == 2 and np.array_equal(
             self.information, np.eye(self.dim)
         )
