@@ -126,3 +126,22 @@ def test_products_against_the_dense_hessian(toy) -> None:
         rv = voff[w.vclass] + w.vblock[i] * w.dv + np.arange(w.dv)
         ref = np.linalg.solve(H[np.ix_(rv, rv)], H[np.ix_(rv, w.upos[i])])
         np.testing.assert_allclose(yt[i], ref, rtol=1e-9, atol=1e-12, err_msg=str(k))
+
+
+@pytest.mark.parametrize("left_out", [0, 3, 40])  # all edges, a few (scratch), many (gather)
+def test_edge_contraction_sums_the_selected_edges(left_out: int) -> None:
+    from graphopt.linear.block_ops import EdgeContraction
+
+    rng = np.random.default_rng(7)
+    m, r, d1, d2, n_t = 60, 3, 3, 2, 9
+    sel = np.sort(rng.choice(m, m - left_out, replace=False))
+    target = rng.integers(0, n_t, len(sel))
+    A, B = rng.standard_normal((m, r, d1)), rng.standard_normal((m, r, d2))
+    con = EdgeContraction(sel, target, n_t, m, r, d1)
+    assert con.scratch == (left_out == 3)
+    want = np.zeros((n_t, d1, d2))
+    for e, t in zip(sel, target, strict=True):
+        want[t] += A[e].T @ B[e]
+    np.testing.assert_allclose(con(A, B), want, rtol=1e-13, atol=1e-13)
+    out = np.full(con.out_size(d2), np.nan)  # the scratch block is part of the buffer
+    np.testing.assert_allclose(con(A, B, out), want, rtol=1e-13, atol=1e-13)

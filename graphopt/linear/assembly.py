@@ -223,12 +223,12 @@ class Assembler:
                     continue
                 assert isinstance(t.dest, np.ndarray)
                 size = t.dest.size
-                t.span = slice(off, off + size)
+                t.span = slice(off, off + t.contraction.out_size(t.dest.shape[-1] // t.contraction.d1))
                 rows.append((t.dest.reshape(-1), off))
                 if t.dest_t is not None:
                     rows.append((t.dest_t.reshape(-1), off))
                 t.dest = t.dest_t = None  # kept in the map
-                off += size
+                off = t.span.stop  # a scratch block past the outputs is not mapped
         if not rows:
             return np.zeros(0), None
         nnz = self.index.pattern.nnz
