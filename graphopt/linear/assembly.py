@@ -222,8 +222,8 @@ class Assembler:
                 if t.kind != "U" or t.contraction is None:
                     continue
                 assert isinstance(t.dest, np.ndarray)
-                size = t.dest.size
-                t.span = slice(off, off + t.contraction.out_size(t.dest.shape[-1] // t.contraction.d1))
+                d2 = t.dest.shape[-1] // t.contraction.d1
+                t.span = slice(off, off + t.contraction.out_size(d2))
                 rows.append((t.dest.reshape(-1), off))
                 if t.dest_t is not None:
                     rows.append((t.dest_t.reshape(-1), off))
