@@ -30,7 +30,6 @@ import numpy as np
 
 from graphopt import (
     GraphError,
-    LevenbergConfig,
     NotPositiveDefiniteError,
     SparseOptimizer,
     make_kernel,
@@ -41,7 +40,7 @@ from graphopt.apps.slam_scene import manhattan_world, trajectory_error
 from graphopt.io.g2o import GraphFormatError, read_graph, write_g2o
 from graphopt.io.g2o_records import GraphFile
 from graphopt.robust_kernel import RobustKernel
-from graphopt.types.slam_graph import SlamGraph, build_graph, graph_file
+from graphopt.types.slam_graph import SlamGraph, build_graph, graph_file, pose_graph_levenberg
 
 PROG = "graphopt-g2o"
 #: Marginals of every free pose up to this many, else of an evenly spaced sample of this many.
@@ -121,7 +120,7 @@ def _build(args: argparse.Namespace, graph: GraphFile, kernel: RobustKernel | No
     """The optimizer with the graph's vertices and edges (one-line errors naming the line)."""
     algorithm: Any = args.algorithm
     if algorithm == "lm":
-        algorithm = LevenbergConfig(schedule=args.lm_schedule)
+        algorithm = pose_graph_levenberg(args.lm_schedule)
     options: dict[str, Any] = {"algorithm": algorithm, "solver": args.solver,
                                "verbose": not args.quiet, "stream": sys.stderr,
                                "stopping": _cli.stopping_config(args)}

@@ -44,9 +44,9 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from graphopt import LevenbergConfig, SparseOptimizer  # noqa: E402
+from graphopt import SparseOptimizer  # noqa: E402
 from graphopt.io.g2o import read_graph, write_g2o  # noqa: E402
-from graphopt.types.slam_graph import build_graph, graph_file  # noqa: E402
+from graphopt.types.slam_graph import build_graph, graph_file, pose_graph_levenberg  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "posegraph"
 #: (file, build with the spanning-tree guess)
@@ -156,8 +156,7 @@ def main() -> None:
     args = ap.parse_args()
     folder = Path(tempfile.mkdtemp())
     configs = {
-        "graphopt lm-gtsam": lambda p, g, s, n: graphopt_run(p, g, LevenbergConfig(
-            schedule="gtsam"), n),
+        "graphopt lm-gtsam": lambda p, g, s, n: graphopt_run(p, g, pose_graph_levenberg(), n),
         "graphopt gn": lambda p, g, s, n: graphopt_run(p, g, "gn", n),
         "graphopt lm-g2o": lambda p, g, s, n: graphopt_run(p, g, "lm", n),
         "g2o gn": lambda p, g, s, n: g2o_run(s, "gn", n),

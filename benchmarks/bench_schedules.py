@@ -11,7 +11,7 @@ use are chosen from this table (see ``docs/benchmarks.md``).
 Usage (from the repository root)::
 
     .venv/bin/python -P benchmarks/bench_schedules.py [--family bal|posegraph|directba ...]
-        [--repeats 3] [--iterations 100]
+        [--repeats 3] [--iterations 100] [--initial-lambdas 1e-5 3e-6 1e-6 ...]
 """
 
 from __future__ import annotations
@@ -89,6 +89,12 @@ def posegraph_problems() -> dict[str, tuple[Builder, dict[str, Any]]]:
         if path.exists():
             out[name] = (builder(read_graph(path), guess), {})
     out["manhattan world (3000 poses)"] = (builder(manhattan_world(3000, 0)[0], False), {})
+    # Noisier worlds, where the schedules end in different minima (σ_xy, σ_θ as named).
+    for poses, seed, sxy, sth in ((5000, 1, 0.1, 0.05), (3000, 3, 0.2, 0.1),
+                                  (2000, 4, 0.05, 0.1)):
+        graph = manhattan_world(poses, seed, sigma_xy=sxy, sigma_theta=sth)[0]
+        out[f"manhattan world ({poses} poses, seed {seed}, σ {sxy}/{sth})"] = (
+            builder(graph, False), {})
     return out
 
 
@@ -112,7 +118,7 @@ def directba_problems() -> dict[str, tuple[Builder, dict[str, Any]]]:
 CONFIGS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "lm g2o": lambda kw: LevenbergConfig(schedule="g2o", **kw),
     "lm ceres": lambda kw: LevenbergConfig(schedule="ceres", **kw),
-    "lm gtsam": lambda kw: LevenbergConfig(schedule="gtsam", **kw),
+    "lm gtsam": lambda kw: LevenbergConfig(schedule="gtsam", **kw),  # GTSAM's λ₀ = 1e-5
     "gn": lambda kw: GaussNewtonConfig(),
 }
 
@@ -130,10 +136,19 @@ def run(build: Builder, algorithm: Any, iterations: int) -> dict[str, Any]:
             "times": list(np.cumsum(res.iteration_seconds))}
 
 
+def configs(lambdas: list[float]) -> dict[str, Callable[[dict[str, Any]], Any]]:
+    """:data:`CONFIGS`, plus GTSAM's schedule from each initial λ in ``lambdas``."""
+    out = dict(CONFIGS)
+    for lam in lambdas:
+        out[f"gtsam {lam:g}"] = (
+            lambda kw, lam=lam: LevenbergConfig(schedule="gtsam", initial_lambda=lam, **kw))
+    return out
+
+
 def bench(name: str, build: Builder, kw: dict[str, Any], args: argparse.Namespace) -> None:
     """Run every configuration on one problem and print its rows."""
     rows: dict[str, list[dict[str, Any]]] = {}
-    for label, make in CONFIGS.items():
+    for label, make in configs(args.initial_lambdas).items():
         run(build, make(kw), 2)  # warm-up
         rows[label] = [run(build, make(kw), args.iterations) for _ in range(args.repeats)]
     finals = [r["final"] for rs in rows.values() for r in rs if np.isfinite(r["final"])]
@@ -159,6 +174,10 @@ def main() -> None:
                     choices=["bal", "posegraph", "directba"])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--iterations", type=int, default=100)
+    ap.add_argument("--initial-lambdas", type=float, nargs="*", default=[],
+                    help="also run GTSAM's schedule from each of these initial λ (the pose "
+                         "graphs' default, 3e-6, was chosen from 1e-5 3e-6 1e-6 3e-7 1e-7 1e-8 "
+                         "1e-9)")
     ap.add_argument("--rel", type=float, default=None,
                     help="relative distance to the best final chi2 counted as reached "
                          "(default: 1e-4 for BAL and direct BA, 1e-6 for pose graphs)")

@@ -324,3 +324,23 @@ def test_3d_errors_name_file_and_line() -> None:
     g.edges["EDGE_SE3_TRACKXYZ"].params[2] = 5
     _expect_error(g, r"^three\.g2o:13: EDGE_SE3_TRACKXYZ uses parameter 5, but there is no "
                      r"PARAMS_SE3OFFSET 5$")
+
+
+def test_pose_graphs_default_to_gtsams_schedule_from_the_measured_lambda() -> None:
+    from graphopt import LevenbergConfig, SparseOptimizer
+    from graphopt.apps.slam_scene import manhattan_world
+    from graphopt.types import POSE_GRAPH_INITIAL_LAMBDA, pose_graph_levenberg
+
+    assert POSE_GRAPH_INITIAL_LAMBDA == 3e-6
+    assert pose_graph_levenberg() == LevenbergConfig(schedule="gtsam", initial_lambda=3e-6)
+    assert pose_graph_levenberg("g2o") == LevenbergConfig(schedule="g2o")  # its τ rule
+    graph = manhattan_world(60, 0)[0]
+    slam = build_graph(graph)
+    assert slam.optimizer.algorithm.config == pose_graph_levenberg()
+    # The default's first step is the one damped by 3e-6, not GTSAM's own 1e-5.
+    mine = SparseOptimizer(LevenbergConfig(schedule="gtsam", initial_lambda=3e-6))
+    build_graph(graph, mine)
+    other = SparseOptimizer(LevenbergConfig(schedule="gtsam"))  # GTSAM's own 1e-5
+    build_graph(graph, other)
+    runs = [o.optimize(1).info[0].chi2 for o in (slam.optimizer, mine, other)]
+    assert runs[0] == runs[1] != runs[2]

@@ -18,7 +18,8 @@ module                 types
                        ``EdgeSE2Prior``
 ``slam3d``             ``VertexSE3``, ``ParameterSE3Offset``, ``EdgeSE3``, ``EdgeSE3PointXYZ``,
                        ``EdgeSE3Prior``
-``slam_graph``         ``SlamGraph``, ``build_graph``, ``graph_file`` (g2o/TORO records ↔ optimizer)
+``slam_graph``         ``SlamGraph``, ``build_graph``, ``graph_file`` (g2o/TORO records ↔
+                       optimizer), ``pose_graph_levenberg``, ``POSE_GRAPH_INITIAL_LAMBDA``
 =====================  ==========================================================================
 """
 
@@ -39,6 +40,7 @@ _WHERE = {
     "VertexSE3": "slam3d", "ParameterSE3Offset": "slam3d", "EdgeSE3": "slam3d",
     "EdgeSE3PointXYZ": "slam3d", "EdgeSE3Prior": "slam3d",
     "SlamGraph": "slam_graph", "build_graph": "slam_graph", "graph_file": "slam_graph",
+    "pose_graph_levenberg": "slam_graph", "POSE_GRAPH_INITIAL_LAMBDA": "slam_graph",
 }
 
 __all__ = sorted(_WHERE)
