@@ -176,6 +176,65 @@ def safe_points(pc: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return np.where(ok[:, None], pc, np.array([0.0, 0.0, 1.0]))
 
 
+def _gather(prm: PhotometricParams, base: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """``flat[window[i] + base]`` as ``(len(window), m)``: one ``np.take`` per window offset.
+
+    Each take reuses the same ``(m,)`` indices on a shifted view of the images, which is about
+    twice as fast as one take with a ``(len(window), m)`` index array (no index array to build,
+    and short cache-resident index rows). Indices stay inside the images (active edges by the
+    margin, inactive ones at the safe pixel), so ``mode="wrap"`` never wraps; it only skips
+    the buffered bounds check of ``mode="raise"``.
+    """
+    lo = int(window.min())
+    start = base + lo
+    out = np.empty((len(window), len(base)), dtype=prm.flat.dtype)
+    for i, off in enumerate((window - lo).tolist()):
+        np.take(prm.flat[off:], start, out=out[i], mode="wrap")
+    return out
+
+
+def _sample(
+    u: np.ndarray, v: np.ndarray, image: np.ndarray, prm: PhotometricParams, grad: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`sample_patches` with the patch as a ``(P, P, m)`` view and the gradients as one
+    ``(2, P², m)`` float64 array ``[gu, gv]`` (what the edges consume, without extra copies)."""
+    p = prm.patch
+    u0 = np.floor(u)
+    v0 = np.floor(v)
+    a = u - u0
+    b = v - v0
+    base = (image.astype(np.int64) * prm.height + v0.astype(np.int64)) * prm.width
+    base += u0.astype(np.int64)
+    ext = grad and prm.gradient == "central"
+    n = p + 3 if ext else p + 1  # raw window side
+    win = _gather(prm, base, prm.window_ext if ext else prm.window).reshape(n, n, -1)
+    # Bilinear weights of the four corners, shared by every pixel of a patch.
+    a = a.astype(prm.flat.dtype)
+    b = b.astype(prm.flat.dtype)
+    ia, ib = 1.0 - a, 1.0 - b
+    k = n - 1
+    c00, c10, c01, c11 = win[:k, :k], win[1:, :k], win[:k, 1:], win[1:, 1:]
+    val = (ia * ib) * c00
+    tmp = np.empty_like(val)  # one scratch block instead of a temporary per term
+    for w, c in ((a * ib, c10), (ia * b, c01), (a * b, c11)):
+        val += np.multiply(w, c, out=tmp)
+    if not grad:
+        return val, None
+    g = np.empty((2, p, p, len(u)))
+    f32 = prm.flat.dtype
+    if ext:
+        # val is the interpolated image at offsets −P/2−1 … P/2 (both axes); the differences
+        # are taken in the sampling dtype, as before, and halved exactly in float64.
+        np.subtract(val[2:, 1:-1], val[:-2, 1:-1], out=g[0], dtype=f32)
+        np.subtract(val[1:-1, 2:], val[1:-1, :-2], out=g[1], dtype=f32)
+        g *= 0.5
+        return val[1:-1, 1:-1], g.reshape(2, p * p, -1)
+    # Exact derivative of the bilinear interpolant.
+    g[0] = ib * (c10 - c00) + b * (c11 - c01)
+    g[1] = ia * (c01 - c00) + a * (c11 - c10)
+    return val, g.reshape(2, p * p, -1)
+
+
 def sample_patches(
     u: np.ndarray, v: np.ndarray, image: np.ndarray, prm: PhotometricParams, grad: bool
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -197,40 +256,11 @@ def sample_patches(
         grad: Also return the image gradients.
 
     Returns:
-        ``(I, gu, gv)``, each ``(P², m)`` in k order; ``gu, gv`` are ``None`` unless asked.
+        ``(I, gu, gv)``, each ``(P², m)`` in k order (``I`` in the sampling dtype, the gradients
+        float64); ``gu, gv`` are ``None`` unless asked.
     """
-    p = prm.patch
-    u0 = np.floor(u)
-    v0 = np.floor(v)
-    a = u - u0
-    b = v - v0
-    base = (image.astype(np.int64) * prm.height + v0.astype(np.int64)) * prm.width
-    base += u0.astype(np.int64)
-    ext = grad and prm.gradient == "central"
-    window = prm.window_ext if ext else prm.window
-    n = p + 3 if ext else p + 1  # raw window side
-    # np.take is markedly faster than fancy indexing for a flat gather.
-    win = np.take(prm.flat, window[:, None] + base[None, :]).reshape(n, n, -1)  # [wx, wy, edge]
-    # Bilinear weights of the four corners, shared by every pixel of a patch.
-    a = a.astype(prm.flat.dtype)
-    b = b.astype(prm.flat.dtype)
-    ia, ib = 1.0 - a, 1.0 - b
-    w00, w10, w01, w11 = ia * ib, a * ib, ia * b, a * b
-    k = n - 1
-    c00, c10, c01, c11 = win[:k, :k], win[1:, :k], win[:k, 1:], win[1:, 1:]
-    val = w00 * c00
-    val += w10 * c10
-    val += w01 * c01
-    val += w11 * c11
-    if not grad:
-        return val.reshape(p * p, -1), None, None
-    if ext:
-        # val is the interpolated image at offsets −P/2−1 … P/2 (both axes).
-        gu = 0.5 * (val[2:, 1:-1] - val[:-2, 1:-1])
-        gv = 0.5 * (val[1:-1, 2:] - val[1:-1, :-2])
-        val = val[1:-1, 1:-1]
-        return val.reshape(p * p, -1), gu.reshape(p * p, -1), gv.reshape(p * p, -1)
-    # Exact derivative of the bilinear interpolant.
-    gu = ib * (c10 - c00) + b * (c11 - c01)
-    gv = ia * (c01 - c00) + a * (c11 - c10)
-    return val.reshape(p * p, -1), gu.reshape(p * p, -1), gv.reshape(p * p, -1)
+    val, g = _sample(u, v, image, prm, grad)
+    val = val.reshape(prm.patch * prm.patch, -1)
+    if g is None:
+        return val, None, None
+    return val, g[0], g[1]

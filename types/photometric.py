@@ -31,13 +31,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.lie import relative_transform, transform_points
-from graphopt.reduction import factored_to_reduced
 from graphopt.types.image_sampling import (
     PhotometricParams,
+    _sample,
     project_points,
-    safe_points,
-    sample_patches,
 )
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
@@ -51,58 +48,118 @@ __all__ = [
 ]
 
 # --------------------------------------------------------------------------------------------
-# projection Jacobians and error assembly
+# geometry and projection Jacobians, pixel-major
+#
+# Everything below works on ``(m,)`` rows (struct-of-arrays): at tens of thousands of edges,
+# elementwise arithmetic on 3×3 entries is several times faster than batched 3×3 matmuls or
+# einsums over ``(m, 3, 3)``, and factors built as ``(2, d, m)`` are written row by row.
+
+#: ``rel_tol`` of :func:`graphopt.reduction.factored_to_reduced`, used by the fused reduction.
+_REL_TOL = 1e-12
+
+Rows = list[np.ndarray]
 
 
-def _uv_jacobian_camera(pc: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
-    """``∂(u, v)/∂P_c``: ``(m, 2, 3)``."""
-    m = len(pc)
-    x = pc[:, 0] * iz
-    y = pc[:, 1] * iz
-    d = np.zeros((m, 2, 3))
-    d[:, 0, 0] = prm.fx * iz
-    d[:, 0, 2] = -prm.fx * x * iz
-    d[:, 1, 1] = prm.fy * iz
-    d[:, 1, 2] = -prm.fy * y * iz
+def _rotation_translation(T: np.ndarray) -> tuple[list[Rows], Rows]:
+    """Entries ``R[i][j]`` and ``t[i]`` of ``(m, 4, 4)`` transforms, as ``(m,)`` views."""
+    return [[T[:, i, j] for j in range(3)] for i in range(3)], [T[:, i, 3] for i in range(3)]
+
+
+def _apply(R: list[Rows], t: Rows, p: Rows) -> np.ndarray:
+    """``R p + t`` as ``(3, m)`` (the summation order of a matmul)."""
+    out = np.empty((3, len(p[0])))
+    for i in range(3):
+        np.multiply(R[i][0], p[0], out=out[i])
+        out[i] += R[i][1] * p[1]
+        out[i] += R[i][2] * p[2]
+        out[i] += t[i]
+    return out
+
+
+def _camera_rows(P: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
+    """``∂(u, v)/∂P_c`` as ``(2, 3, m)``: ``[[fx/z, 0, −fx x/z], [0, fy/z, −fy y/z]]``."""
+    x = P[0] * iz
+    y = P[1] * iz
+    d = np.zeros((2, 3, len(iz)))
+    np.multiply(prm.fx, iz, out=d[0, 0])
+    d[0, 2] = -prm.fx * x * iz
+    np.multiply(prm.fy, iz, out=d[1, 1])
+    d[1, 2] = -prm.fy * y * iz
     return d
 
 
-def _uv_jacobian_pose(pc: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
-    """``∂(u, v)/∂ξ`` for ``P_c ← exp(ξ) P_c``, ``ξ = [ω, υ]``: ``(m, 2, 6)``."""
-    m = len(pc)
-    x = pc[:, 0] * iz
-    y = pc[:, 1] * iz
+def _pose_rows(P: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
+    """``∂(u, v)/∂ξ`` for ``P_c ← exp(ξ) P_c``, ``ξ = [ω, υ]``, as ``(2, 6, m)``."""
+    x = P[0] * iz
+    y = P[1] * iz
     fx, fy = prm.fx, prm.fy
-    j = np.empty((m, 2, 6))
-    j[:, 0, 0] = -fx * x * y
-    j[:, 0, 1] = fx * (1.0 + x * x)
-    j[:, 0, 2] = -fx * y
-    j[:, 0, 3] = fx * iz
-    j[:, 0, 4] = 0.0
-    j[:, 0, 5] = -fx * x * iz
-    j[:, 1, 0] = -fy * (1.0 + y * y)
-    j[:, 1, 1] = fy * x * y
-    j[:, 1, 2] = fy * x
-    j[:, 1, 3] = 0.0
-    j[:, 1, 4] = fy * iz
-    j[:, 1, 5] = -fy * y * iz
+    j = np.empty((2, 6, len(iz)))
+    j[0, 0] = -fx * x * y
+    j[0, 1] = fx * (1.0 + x * x)
+    j[0, 2] = -fx * y
+    j[0, 3] = fx * iz
+    j[0, 4] = 0.0
+    j[0, 5] = -fx * x * iz
+    j[1, 0] = -fy * (1.0 + y * y)
+    j[1, 1] = fy * x * y
+    j[1, 2] = fy * x
+    j[1, 3] = 0.0
+    j[1, 4] = fy * iz
+    j[1, 5] = -fy * y * iz
     return j
 
 
-def _gradients(gu: np.ndarray, gv: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Stack pixel-major gradients into ``(m, P², 2)``, zero rows of inactive edges."""
-    m = gu.shape[1]
-    g = np.empty((m, gu.shape[0], 2))
-    g[:, :, 0] = gu.T
-    g[:, :, 1] = gv.T
-    if not ok.all():
-        g[~ok] = 0.0
-    return g
+def _times_rotation(d: np.ndarray, R: list[Rows]) -> np.ndarray:
+    """``d R`` for camera rows ``d`` (``(2, 3, m)``, ``d[0, 1] = d[1, 0] = 0``): ``(2, 3, m)``."""
+    out = np.empty_like(d)
+    for j in range(3):
+        np.multiply(d[0, 0], R[0][j], out=out[0, j])
+        out[0, j] += d[0, 2] * R[2][j]
+        np.multiply(d[1, 1], R[1][j], out=out[1, j])
+        out[1, j] += d[1, 2] * R[2][j]
+    return out
+
+
+def _inverse_depth_rows(d: np.ndarray, pa: np.ndarray, irho: np.ndarray) -> np.ndarray:
+    """``∂(u,v)/∂[a, b, ρ]`` from ``d = ∂(u,v)/∂P_a`` (``(2, 3, m)``): ``(2, 3, m)``."""
+    out = np.empty_like(d)
+    np.multiply(d[:, 0], irho, out=out[:, 0])
+    np.multiply(d[:, 1], irho, out=out[:, 1])
+    dp = d[:, 0] * pa[0]
+    dp += d[:, 1] * pa[1]
+    dp += d[:, 2] * pa[2]
+    np.negative(dp, out=dp)
+    np.multiply(dp, irho, out=out[:, 2])
+    return out
+
+
+def _anchor_point(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point in the anchor frame ``[a, b, 1]/ρ`` as ``(3, m)``, ``1/ρ`` and the ``ρ > 0``
+    mask."""
+    rho = q[:, 2]
+    ok = rho > 0
+    irho = 1.0 / np.where(ok, rho, 1.0)
+    pa = np.empty((3, len(q)))
+    np.multiply(q[:, 0], irho, out=pa[0])
+    np.multiply(q[:, 1], irho, out=pa[1])
+    pa[2] = irho
+    return pa, irho, ok
+
+
+def _safe_rows(P: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Camera points of inactive edges replaced by ``[0, 0, 1]`` (finite Jacobian inputs), as
+    :func:`graphopt.types.image_sampling.safe_points` for ``(3, m)`` points."""
+    if ok.all():
+        return P
+    return np.where(ok, P, np.array([[0.0], [0.0], [1.0]]))
 
 
 def _finish(meas: np.ndarray, val: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """``C − I`` (``val`` pixel-major) with inactive rows zeroed."""
-    e = np.subtract(meas, val.T, order="C")
+    """``C − I`` (``val`` pixel-major ``(P, P, m)``, possibly a view) as ``(m, P²)`` with
+    inactive rows zeroed."""
+    p = val.shape[0]
+    e = np.subtract(meas.reshape(-1, p, p), val.transpose(2, 0, 1), order="C")
+    e = e.reshape(-1, p * p)
     if not ok.all():
         e[~ok] = 0.0
     return e
@@ -115,24 +172,6 @@ def _image_index(ctx: EdgeContext, m: int) -> np.ndarray:
             raise ValueError("photometric edges need ctx.data['image'] (image index per edge)")
         return np.zeros(m, dtype=np.int64)
     return np.asarray(img)
-
-
-def _anchor_point(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Point in the anchor frame ``[a, b, 1]/ρ``, ``1/ρ`` and the ``ρ > 0`` mask."""
-    rho = q[:, 2]
-    ok = rho > 0
-    irho = 1.0 / np.where(ok, rho, 1.0)
-    pa = np.stack([q[:, 0] * irho, q[:, 1] * irho, irho], axis=1)
-    return pa, irho, ok
-
-
-def _inverse_depth_point_jacobian(d: np.ndarray, pa: np.ndarray, irho: np.ndarray) -> np.ndarray:
-    """``∂(u,v)/∂[a, b, ρ]`` from ``d = ∂(u,v)/∂P_a``: ``(m, 2, 3)``."""
-    out = np.empty_like(d)
-    out[:, :, 0] = d[:, :, 0] * irho[:, None]
-    out[:, :, 1] = d[:, :, 1] * irho[:, None]
-    out[:, :, 2] = -(d * pa[:, None, :]).sum(axis=2) * irho[:, None]
-    return out
 
 
 def _check_params(cls: type, ctx: EdgeContext) -> PhotometricParams:
@@ -173,17 +212,33 @@ class _PatchEdge(BaseEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        """Camera-frame points ``(m, 3)``, an extra activity mask (or ``None``) and what
-        :meth:`_projection_jacobians` needs besides."""
+        """Camera-frame points ``(3, m)``, an extra activity mask (or ``None``) and what
+        :meth:`_projection_rows` needs besides."""
         raise NotImplementedError
 
     @classmethod
-    def _projection_jacobians(
+    def _projection_rows(
         cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
         prm: PhotometricParams,
     ) -> tuple[np.ndarray, ...]:
-        """``∂(u, v)/∂δ`` of every vertex position, ``(m, 2, d_i)``, at safe points ``pc``."""
+        """``∂(u, v)/∂δ`` of every vertex position as ``(2, d_i, m)``, at safe points ``pc``
+        ``(3, m)``."""
         raise NotImplementedError
+
+    @classmethod
+    def _sampled(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """Errors ``(m, P²)``, pixel-major float64 gradients ``[gu, gv]`` ``(2, P², m)`` (not
+        zeroed),
+        projection rows ``(2, d_i, m)`` (sign of ``∂(u,v)/∂δ``) and the activity mask."""
+        prm = cls._check(ctx)
+        pc, extra_ok, geo = cls._geometry(x)
+        u, v, iz, ok = project_points(pc.T, prm, extra_ok)
+        val, g = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
+        e = _finish(measurement, val, ok)
+        rows = cls._projection_rows(x, _safe_rows(pc, ok), iz, ok, geo, prm)
+        return e, g, rows, ok  # type: ignore[return-value]
 
     @classmethod
     def evaluate(
@@ -199,8 +254,8 @@ class _PatchEdge(BaseEdge):
         """
         prm = cls._check(ctx)
         pc, extra_ok, _ = cls._geometry(x)
-        u, v, _, ok = project_points(pc, prm, extra_ok)
-        val, _, _ = sample_patches(u, v, _image_index(ctx, len(u)), prm, grad=False)
+        u, v, _, ok = project_points(pc.T, prm, extra_ok)
+        val, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
         return Linearization(_finish(measurement, val, ok), active=ok)
 
     @classmethod
@@ -234,14 +289,12 @@ class _PatchEdge(BaseEdge):
             in ``e`` and ``G`` (inactive edges have ``iz = 0``, which zeroes only part of
             ``∂(u,v)/∂ξ``, so their gradients are zeroed instead).
         """
-        prm = cls._check(ctx)
-        pc, extra_ok, geo = cls._geometry(x)
-        u, v, iz, ok = project_points(pc, prm, extra_ok)
-        val, gu, gv = sample_patches(u, v, _image_index(ctx, len(u)), prm, grad=True)
-        e = _finish(measurement, val, ok)
-        g = _gradients(gu, gv, ok)
-        factors = cls._projection_jacobians(x, safe_points(pc, ok), iz, ok, geo, prm)
-        return e, g, tuple(-f for f in factors), ok
+        e, gp, rows, ok = cls._sampled(x, measurement, ctx)
+        g = np.ascontiguousarray(gp.transpose(2, 1, 0))
+        if not ok.all():
+            g[~ok] = 0.0
+        factors = tuple(np.negative(r.transpose(2, 0, 1), order="C") for r in rows)
+        return e, g, factors, ok
 
     @classmethod
     def linearize(
@@ -251,16 +304,31 @@ class _PatchEdge(BaseEdge):
 
         The ``(m, P², d_i)`` Jacobians factor as image gradients times a ``(2, d_i)``
         projection factor (:meth:`linearize_factored`); the normal equations need only ``GᵀG``,
-        so 2 rows carry them (:func:`graphopt.reduction.factored_to_reduced`).
+        so 2 rows carry them. This computes what
+        :func:`graphopt.reduction.factored_to_reduced` would from the factored form, fused:
+        ``GᵀG`` and ``Gᵀe`` straight from the pixel-major gradients, and ``J̃_i = R F_i`` from
+        the pixel-major projection rows, without building ``G (m, P², 2)`` or ``F_i``.
 
         Args:
             x: As in :meth:`error`.
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        e, g, factors, ok = cls.linearize_factored(x, measurement, ctx)
-        e, jac, e_lin = factored_to_reduced(e, g, factors)
-        return Linearization(e, jac, e_lin, ok)
+        e, (gu, gv), rows, ok = cls._sampled(x, measurement, ctx)
+        # Gᵀe with e edge-major: one transposed copy of e beats two mixed-layout einsums.
+        et = np.ascontiguousarray(e.T)
+        r00, r01, r11, e_lin = _reduce_patch(
+            np.einsum("km,km->m", gu, gu), np.einsum("km,km->m", gu, gv),
+            np.einsum("km,km->m", gv, gv), np.einsum("km,km->m", gu, et),
+            np.einsum("km,km->m", gv, et), ok)
+        jac = []
+        for f in rows:  # J̃ = R (−F): the sign goes on R
+            j = np.empty_like(f)
+            np.multiply(f[0], r00, out=j[0])
+            j[0] += f[1] * r01
+            np.multiply(f[1], r11, out=j[1])
+            jac.append(np.ascontiguousarray(j.transpose(2, 0, 1)))
+        return Linearization(e, tuple(jac), e_lin, ok)
 
     @classmethod
     def jacobians(
@@ -275,6 +343,33 @@ class _PatchEdge(BaseEdge):
         """
         _, g, factors, _ = cls.linearize_factored(x, measurement, ctx)
         return tuple(np.matmul(g, f) for f in factors)
+
+
+def _reduce_patch(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, ru: np.ndarray, rv: np.ndarray, ok: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The closed forms of :func:`graphopt.reduction.factored_to_reduced` for 2 rows.
+
+    From ``GᵀG = [[a, b], [b, c]]`` and ``Gᵀe = [ru, rv]`` (inactive edges are zeroed here):
+    ``−R`` (``R`` upper triangular, ``RᵀR = GᵀG``; negated for ``J_i = −G F_i``) as
+    ``(−r00, −r01, −r11)`` and ``e_lin = R⁻ᵀ Gᵀe`` ``(m, 2)``.
+    """
+    if not ok.all():
+        for s in (a, b, c, ru, rv):
+            s[~ok] = 0.0
+    tol = _REL_TOL * np.maximum(a, c)
+    ok0 = a > tol
+    r00 = np.sqrt(a)
+    inv00 = np.where(ok0, 1.0 / np.where(ok0, r00, 1.0), 0.0)
+    r01 = b * inv00
+    d = c - r01 * r01
+    ok1 = d > tol
+    r11 = np.sqrt(np.where(ok1, d, 0.0))
+    inv11 = np.where(ok1, 1.0 / np.where(ok1, r11, 1.0), 0.0)
+    e_lin = np.empty((len(a), 2))
+    np.multiply(ru, inv00, out=e_lin[:, 0])
+    np.multiply(rv - r01 * e_lin[:, 0], inv11, out=e_lin[:, 1])
+    return -r00, -r01, -r11, e_lin
 
 
 class EdgePhotometricPatch(_PatchEdge):
@@ -297,15 +392,15 @@ class EdgePhotometricPatch(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        return transform_points(x[0], x[1]), None, None
+        R, t = _rotation_translation(x[0])
+        return _apply(R, t, [x[1][:, 0], x[1][:, 1], x[1][:, 2]]), None, R
 
     @classmethod
-    def _projection_jacobians(
+    def _projection_rows(
         cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
         prm: PhotometricParams,
     ) -> tuple[np.ndarray, ...]:
-        return (_uv_jacobian_pose(pc, iz, prm),
-                _uv_jacobian_camera(pc, iz, prm) @ x[0][:, :3, :3])
+        return _pose_rows(pc, iz, prm), _times_rotation(_camera_rows(pc, iz, prm), geo)
 
 
 class EdgePhotometricPatchInverseDepth(_PatchEdge):
@@ -329,22 +424,31 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        R, t = relative_transform(x[0], x[1])
+        Ra, ta = _rotation_translation(x[0])
+        Rb, tb = _rotation_translation(x[1])
+        # T_ja = T_j T_a⁻¹: R = R_j R_aᵀ, t = t_j − R t_a (the order of lie.relative_transform).
+        R = [[Rb[i][0] * Ra[j][0] + Rb[i][1] * Ra[j][1] + Rb[i][2] * Ra[j][2] for j in range(3)]
+             for i in range(3)]
+        t = [tb[i] - (R[i][0] * ta[0] + R[i][1] * ta[1] + R[i][2] * ta[2]) for i in range(3)]
         pa, irho, ok = _anchor_point(x[2])
-        pc = np.matmul(R, pa[:, :, None])[:, :, 0] + t
-        return pc, ok, (R, pa, irho)
+        return _apply(R, t, pa), ok, (R, pa, irho)
 
     @classmethod
-    def _projection_jacobians(
+    def _projection_rows(
         cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
         prm: PhotometricParams,
     ) -> tuple[np.ndarray, ...]:
         R, pa, irho = geo
-        pa = safe_points(pa, ok)
-        d = _uv_jacobian_camera(pc, iz, prm) @ R  # ∂(u,v)/∂P_a
+        pa = _safe_rows(pa, ok)
+        d = _times_rotation(_camera_rows(pc, iz, prm), R)  # ∂(u,v)/∂P_a
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.
-        ja = np.concatenate([np.cross(d, pa[:, None, :]), -d], axis=2)
-        return ja, _uv_jacobian_pose(pc, iz, prm), _inverse_depth_point_jacobian(d, pa, irho)
+        ja = np.empty((2, 6, len(iz)))
+        for k in range(3):
+            k1, k2 = (k + 1) % 3, (k + 2) % 3
+            np.multiply(d[:, k1], pa[k2], out=ja[:, k])
+            ja[:, k] -= d[:, k2] * pa[k1]
+        np.negative(d, out=ja[:, 3:])
+        return ja, _pose_rows(pc, iz, prm), _inverse_depth_rows(d, pa, irho)
 
 
 class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
@@ -371,12 +475,12 @@ class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
         return pa, ok, irho
 
     @classmethod
-    def _projection_jacobians(
+    def _projection_rows(
         cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
         prm: PhotometricParams,
     ) -> tuple[np.ndarray, ...]:
-        jq = _inverse_depth_point_jacobian(_uv_jacobian_camera(pc, iz, prm), pc, geo)
-        return np.zeros((len(pc), 2, 6)), jq
+        jq = _inverse_depth_rows(_camera_rows(pc, iz, prm), pc, geo)
+        return np.zeros((2, 6, len(iz))), jq
 
 
 _BASES: tuple[type[BaseEdge], ...] = (
