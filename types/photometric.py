@@ -36,6 +36,20 @@ from graphopt.types.image_sampling import (
     _sample,
     project_points,
 )
+from graphopt.types.photometric_geometry import (
+    MINUS_IDENTITY,
+    Triangle,
+    anchor_point,
+    apply,
+    camera_rows,
+    cross_rows,
+    inverse_depth_jacobian,
+    pose_jacobian,
+    pose_rows,
+    relative_rotation,
+    safe_rows,
+    times_rotation,
+)
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
 __all__ = [
@@ -48,110 +62,10 @@ __all__ = [
 ]
 
 # --------------------------------------------------------------------------------------------
-# geometry and projection Jacobians, pixel-major
-#
-# Everything below works on ``(m,)`` rows (struct-of-arrays): at tens of thousands of edges,
-# elementwise arithmetic on 3×3 entries is several times faster than batched 3×3 matmuls or
-# einsums over ``(m, 3, 3)``, and factors built as ``(2, d, m)`` are written row by row.
+# errors and the reduction
 
 #: ``rel_tol`` of :func:`graphopt.reduction.factored_to_reduced`, used by the fused reduction.
 _REL_TOL = 1e-12
-
-Rows = list[np.ndarray]
-
-
-def _rotation_translation(T: np.ndarray) -> tuple[list[Rows], Rows]:
-    """Entries ``R[i][j]`` and ``t[i]`` of ``(m, 4, 4)`` transforms, as ``(m,)`` views."""
-    return [[T[:, i, j] for j in range(3)] for i in range(3)], [T[:, i, 3] for i in range(3)]
-
-
-def _apply(R: list[Rows], t: Rows, p: Rows) -> np.ndarray:
-    """``R p + t`` as ``(3, m)`` (the summation order of a matmul)."""
-    out = np.empty((3, len(p[0])))
-    for i in range(3):
-        np.multiply(R[i][0], p[0], out=out[i])
-        out[i] += R[i][1] * p[1]
-        out[i] += R[i][2] * p[2]
-        out[i] += t[i]
-    return out
-
-
-def _camera_rows(P: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
-    """``∂(u, v)/∂P_c`` as ``(2, 3, m)``: ``[[fx/z, 0, −fx x/z], [0, fy/z, −fy y/z]]``."""
-    x = P[0] * iz
-    y = P[1] * iz
-    d = np.zeros((2, 3, len(iz)))
-    np.multiply(prm.fx, iz, out=d[0, 0])
-    d[0, 2] = -prm.fx * x * iz
-    np.multiply(prm.fy, iz, out=d[1, 1])
-    d[1, 2] = -prm.fy * y * iz
-    return d
-
-
-def _pose_rows(P: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
-    """``∂(u, v)/∂ξ`` for ``P_c ← exp(ξ) P_c``, ``ξ = [ω, υ]``, as ``(2, 6, m)``."""
-    x = P[0] * iz
-    y = P[1] * iz
-    fx, fy = prm.fx, prm.fy
-    j = np.empty((2, 6, len(iz)))
-    j[0, 0] = -fx * x * y
-    j[0, 1] = fx * (1.0 + x * x)
-    j[0, 2] = -fx * y
-    j[0, 3] = fx * iz
-    j[0, 4] = 0.0
-    j[0, 5] = -fx * x * iz
-    j[1, 0] = -fy * (1.0 + y * y)
-    j[1, 1] = fy * x * y
-    j[1, 2] = fy * x
-    j[1, 3] = 0.0
-    j[1, 4] = fy * iz
-    j[1, 5] = -fy * y * iz
-    return j
-
-
-def _times_rotation(d: np.ndarray, R: list[Rows]) -> np.ndarray:
-    """``d R`` for camera rows ``d`` (``(2, 3, m)``, ``d[0, 1] = d[1, 0] = 0``): ``(2, 3, m)``."""
-    out = np.empty_like(d)
-    for j in range(3):
-        np.multiply(d[0, 0], R[0][j], out=out[0, j])
-        out[0, j] += d[0, 2] * R[2][j]
-        np.multiply(d[1, 1], R[1][j], out=out[1, j])
-        out[1, j] += d[1, 2] * R[2][j]
-    return out
-
-
-def _inverse_depth_rows(d: np.ndarray, pa: np.ndarray, irho: np.ndarray) -> np.ndarray:
-    """``∂(u,v)/∂[a, b, ρ]`` from ``d = ∂(u,v)/∂P_a`` (``(2, 3, m)``): ``(2, 3, m)``."""
-    out = np.empty_like(d)
-    np.multiply(d[:, 0], irho, out=out[:, 0])
-    np.multiply(d[:, 1], irho, out=out[:, 1])
-    dp = d[:, 0] * pa[0]
-    dp += d[:, 1] * pa[1]
-    dp += d[:, 2] * pa[2]
-    np.negative(dp, out=dp)
-    np.multiply(dp, irho, out=out[:, 2])
-    return out
-
-
-def _anchor_point(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Point in the anchor frame ``[a, b, 1]/ρ`` as ``(3, m)``, ``1/ρ`` and the ``ρ > 0``
-    mask."""
-    rho = q[:, 2]
-    ok = rho > 0
-    irho = 1.0 / np.where(ok, rho, 1.0)
-    pa = np.empty((3, len(q)))
-    np.multiply(q[:, 0], irho, out=pa[0])
-    np.multiply(q[:, 1], irho, out=pa[1])
-    pa[2] = irho
-    return pa, irho, ok
-
-
-def _safe_rows(P: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Camera points of inactive edges replaced by ``[0, 0, 1]`` (finite Jacobian inputs), as
-    :func:`graphopt.types.image_sampling.safe_points` for ``(3, m)`` points."""
-    if ok.all():
-        return P
-    return np.where(ok, P, np.array([[0.0], [0.0], [1.0]]))
 
 
 def _finish(meas: np.ndarray, val: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -218,27 +132,25 @@ class _PatchEdge(BaseEdge):
 
     @classmethod
     def _projection_rows(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        """``∂(u, v)/∂δ`` of every vertex position as ``(2, d_i, m)``, at safe points ``pc``
-        ``(3, m)``."""
+        """``S ∂(u, v)/∂δ`` of every vertex position as ``(2, d_i, m)``, at safe points ``pc``
+        ``(3, m)`` (see :mod:`graphopt.types.photometric_geometry`)."""
         raise NotImplementedError
 
     @classmethod
     def _sampled(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Any]:
         """Errors ``(m, P²)``, pixel-major float64 gradients ``[gu, gv]`` ``(2, P², m)`` (not
-        zeroed),
-        projection rows ``(2, d_i, m)`` (sign of ``∂(u,v)/∂δ``) and the activity mask."""
+        zeroed), the activity mask and the leading arguments of :meth:`_projection_rows`."""
         prm = cls._check(ctx)
         pc, extra_ok, geo = cls._geometry(x)
         u, v, iz, ok = project_points(pc.T, prm, extra_ok)
         val, g = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
         e = _finish(measurement, val, ok)
-        rows = cls._projection_rows(x, _safe_rows(pc, ok), iz, ok, geo, prm)
-        return e, g, rows, ok  # type: ignore[return-value]
+        return e, g, ok, (safe_rows(pc, ok), iz, ok, geo, prm)  # type: ignore[return-value]
 
     @classmethod
     def evaluate(
@@ -289,12 +201,12 @@ class _PatchEdge(BaseEdge):
             in ``e`` and ``G`` (inactive edges have ``iz = 0``, which zeroes only part of
             ``∂(u,v)/∂ξ``, so their gradients are zeroed instead).
         """
-        e, gp, rows, ok = cls._sampled(x, measurement, ctx)
+        e, gp, ok, args = cls._sampled(x, measurement, ctx)
         g = np.ascontiguousarray(gp.transpose(2, 1, 0))
         if not ok.all():
             g[~ok] = 0.0
-        factors = tuple(np.negative(r.transpose(2, 0, 1), order="C") for r in rows)
-        return e, g, factors, ok
+        rows = cls._projection_rows(*args, MINUS_IDENTITY)
+        return e, g, tuple(np.ascontiguousarray(r.transpose(2, 0, 1)) for r in rows), ok
 
     @classmethod
     def linearize(
@@ -307,28 +219,24 @@ class _PatchEdge(BaseEdge):
         so 2 rows carry them. This computes what
         :func:`graphopt.reduction.factored_to_reduced` would from the factored form, fused:
         ``GᵀG`` and ``Gᵀe`` straight from the pixel-major gradients, and ``J̃_i = R F_i`` from
-        the pixel-major projection rows, without building ``G (m, P², 2)`` or ``F_i``.
+        the projection's ``∂(u,v)/∂P_c`` (2×3) before it meets any ``∂P_c/∂δ``, without
+        building ``G (m, P², 2)`` or ``F_i``.
 
         Args:
             x: As in :meth:`error`.
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        e, (gu, gv), rows, ok = cls._sampled(x, measurement, ctx)
+        e, (gu, gv), ok, args = cls._sampled(x, measurement, ctx)
         # Gᵀe with e edge-major: one transposed copy of e beats two mixed-layout einsums.
         et = np.ascontiguousarray(e.T)
         r00, r01, r11, e_lin = _reduce_patch(
             np.einsum("km,km->m", gu, gu), np.einsum("km,km->m", gu, gv),
             np.einsum("km,km->m", gv, gv), np.einsum("km,km->m", gu, et),
             np.einsum("km,km->m", gv, et), ok)
-        jac = []
-        for f in rows:  # J̃ = R (−F): the sign goes on R
-            j = np.empty_like(f)
-            np.multiply(f[0], r00, out=j[0])
-            j[0] += f[1] * r01
-            np.multiply(f[1], r11, out=j[1])
-            jac.append(np.ascontiguousarray(j.transpose(2, 0, 1)))
-        return Linearization(e, tuple(jac), e_lin, ok)
+        rows = cls._projection_rows(*args, (r00, r01, r11))  # J̃ = R (−F) = (−R) F
+        jac = tuple(np.ascontiguousarray(r.transpose(2, 0, 1)) for r in rows)
+        return Linearization(e, jac, e_lin, ok)
 
     @classmethod
     def jacobians(
@@ -392,15 +300,16 @@ class EdgePhotometricPatch(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        R, t = _rotation_translation(x[0])
-        return _apply(R, t, [x[1][:, 0], x[1][:, 1], x[1][:, 2]]), None, R
+        R, t = pose_rows(x[0])
+        return apply(R, t, [x[1][:, 0], x[1][:, 1], x[1][:, 2]]), None, R
 
     @classmethod
     def _projection_rows(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        return _pose_rows(pc, iz, prm), _times_rotation(_camera_rows(pc, iz, prm), geo)
+        M = camera_rows(pc, iz, prm, s)
+        return pose_jacobian(pc, M), times_rotation(M, geo)
 
 
 class EdgePhotometricPatchInverseDepth(_PatchEdge):
@@ -424,31 +333,28 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        Ra, ta = _rotation_translation(x[0])
-        Rb, tb = _rotation_translation(x[1])
-        # T_ja = T_j T_a⁻¹: R = R_j R_aᵀ, t = t_j − R t_a (the order of lie.relative_transform).
-        R = [[Rb[i][0] * Ra[j][0] + Rb[i][1] * Ra[j][1] + Rb[i][2] * Ra[j][2] for j in range(3)]
-             for i in range(3)]
+        Ra, ta = pose_rows(x[0])
+        Rb, tb = pose_rows(x[1])
+        # T_ja = T_j T_a⁻¹: R = R_j R_aᵀ, t = t_j − R t_a (as lie.relative_transform).
+        R = relative_rotation(Ra, Rb)
         t = [tb[i] - (R[i][0] * ta[0] + R[i][1] * ta[1] + R[i][2] * ta[2]) for i in range(3)]
-        pa, irho, ok = _anchor_point(x[2])
-        return _apply(R, t, pa), ok, (R, pa, irho)
+        pa, irho, ok = anchor_point(x[2])
+        return apply(R, t, pa), ok, (R, pa, irho)
 
     @classmethod
     def _projection_rows(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
         R, pa, irho = geo
-        pa = _safe_rows(pa, ok)
-        d = _times_rotation(_camera_rows(pc, iz, prm), R)  # ∂(u,v)/∂P_a
+        pa = safe_rows(pa, ok)
+        M = camera_rows(pc, iz, prm, s)
+        d = times_rotation(M, R)  # S ∂(u,v)/∂P_a
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.
         ja = np.empty((2, 6, len(iz)))
-        for k in range(3):
-            k1, k2 = (k + 1) % 3, (k + 2) % 3
-            np.multiply(d[:, k1], pa[k2], out=ja[:, k])
-            ja[:, k] -= d[:, k2] * pa[k1]
+        cross_rows(d, pa, ja)
         np.negative(d, out=ja[:, 3:])
-        return ja, _pose_rows(pc, iz, prm), _inverse_depth_rows(d, pa, irho)
+        return ja, pose_jacobian(pc, M), inverse_depth_jacobian(d, pa, irho)
 
 
 class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
@@ -471,15 +377,15 @@ class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        pa, irho, ok = _anchor_point(x[1])
+        pa, irho, ok = anchor_point(x[1])
         return pa, ok, irho
 
     @classmethod
     def _projection_rows(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        jq = _inverse_depth_rows(_camera_rows(pc, iz, prm), pc, geo)
+        jq = inverse_depth_jacobian(camera_rows(pc, iz, prm, s), pc, geo)
         return np.zeros((2, 6, len(iz))), jq
 
 
