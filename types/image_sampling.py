@@ -15,9 +15,11 @@ import numpy as np
 
 __all__ = [
     "GRADIENTS",
+    "CHUNK",
     "MIN_DEPTH",
     "PhotometricParams",
     "central_gradients",
+    "patch_residuals",
     "project_points",
     "safe_points",
     "sample_patches",
@@ -28,6 +30,10 @@ MIN_DEPTH = 1e-6
 
 #: Image gradient models of :attr:`PhotometricParams.gradient`.
 GRADIENTS = ("central", "interpolated")
+
+#: Edges per block of :func:`patch_residuals`: a block's temporaries (window slice,
+#: interpolated grid, gradients, errors: ≈ 1 kB per edge) stay in a 2 MB L2 / the L3 cache.
+CHUNK = 8192
 
 
 def central_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -176,7 +182,9 @@ def safe_points(pc: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return np.where(ok[:, None], pc, np.array([0.0, 0.0, 1.0]))
 
 
-def _gather(prm: PhotometricParams, base: np.ndarray, window: np.ndarray) -> np.ndarray:
+def _gather(
+    prm: PhotometricParams, base: np.ndarray, window: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
     """``flat[window[i] + base]`` as ``(len(window), m)``: one ``np.take`` per window offset.
 
     Each take reuses the same ``(m,)`` indices on a shifted view of the images, which is about
@@ -187,52 +195,91 @@ def _gather(prm: PhotometricParams, base: np.ndarray, window: np.ndarray) -> np.
     """
     lo = int(window.min())
     start = base + lo
-    out = np.empty((len(window), len(base)), dtype=prm.flat.dtype)
+    if out is None:
+        out = np.empty((len(window), len(base)), dtype=prm.flat.dtype)
     for i, off in enumerate((window - lo).tolist()):
         np.take(prm.flat[off:], start, out=out[i], mode="wrap")
     return out
+
+
+def _corners(
+    u: np.ndarray, v: np.ndarray, image: np.ndarray, prm: PhotometricParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat index of ``floor(u, v)`` ``(m,)``, the fractional parts ``(2, m)`` ``[a, b]`` and
+    the bilinear weights ``(4, m)`` of the corners ``00, 10, 01, 11`` — one set per edge,
+    since a patch's offsets are integers (both in the sampling dtype)."""
+    u0 = np.floor(u)
+    v0 = np.floor(v)
+    base = (image.astype(np.int64) * prm.height + v0.astype(np.int64)) * prm.width
+    base += u0.astype(np.int64)
+    ab = np.empty((2, len(u)), dtype=prm.flat.dtype)
+    np.subtract(u, u0, out=ab[0], casting="same_kind")
+    np.subtract(v, v0, out=ab[1], casting="same_kind")
+    a, b = ab
+    ia, ib = 1.0 - a, 1.0 - b
+    return base, ab, np.stack([ia * ib, a * ib, ia * b, a * b])
+
+
+def _window(prm: PhotometricParams, base: np.ndarray, ext: bool, out: np.ndarray | None = None
+            ) -> np.ndarray:
+    """Raw pixel windows ``(n, n, m)`` ``[wx, wy, edge]`` around ``base`` (``n = P + 3`` with
+    ``ext``, for central differences, else ``P + 1``)."""
+    n = prm.patch + 3 if ext else prm.patch + 1
+    win = _gather(prm, base, prm.window_ext if ext else prm.window, out)
+    return win.reshape(n, n, -1)
+
+
+def _interpolate(win: np.ndarray, w: np.ndarray, out: np.ndarray, tmp: np.ndarray) -> None:
+    """Bilinear samples of ``win`` ``(n, n, c)`` on the ``(n−1)²`` grid into ``out``
+    (``tmp``: scratch of the same shape, so that no term allocates)."""
+    k = win.shape[0] - 1
+    np.multiply(w[0], win[:k, :k], out=out)
+    out += np.multiply(w[1], win[1:, :k], out=tmp)
+    out += np.multiply(w[2], win[:k, 1:], out=tmp)
+    out += np.multiply(w[3], win[1:, 1:], out=tmp)
+
+
+def _gradients(
+    val: np.ndarray, win: np.ndarray, ab: np.ndarray, central: bool, out: np.ndarray
+) -> None:
+    """Image gradients ``[gu, gv]`` into the float64 ``out`` ``(2, P, P, c)``.
+
+    Central: differences of the interpolated ``(P+2)²`` grid ``val`` — bilinear interpolation
+    commutes with integer shifts, so this equals interpolating precomputed central-difference
+    gradient images, with one gather instead of three. The differences are taken in the
+    sampling dtype and halved exactly in float64. Otherwise: the exact derivative of the
+    bilinear interpolant from the raw window ``win`` ``(P+1, P+1, c)``.
+    """
+    if central:
+        f = val.dtype
+        np.subtract(val[2:, 1:-1], val[:-2, 1:-1], out=out[0], dtype=f)
+        np.subtract(val[1:-1, 2:], val[1:-1, :-2], out=out[1], dtype=f)
+        out *= 0.5
+        return
+    a, b = ab
+    k = win.shape[0] - 1
+    c00, c10, c01, c11 = win[:k, :k], win[1:, :k], win[:k, 1:], win[1:, 1:]
+    out[0] = (1.0 - b) * (c10 - c00) + b * (c11 - c01)
+    out[1] = (1.0 - a) * (c01 - c00) + a * (c11 - c10)
 
 
 def _sample(
     u: np.ndarray, v: np.ndarray, image: np.ndarray, prm: PhotometricParams, grad: bool
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`sample_patches` with the patch as a ``(P, P, m)`` view and the gradients as one
-    ``(2, P², m)`` float64 array ``[gu, gv]`` (what the edges consume, without extra copies)."""
+    ``(2, P², m)`` float64 array ``[gu, gv]``."""
     p = prm.patch
-    u0 = np.floor(u)
-    v0 = np.floor(v)
-    a = u - u0
-    b = v - v0
-    base = (image.astype(np.int64) * prm.height + v0.astype(np.int64)) * prm.width
-    base += u0.astype(np.int64)
     ext = grad and prm.gradient == "central"
-    n = p + 3 if ext else p + 1  # raw window side
-    win = _gather(prm, base, prm.window_ext if ext else prm.window).reshape(n, n, -1)
-    # Bilinear weights of the four corners, shared by every pixel of a patch.
-    a = a.astype(prm.flat.dtype)
-    b = b.astype(prm.flat.dtype)
-    ia, ib = 1.0 - a, 1.0 - b
-    k = n - 1
-    c00, c10, c01, c11 = win[:k, :k], win[1:, :k], win[:k, 1:], win[1:, 1:]
-    val = (ia * ib) * c00
-    tmp = np.empty_like(val)  # one scratch block instead of a temporary per term
-    for w, c in ((a * ib, c10), (ia * b, c01), (a * b, c11)):
-        val += np.multiply(w, c, out=tmp)
+    base, ab, w = _corners(u, v, image, prm)
+    win = _window(prm, base, ext)
+    k = win.shape[0] - 1
+    val = np.empty((k, k, len(u)), dtype=win.dtype)
+    _interpolate(win, w, val, np.empty_like(val))
     if not grad:
         return val, None
     g = np.empty((2, p, p, len(u)))
-    f32 = prm.flat.dtype
-    if ext:
-        # val is the interpolated image at offsets −P/2−1 … P/2 (both axes); the differences
-        # are taken in the sampling dtype, as before, and halved exactly in float64.
-        np.subtract(val[2:, 1:-1], val[:-2, 1:-1], out=g[0], dtype=f32)
-        np.subtract(val[1:-1, 2:], val[1:-1, :-2], out=g[1], dtype=f32)
-        g *= 0.5
-        return val[1:-1, 1:-1], g.reshape(2, p * p, -1)
-    # Exact derivative of the bilinear interpolant.
-    g[0] = ib * (c10 - c00) + b * (c11 - c01)
-    g[1] = ia * (c01 - c00) + a * (c11 - c10)
-    return val, g.reshape(2, p * p, -1)
+    _gradients(val, win, ab, ext, g)
+    return (val[1:-1, 1:-1] if ext else val), g.reshape(2, p * p, -1)
 
 
 def sample_patches(
@@ -264,3 +311,64 @@ def sample_patches(
     if g is None:
         return val, None, None
     return val, g[0], g[1]
+
+
+def patch_residuals(
+    u: np.ndarray, v: np.ndarray, image: np.ndarray, meas: np.ndarray, prm: PhotometricParams,
+    grad: bool,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Patch errors ``C − I`` and, with ``grad``, the Gauss–Newton terms of every patch.
+
+    The same samples as :func:`sample_patches`, consumed block by block of :data:`CHUNK` edges
+    while they are in cache: interpolation, gradients and their products over ``P²`` pixels
+    stream through several arrays of ``(P+2)² × m`` values, which from memory cost more than
+    the arithmetic.
+
+    Args:
+        u: ``(m,)`` pixel columns of the patch centres (inside the margin).
+        v: ``(m,)`` pixel rows.
+        image: ``(m,)`` image index of every edge.
+        meas: ``(m, P²)`` reference patches ``C``.
+        prm: Images and patch layout.
+        grad: Also return the Gauss–Newton terms.
+
+    Returns:
+        ``e (m, P²)`` (float64; inactive edges are not zeroed) and, with ``grad``, ``(5, m)``
+        ``[Σ gu², Σ gu gv, Σ gv², Σ gu e, Σ gv e]`` over the pixels of each patch (else
+        ``None``).
+    """
+    p, m = prm.patch, len(u)
+    ext = grad and prm.gradient == "central"
+    base, ab, w = _corners(u, v, image, prm)
+    n = p + 3 if ext else p + 1
+    k = n - 1
+    c = min(CHUNK, m)
+    raw = np.empty((n * n, c), dtype=prm.flat.dtype)
+    val = np.empty((k, k, c), dtype=prm.flat.dtype)
+    tmp = np.empty_like(val)
+    ep = np.empty((p, p, c))
+    g = np.empty((2, p, p, c if grad else 0))
+    e = np.empty((m, p * p))
+    terms = np.empty((5, m)) if grad else None
+    for lo in range(0, m, c):
+        sl = slice(lo, min(lo + c, m))
+        nb = sl.stop - lo
+        vb, eb = val[..., :nb], ep[..., :nb]
+        win = _window(prm, base[sl], ext, raw[:, :nb])
+        _interpolate(win, w[:, sl], vb, tmp[..., :nb])
+        patch = vb[1:-1, 1:-1] if ext else vb
+        if terms is None:  # C − I straight into e
+            np.subtract(meas[sl].reshape(nb, p, p), patch.transpose(2, 0, 1),
+                        out=e[sl].reshape(nb, p, p))
+            continue
+        # C − I pixel-major for the products below (meas read column-wise: its block is cache
+        # resident), then one transposed write of the block into e.
+        np.subtract(meas[sl].T.reshape(p, p, nb), patch, out=eb)
+        ef = eb.reshape(p * p, nb)
+        e[sl] = ef.T
+        gb = g[..., :nb]
+        _gradients(vb, win, ab[:, sl], ext, gb)
+        gu, gv = gb.reshape(2, p * p, nb)
+        for i, (x, y) in enumerate(((gu, gu), (gu, gv), (gv, gv), (gu, ef), (gv, ef))):
+            np.einsum("km,km->m", x, y, out=terms[i, sl])
+    return e, terms

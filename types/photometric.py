@@ -34,6 +34,7 @@ from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.types.image_sampling import (
     PhotometricParams,
     _sample,
+    patch_residuals,
     project_points,
 )
 from graphopt.types.photometric_geometry import (
@@ -44,6 +45,7 @@ from graphopt.types.photometric_geometry import (
     camera_rows,
     cross_rows,
     inverse_depth_jacobian,
+    jacobian,
     pose_jacobian,
     pose_rows,
     relative_rotation,
@@ -135,22 +137,39 @@ class _PatchEdge(BaseEdge):
         cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
         s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        """``S ∂(u, v)/∂δ`` of every vertex position as ``(2, d_i, m)``, at safe points ``pc``
+        """``S ∂(u, v)/∂δ`` of every vertex position as ``(m, 2, d_i)``, at safe points ``pc``
         ``(3, m)`` (see :mod:`graphopt.types.photometric_geometry`)."""
         raise NotImplementedError
 
     @classmethod
-    def _sampled(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Any]:
-        """Errors ``(m, P²)``, pixel-major float64 gradients ``[gu, gv]`` ``(2, P², m)`` (not
-        zeroed), the activity mask and the leading arguments of :meth:`_projection_rows`."""
+    def _project(
+        cls, x: Sequence[np.ndarray], ctx: EdgeContext
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple]:
+        """Pixel coordinates ``u, v``, image indices, the activity mask and what
+        :meth:`_rows` needs."""
         prm = cls._check(ctx)
         pc, extra_ok, geo = cls._geometry(x)
         u, v, iz, ok = project_points(pc.T, prm, extra_ok)
-        val, g = _sample(u, v, _image_index(ctx, len(u)), prm, grad=True)
-        e = _finish(measurement, val, ok)
-        return e, g, ok, (safe_rows(pc, ok), iz, ok, geo, prm)  # type: ignore[return-value]
+        return u, v, _image_index(ctx, len(u)), ok, (pc, iz, ok, geo, prm)
+
+    @classmethod
+    def _rows(cls, proj: tuple, s: Triangle) -> tuple[np.ndarray, ...]:
+        """``S ∂(u,v)/∂δ`` as ``(m, 2, d_i)`` from what :meth:`_project` returned."""
+        pc, iz, ok, geo, prm = proj
+        return cls._projection_rows(safe_rows(pc, ok), iz, ok, geo, prm, s)
+
+    @classmethod
+    def _residuals(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext, grad: bool
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, tuple]:
+        """Errors ``(m, P²)`` (inactive rows zeroed), with ``grad`` the Gauss–Newton terms of
+        :func:`~graphopt.types.image_sampling.patch_residuals`, the activity mask and what
+        :meth:`_rows` needs."""
+        u, v, image, ok, proj = cls._project(x, ctx)
+        e, terms = patch_residuals(u, v, image, measurement, proj[-1], grad)
+        if not ok.all():
+            e[~ok] = 0.0
+        return e, terms, ok, proj
 
     @classmethod
     def evaluate(
@@ -164,11 +183,8 @@ class _PatchEdge(BaseEdge):
             measurement: ``(m, P²)`` reference patches.
             ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
         """
-        prm = cls._check(ctx)
-        pc, extra_ok, _ = cls._geometry(x)
-        u, v, _, ok = project_points(pc.T, prm, extra_ok)
-        val, _ = _sample(u, v, _image_index(ctx, len(u)), prm, grad=False)
-        return Linearization(_finish(measurement, val, ok), active=ok)
+        e, _, ok, _ = cls._residuals(x, measurement, ctx, grad=False)
+        return Linearization(e, active=ok)
 
     @classmethod
     def error(
@@ -201,12 +217,13 @@ class _PatchEdge(BaseEdge):
             in ``e`` and ``G`` (inactive edges have ``iz = 0``, which zeroes only part of
             ``∂(u,v)/∂ξ``, so their gradients are zeroed instead).
         """
-        e, gp, ok, args = cls._sampled(x, measurement, ctx)
+        u, v, image, ok, proj = cls._project(x, ctx)
+        val, gp = _sample(u, v, image, proj[-1], grad=True)
+        e = _finish(measurement, val, ok)
         g = np.ascontiguousarray(gp.transpose(2, 1, 0))
         if not ok.all():
             g[~ok] = 0.0
-        rows = cls._projection_rows(*args, MINUS_IDENTITY)
-        return e, g, tuple(np.ascontiguousarray(r.transpose(2, 0, 1)) for r in rows), ok
+        return e, g, cls._rows(proj, MINUS_IDENTITY), ok
 
     @classmethod
     def linearize(
@@ -227,16 +244,9 @@ class _PatchEdge(BaseEdge):
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        e, (gu, gv), ok, args = cls._sampled(x, measurement, ctx)
-        # Gᵀe with e edge-major: one transposed copy of e beats two mixed-layout einsums.
-        et = np.ascontiguousarray(e.T)
-        r00, r01, r11, e_lin = _reduce_patch(
-            np.einsum("km,km->m", gu, gu), np.einsum("km,km->m", gu, gv),
-            np.einsum("km,km->m", gv, gv), np.einsum("km,km->m", gu, et),
-            np.einsum("km,km->m", gv, et), ok)
-        rows = cls._projection_rows(*args, (r00, r01, r11))  # J̃ = R (−F) = (−R) F
-        jac = tuple(np.ascontiguousarray(r.transpose(2, 0, 1)) for r in rows)
-        return Linearization(e, jac, e_lin, ok)
+        e, terms, ok, proj = cls._residuals(x, measurement, ctx, grad=True)
+        s, e_lin = _reduce_patch(terms, ok)  # type: ignore[arg-type]
+        return Linearization(e, cls._rows(proj, s), e_lin, ok)  # J̃ = R (−F) = (−R) F
 
     @classmethod
     def jacobians(
@@ -253,18 +263,17 @@ class _PatchEdge(BaseEdge):
         return tuple(np.matmul(g, f) for f in factors)
 
 
-def _reduce_patch(
-    a: np.ndarray, b: np.ndarray, c: np.ndarray, ru: np.ndarray, rv: np.ndarray, ok: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _reduce_patch(terms: np.ndarray, ok: np.ndarray) -> tuple[Triangle, np.ndarray]:
     """The closed forms of :func:`graphopt.reduction.factored_to_reduced` for 2 rows.
 
-    From ``GᵀG = [[a, b], [b, c]]`` and ``Gᵀe = [ru, rv]`` (inactive edges are zeroed here):
-    ``−R`` (``R`` upper triangular, ``RᵀR = GᵀG``; negated for ``J_i = −G F_i``) as
-    ``(−r00, −r01, −r11)`` and ``e_lin = R⁻ᵀ Gᵀe`` ``(m, 2)``.
+    From ``terms = [a, b, c, ru, rv]`` ``(5, m)``, ``GᵀG = [[a, b], [b, c]]`` and
+    ``Gᵀe = [ru, rv]`` (inactive edges are zeroed here): ``−R`` (``R`` upper triangular,
+    ``RᵀR = GᵀG``; negated for ``J_i = −G F_i``) as ``(−r00, −r01, −r11)`` and
+    ``e_lin = R⁻ᵀ Gᵀe`` ``(m, 2)``.
     """
     if not ok.all():
-        for s in (a, b, c, ru, rv):
-            s[~ok] = 0.0
+        terms[:, ~ok] = 0.0
+    a, b, c, ru, rv = terms
     tol = _REL_TOL * np.maximum(a, c)
     ok0 = a > tol
     r00 = np.sqrt(a)
@@ -277,7 +286,7 @@ def _reduce_patch(
     e_lin = np.empty((len(a), 2))
     np.multiply(ru, inv00, out=e_lin[:, 0])
     np.multiply(rv - r01 * e_lin[:, 0], inv11, out=e_lin[:, 1])
-    return -r00, -r01, -r11, e_lin
+    return (-r00, -r01, -r11), e_lin
 
 
 class EdgePhotometricPatch(_PatchEdge):
@@ -309,7 +318,10 @@ class EdgePhotometricPatch(_PatchEdge):
         s: Triangle,
     ) -> tuple[np.ndarray, ...]:
         M = camera_rows(pc, iz, prm, s)
-        return pose_jacobian(pc, M), times_rotation(M, geo)
+        (jp, jp_rows), (jx, jx_rows) = jacobian(len(iz), 6), jacobian(len(iz), 3)
+        pose_jacobian(pc, M, jp_rows)
+        times_rotation(M, geo, jx_rows)
+        return jp, jx
 
 
 class EdgePhotometricPatchInverseDepth(_PatchEdge):
@@ -350,11 +362,14 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
         pa = safe_rows(pa, ok)
         M = camera_rows(pc, iz, prm, s)
         d = times_rotation(M, R)  # S ∂(u,v)/∂P_a
+        m = len(iz)
+        (ja, ja_rows), (jj, jj_rows), (jq, jq_rows) = jacobian(m, 6), jacobian(m, 6), jacobian(m, 3)
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.
-        ja = np.empty((2, 6, len(iz)))
-        cross_rows(d, pa, ja)
-        np.negative(d, out=ja[:, 3:])
-        return ja, pose_jacobian(pc, M), inverse_depth_jacobian(d, pa, irho)
+        cross_rows(d, pa, ja_rows)
+        np.negative(d, out=ja_rows[:, 3:])
+        pose_jacobian(pc, M, jj_rows)
+        inverse_depth_jacobian(d, pa, irho, jq_rows)
+        return ja, jj, jq
 
 
 class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
@@ -385,8 +400,9 @@ class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
         cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
         s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        jq = inverse_depth_jacobian(camera_rows(pc, iz, prm, s), pc, geo)
-        return np.zeros((2, 6, len(iz))), jq
+        jq, jq_rows = jacobian(len(iz), 3)
+        inverse_depth_jacobian(camera_rows(pc, iz, prm, s), pc, geo, jq_rows)
+        return np.zeros((len(iz), 2, 6)), jq
 
 
 _BASES: tuple[type[BaseEdge], ...] = (

@@ -5,6 +5,9 @@ Everything here works on ``(m,)`` rows, with points as ``(3, m)`` and Jacobian r
 several times faster than batched 3×3 matmuls or einsums over ``(m, 3, 3)`` (whose per-matrix
 overhead dominates) or arithmetic on strided columns of ``(m, 4, 4)`` poses.
 
+Jacobians are written through ``(2, d, m)`` views of their final ``(m, 2, d)`` arrays
+(:func:`jacobian`): strided writes cost less than building ``(2, d, m)`` and transposing it.
+
 The projection Jacobians are built already multiplied by a per-edge upper-triangular
 ``S = [[s00, s01], [0, s11]]`` on the left: ``S ∂(u,v)/∂δ``. With ``S = −I`` they are the
 factors ``F_i`` of :meth:`~graphopt.types.photometric.EdgePhotometricPatch.linearize_factored`;
@@ -24,6 +27,12 @@ RotationRows = list[list[np.ndarray]]
 Triangle = tuple[np.ndarray | float, np.ndarray | float, np.ndarray | float]
 #: ``S = −I``: the unreduced factors ``−∂(u,v)/∂δ``.
 MINUS_IDENTITY: Triangle = (-1.0, 0.0, -1.0)
+
+
+def jacobian(m: int, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """A new ``(m, 2, d)`` Jacobian and its ``(2, d, m)`` view to write rows into."""
+    out = np.empty((m, 2, d))
+    return out, out.transpose(1, 2, 0)
 
 
 def pose_rows(T: np.ndarray) -> tuple[RotationRows, list[np.ndarray]]:
@@ -103,21 +112,21 @@ def cross_rows(d: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
         out[:, k] -= d[:, k2] * p[k1]
 
 
-def pose_jacobian(P: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """``M ∂P_c/∂ξ`` for ``P_c ← exp(ξ) P_c``, ``ξ = [ω, υ]``: ``∂P_c/∂ξ = [−[P_c]×, I]`` and a
-    row ``−m [P_c]×`` is ``P_c × m``. ``(2, 6, m)``."""
-    out = np.empty((2, 6, M.shape[2]))
+def pose_jacobian(P: np.ndarray, M: np.ndarray, out: np.ndarray) -> None:
+    """``M ∂P_c/∂ξ`` into ``out`` ``(2, 6, m)`` for ``P_c ← exp(ξ) P_c``, ``ξ = [ω, υ]``:
+    ``∂P_c/∂ξ = [−[P_c]×, I]`` and a row ``−m [P_c]×`` is ``P_c × m``."""
     for k in range(3):
         k1, k2 = (k + 1) % 3, (k + 2) % 3
         np.multiply(M[:, k2], P[k1], out=out[:, k])
         out[:, k] -= M[:, k1] * P[k2]
     out[:, 3:] = M
-    return out
 
 
-def times_rotation(M: np.ndarray, R: RotationRows) -> np.ndarray:
-    """``M R`` for rows ``M`` ``(2, 3, m)``."""
-    out = np.empty_like(M)
+def times_rotation(M: np.ndarray, R: RotationRows, out: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """``M R`` for rows ``M`` ``(2, 3, m)`` (into ``out`` if given)."""
+    if out is None:
+        out = np.empty_like(M)
     for j in range(3):
         np.multiply(M[:, 0], R[0][j], out=out[:, j])
         out[:, j] += M[:, 1] * R[1][j]
@@ -125,10 +134,10 @@ def times_rotation(M: np.ndarray, R: RotationRows) -> np.ndarray:
     return out
 
 
-def inverse_depth_jacobian(d: np.ndarray, pa: np.ndarray, irho: np.ndarray) -> np.ndarray:
-    """``d ∂P_a/∂[a, b, ρ]`` for rows ``d`` ``(2, 3, m)`` against ``P_a = [a, b, 1]/ρ``:
-    ``[d_0/ρ, d_1/ρ, −(d · P_a)/ρ]``. ``(2, 3, m)``."""
-    out = np.empty_like(d)
+def inverse_depth_jacobian(d: np.ndarray, pa: np.ndarray, irho: np.ndarray, out: np.ndarray
+                           ) -> None:
+    """``d ∂P_a/∂[a, b, ρ]`` into ``out`` ``(2, 3, m)`` for rows ``d`` ``(2, 3, m)`` against
+    ``P_a = [a, b, 1]/ρ``: ``[d_0/ρ, d_1/ρ, −(d · P_a)/ρ]``."""
     np.multiply(d[:, 0], irho, out=out[:, 0])
     np.multiply(d[:, 1], irho, out=out[:, 1])
     dp = d[:, 0] * pa[0]
@@ -136,4 +145,3 @@ def inverse_depth_jacobian(d: np.ndarray, pa: np.ndarray, irho: np.ndarray) -> n
     dp += d[:, 2] * pa[2]
     np.negative(dp, out=dp)
     np.multiply(dp, irho, out=out[:, 2])
-    return out
