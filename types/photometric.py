@@ -48,7 +48,6 @@ from graphopt.types.photometric_geometry import (
     jacobian,
     pose_jacobian,
     pose_rows,
-    relative_rotation,
     safe_rows,
     times_rotation,
 )
@@ -347,21 +346,21 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
         Ra, ta = pose_rows(x[0])
         Rb, tb = pose_rows(x[1])
-        # T_ja = T_j T_a⁻¹: R = R_j R_aᵀ, t = t_j − R t_a (as lie.relative_transform).
-        R = relative_rotation(Ra, Rb)
-        t = [tb[i] - (R[i][0] * ta[0] + R[i][1] * ta[1] + R[i][2] * ta[2]) for i in range(3)]
         pa, irho, ok = anchor_point(x[2])
-        return apply(R, t, pa), ok, (R, pa, irho)
+        # P_c = R_j R_aᵀ (P_a − t_a) + t_j, as two rotations: cheaper than forming R_j R_aᵀ.
+        Rat = [[Ra[j][i] for j in range(3)] for i in range(3)]
+        pw = apply(Rat, None, [pa[i] - ta[i] for i in range(3)])
+        return apply(Rb, tb, pw), ok, (Rat, Rb, pa, irho)
 
     @classmethod
     def _projection_rows(
         cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
         s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        R, pa, irho = geo
+        Rat, Rb, pa, irho = geo
         pa = safe_rows(pa, ok)
         M = camera_rows(pc, iz, prm, s)
-        d = times_rotation(M, R)  # S ∂(u,v)/∂P_a
+        d = times_rotation(times_rotation(M, Rb), Rat)  # S ∂(u,v)/∂P_a
         m = len(iz)
         (ja, ja_rows), (jj, jj_rows), (jq, jq_rows) = jacobian(m, 6), jacobian(m, 6), jacobian(m, 3)
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.

@@ -45,21 +45,16 @@ def pose_rows(T: np.ndarray) -> tuple[RotationRows, list[np.ndarray]]:
     return [[e[4 * i + j] for j in range(3)] for i in range(3)], [e[4 * i + 3] for i in range(3)]
 
 
-def apply(R: RotationRows, t: list[np.ndarray], p: list[np.ndarray]) -> np.ndarray:
-    """``R p + t`` as ``(3, m)`` (in a matmul's summation order)."""
+def apply(R: RotationRows, t: list[np.ndarray] | None, p: list[np.ndarray]) -> np.ndarray:
+    """``R p + t`` (``R p`` if ``t`` is ``None``) as ``(3, m)`` (a matmul's summation order)."""
     out = np.empty((3, len(p[0])))
     for i in range(3):
         np.multiply(R[i][0], p[0], out=out[i])
         out[i] += R[i][1] * p[1]
         out[i] += R[i][2] * p[2]
-        out[i] += t[i]
+        if t is not None:
+            out[i] += t[i]
     return out
-
-
-def relative_rotation(Ra: RotationRows, Rb: RotationRows) -> RotationRows:
-    """``R_b R_aᵀ`` entrywise."""
-    return [[Rb[i][0] * Ra[j][0] + Rb[i][1] * Ra[j][1] + Rb[i][2] * Ra[j][2] for j in range(3)]
-            for i in range(3)]
 
 
 def anchor_point(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
