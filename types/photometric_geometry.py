@@ -41,7 +41,10 @@ def pose_rows(T: np.ndarray) -> tuple[RotationRows, list[np.ndarray]]:
     One transposed copy of the 12 entries; every later use reads contiguous memory instead of
     one cache line per edge.
     """
-    e = np.ascontiguousarray(T.reshape(-1, 16)[:, :12].T)
+    T2 = T.reshape(-1, 16)
+    e = np.empty((12, len(T2)))
+    for lo in range(0, len(T2), 2048):  # blocked: source and destination stay in cache
+        e[:, lo:lo + 2048] = T2[lo:lo + 2048, :12].T
     return [[e[4 * i + j] for j in range(3)] for i in range(3)], [e[4 * i + 3] for i in range(3)]
 
 
