@@ -3,8 +3,10 @@
 :class:`PhotometricParams` holds a group's images (stacked and flattened for one flat gather),
 intrinsics and patch layout; :func:`project_points` maps camera-frame points to pixels with the
 activity mask; :func:`sample_patches` interpolates every edge's ``P × P`` patch (and its image
-gradients) bilinearly. Because a patch's offsets are integers, all its pixels share the
-fractional part of the projection: one ``(P+1) × (P+1)`` window and four weights per edge.
+gradients) bilinearly, and :func:`patch_residuals` turns the same samples into the errors and
+the per-edge Gauss–Newton terms block by block. Because a patch's offsets are integers, all its
+pixels share the fractional part of the projection: one ``(P+1) × (P+1)`` window and four
+weights per edge.
 """
 
 from __future__ import annotations
@@ -263,25 +265,6 @@ def _gradients(
     out[1] = (1.0 - a) * (c01 - c00) + a * (c11 - c10)
 
 
-def _sample(
-    u: np.ndarray, v: np.ndarray, image: np.ndarray, prm: PhotometricParams, grad: bool
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`sample_patches` with the patch as a ``(P, P, m)`` view and the gradients as one
-    ``(2, P², m)`` float64 array ``[gu, gv]``."""
-    p = prm.patch
-    ext = grad and prm.gradient == "central"
-    base, ab, w = _corners(u, v, image, prm)
-    win = _window(prm, base, ext)
-    k = win.shape[0] - 1
-    val = np.empty((k, k, len(u)), dtype=win.dtype)
-    _interpolate(win, w, val, np.empty_like(val))
-    if not grad:
-        return val, None
-    g = np.empty((2, p, p, len(u)))
-    _gradients(val, win, ab, ext, g)
-    return (val[1:-1, 1:-1] if ext else val), g.reshape(2, p * p, -1)
-
-
 def sample_patches(
     u: np.ndarray, v: np.ndarray, image: np.ndarray, prm: PhotometricParams, grad: bool
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -306,11 +289,20 @@ def sample_patches(
         ``(I, gu, gv)``, each ``(P², m)`` in k order (``I`` in the sampling dtype, the gradients
         float64); ``gu, gv`` are ``None`` unless asked.
     """
-    val, g = _sample(u, v, image, prm, grad)
-    val = val.reshape(prm.patch * prm.patch, -1)
-    if g is None:
-        return val, None, None
-    return val, g[0], g[1]
+    p, m = prm.patch, len(u)
+    ext = grad and prm.gradient == "central"
+    base, ab, w = _corners(u, v, image, prm)
+    win = _window(prm, base, ext)
+    k = win.shape[0] - 1
+    val = np.empty((k, k, m), dtype=win.dtype)
+    _interpolate(win, w, val, np.empty_like(val))
+    if not grad:
+        return val.reshape(p * p, m), None, None
+    g = np.empty((2, p, p, m))
+    _gradients(val, win, ab, ext, g)
+    patch = val[1:-1, 1:-1] if ext else val
+    gu, gv = g.reshape(2, p * p, m)
+    return patch.reshape(p * p, m), gu, gv
 
 
 def patch_residuals(

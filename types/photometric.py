@@ -6,8 +6,9 @@ patch ``C`` and the image sampled around the projection:
     e_k = C[k] − I_j(π(K T_j p) + (dx, dy)),   k = P (dx + P/2) + (dy + P/2),
 
 with ``dx, dy ∈ {−P/2, …, P/2 − 1}`` (dx outer, dy inner — the order of the task's points.txt),
-bilinear interpolation and ``T_j = T_cw``. The projection and the patch sampling (one flat
-gather of a ``(P+1) × (P+1)`` window per edge) are in :mod:`graphopt.types.image_sampling`.
+bilinear interpolation and ``T_j = T_cw``. The projection and the patch sampling (one
+``(P+1) × (P+1)`` window per edge) are in :mod:`graphopt.types.image_sampling`, the
+struct-of-arrays geometry and projection Jacobians in :mod:`graphopt.types.photometric_geometry`.
 
 Two parametrisations of the point:
 
@@ -33,9 +34,9 @@ import numpy as np
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.types.image_sampling import (
     PhotometricParams,
-    _sample,
     patch_residuals,
     project_points,
+    sample_patches,
 )
 from graphopt.types.photometric_geometry import (
     MINUS_IDENTITY,
@@ -70,11 +71,8 @@ _REL_TOL = 1e-12
 
 
 def _finish(meas: np.ndarray, val: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """``C − I`` (``val`` pixel-major ``(P, P, m)``, possibly a view) as ``(m, P²)`` with
-    inactive rows zeroed."""
-    p = val.shape[0]
-    e = np.subtract(meas.reshape(-1, p, p), val.transpose(2, 0, 1), order="C")
-    e = e.reshape(-1, p * p)
+    """``C − I`` (``val`` pixel-major ``(P², m)``) with inactive rows zeroed."""
+    e = np.subtract(meas, val.T, order="C")
     if not ok.all():
         e[~ok] = 0.0
     return e
@@ -217,9 +215,9 @@ class _PatchEdge(BaseEdge):
             ``∂(u,v)/∂ξ``, so their gradients are zeroed instead).
         """
         u, v, image, ok, proj = cls._project(x, ctx)
-        val, gp = _sample(u, v, image, proj[-1], grad=True)
+        val, gu, gv = sample_patches(u, v, image, proj[-1], grad=True)
         e = _finish(measurement, val, ok)
-        g = np.ascontiguousarray(gp.transpose(2, 1, 0))
+        g = np.stack([gu.T, gv.T], axis=2)
         if not ok.all():
             g[~ok] = 0.0
         return e, g, cls._rows(proj, MINUS_IDENTITY), ok
