@@ -294,3 +294,29 @@ def test_project_and_sample_on_a_linear_image(gradient: str) -> None:
     only, none_u, none_v = sample_patches(u, v, image, prm, grad=False)
     assert none_u is None and none_v is None
     np.testing.assert_array_equal(only, val)
+
+
+@pytest.mark.parametrize("gradient", ["central", "interpolated"])
+def test_patch_residuals_blocks_match_sample_patches(gradient: str, monkeypatch) -> None:
+    """The block-wise errors and Gauss–Newton terms equal those from :func:`sample_patches`,
+    whatever the block size (here 7 edges: several blocks and a partial last one)."""
+    from graphopt.types import image_sampling
+    from graphopt.types.image_sampling import patch_residuals, project_points, sample_patches
+
+    prm = PhotometricParams(smooth_images(), *CAM, gradient=gradient)
+    Tj, _, p, _, img, meas = problem(4, m=40)
+    pc = np.einsum("mij,mj->mi", Tj[:, :3, :3], p) + Tj[:, :3, 3]
+    u, v, _, ok = project_points(pc, prm)
+    assert ok.sum() > 20
+    val, gu, gv = sample_patches(u, v, img, prm, grad=True)
+    e = meas - val.T
+    want = [np.einsum("km,km->m", a, b) for a, b in ((gu, gu), (gu, gv), (gv, gv))]
+    want += [np.einsum("km,mk->m", gu, e), np.einsum("km,mk->m", gv, e)]
+    monkeypatch.setattr(image_sampling, "CHUNK", 7)
+    for grad in (True, False):
+        e2, terms = patch_residuals(u, v, img, meas, prm, grad)
+        np.testing.assert_array_equal(e2, e)
+        if grad:
+            np.testing.assert_allclose(terms, np.array(want), rtol=1e-12, atol=1e-9)
+        else:
+            assert terms is None

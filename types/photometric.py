@@ -6,8 +6,9 @@ patch ``C`` and the image sampled around the projection:
     e_k = C[k] − I_j(π(K T_j p) + (dx, dy)),   k = P (dx + P/2) + (dy + P/2),
 
 with ``dx, dy ∈ {−P/2, …, P/2 − 1}`` (dx outer, dy inner — the order of the task's points.txt),
-bilinear interpolation and ``T_j = T_cw``. The projection and the patch sampling (one flat
-gather of a ``(P+1) × (P+1)`` window per edge) are in :mod:`graphopt.types.image_sampling`.
+bilinear interpolation and ``T_j = T_cw``. The projection and the patch sampling (one
+``(P+1) × (P+1)`` window per edge) are in :mod:`graphopt.types.image_sampling`, the
+struct-of-arrays geometry and projection Jacobians in :mod:`graphopt.types.photometric_geometry`.
 
 Two parametrisations of the point:
 
@@ -31,13 +32,25 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.lie import relative_transform, transform_points
-from graphopt.reduction import factored_to_reduced
 from graphopt.types.image_sampling import (
     PhotometricParams,
+    patch_residuals,
     project_points,
-    safe_points,
     sample_patches,
+)
+from graphopt.types.photometric_geometry import (
+    MINUS_IDENTITY,
+    Triangle,
+    anchor_point,
+    apply,
+    camera_rows,
+    cross_rows,
+    inverse_depth_jacobian,
+    jacobian,
+    pose_jacobian,
+    pose_rows,
+    safe_rows,
+    times_rotation,
 )
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 
@@ -51,57 +64,14 @@ __all__ = [
 ]
 
 # --------------------------------------------------------------------------------------------
-# projection Jacobians and error assembly
+# errors and the reduction
 
-
-def _uv_jacobian_camera(pc: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
-    """``∂(u, v)/∂P_c``: ``(m, 2, 3)``."""
-    m = len(pc)
-    x = pc[:, 0] * iz
-    y = pc[:, 1] * iz
-    d = np.zeros((m, 2, 3))
-    d[:, 0, 0] = prm.fx * iz
-    d[:, 0, 2] = -prm.fx * x * iz
-    d[:, 1, 1] = prm.fy * iz
-    d[:, 1, 2] = -prm.fy * y * iz
-    return d
-
-
-def _uv_jacobian_pose(pc: np.ndarray, iz: np.ndarray, prm: PhotometricParams) -> np.ndarray:
-    """``∂(u, v)/∂ξ`` for ``P_c ← exp(ξ) P_c``, ``ξ = [ω, υ]``: ``(m, 2, 6)``."""
-    m = len(pc)
-    x = pc[:, 0] * iz
-    y = pc[:, 1] * iz
-    fx, fy = prm.fx, prm.fy
-    j = np.empty((m, 2, 6))
-    j[:, 0, 0] = -fx * x * y
-    j[:, 0, 1] = fx * (1.0 + x * x)
-    j[:, 0, 2] = -fx * y
-    j[:, 0, 3] = fx * iz
-    j[:, 0, 4] = 0.0
-    j[:, 0, 5] = -fx * x * iz
-    j[:, 1, 0] = -fy * (1.0 + y * y)
-    j[:, 1, 1] = fy * x * y
-    j[:, 1, 2] = fy * x
-    j[:, 1, 3] = 0.0
-    j[:, 1, 4] = fy * iz
-    j[:, 1, 5] = -fy * y * iz
-    return j
-
-
-def _gradients(gu: np.ndarray, gv: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Stack pixel-major gradients into ``(m, P², 2)``, zero rows of inactive edges."""
-    m = gu.shape[1]
-    g = np.empty((m, gu.shape[0], 2))
-    g[:, :, 0] = gu.T
-    g[:, :, 1] = gv.T
-    if not ok.all():
-        g[~ok] = 0.0
-    return g
+#: ``rel_tol`` of :func:`graphopt.reduction.factored_to_reduced`, used by the fused reduction.
+_REL_TOL = 1e-12
 
 
 def _finish(meas: np.ndarray, val: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """``C − I`` (``val`` pixel-major) with inactive rows zeroed."""
+    """``C − I`` (``val`` pixel-major ``(P², m)``) with inactive rows zeroed."""
     e = np.subtract(meas, val.T, order="C")
     if not ok.all():
         e[~ok] = 0.0
@@ -115,24 +85,6 @@ def _image_index(ctx: EdgeContext, m: int) -> np.ndarray:
             raise ValueError("photometric edges need ctx.data['image'] (image index per edge)")
         return np.zeros(m, dtype=np.int64)
     return np.asarray(img)
-
-
-def _anchor_point(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Point in the anchor frame ``[a, b, 1]/ρ``, ``1/ρ`` and the ``ρ > 0`` mask."""
-    rho = q[:, 2]
-    ok = rho > 0
-    irho = 1.0 / np.where(ok, rho, 1.0)
-    pa = np.stack([q[:, 0] * irho, q[:, 1] * irho, irho], axis=1)
-    return pa, irho, ok
-
-
-def _inverse_depth_point_jacobian(d: np.ndarray, pa: np.ndarray, irho: np.ndarray) -> np.ndarray:
-    """``∂(u,v)/∂[a, b, ρ]`` from ``d = ∂(u,v)/∂P_a``: ``(m, 2, 3)``."""
-    out = np.empty_like(d)
-    out[:, :, 0] = d[:, :, 0] * irho[:, None]
-    out[:, :, 1] = d[:, :, 1] * irho[:, None]
-    out[:, :, 2] = -(d * pa[:, None, :]).sum(axis=2) * irho[:, None]
-    return out
 
 
 def _check_params(cls: type, ctx: EdgeContext) -> PhotometricParams:
@@ -173,17 +125,48 @@ class _PatchEdge(BaseEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        """Camera-frame points ``(m, 3)``, an extra activity mask (or ``None``) and what
-        :meth:`_projection_jacobians` needs besides."""
+        """Camera-frame points ``(3, m)``, an extra activity mask (or ``None``) and what
+        :meth:`_projection_rows` needs besides."""
         raise NotImplementedError
 
     @classmethod
-    def _projection_jacobians(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+    def _projection_rows(
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        """``∂(u, v)/∂δ`` of every vertex position, ``(m, 2, d_i)``, at safe points ``pc``."""
+        """``S ∂(u, v)/∂δ`` of every vertex position as ``(m, 2, d_i)``, at safe points ``pc``
+        ``(3, m)`` (see :mod:`graphopt.types.photometric_geometry`)."""
         raise NotImplementedError
+
+    @classmethod
+    def _project(
+        cls, x: Sequence[np.ndarray], ctx: EdgeContext
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple]:
+        """Pixel coordinates ``u, v``, image indices, the activity mask and what
+        :meth:`_rows` needs."""
+        prm = cls._check(ctx)
+        pc, extra_ok, geo = cls._geometry(x)
+        u, v, iz, ok = project_points(pc.T, prm, extra_ok)
+        return u, v, _image_index(ctx, len(u)), ok, (pc, iz, ok, geo, prm)
+
+    @classmethod
+    def _rows(cls, proj: tuple, s: Triangle) -> tuple[np.ndarray, ...]:
+        """``S ∂(u,v)/∂δ`` as ``(m, 2, d_i)`` from what :meth:`_project` returned."""
+        pc, iz, ok, geo, prm = proj
+        return cls._projection_rows(safe_rows(pc, ok), iz, ok, geo, prm, s)
+
+    @classmethod
+    def _residuals(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext, grad: bool
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, tuple]:
+        """Errors ``(m, P²)`` (inactive rows zeroed), with ``grad`` the Gauss–Newton terms of
+        :func:`~graphopt.types.image_sampling.patch_residuals`, the activity mask and what
+        :meth:`_rows` needs."""
+        u, v, image, ok, proj = cls._project(x, ctx)
+        e, terms = patch_residuals(u, v, image, measurement, proj[-1], grad)
+        if not ok.all():
+            e[~ok] = 0.0
+        return e, terms, ok, proj
 
     @classmethod
     def evaluate(
@@ -197,11 +180,8 @@ class _PatchEdge(BaseEdge):
             measurement: ``(m, P²)`` reference patches.
             ctx: Context with :class:`PhotometricParams` and ``data["image"]``.
         """
-        prm = cls._check(ctx)
-        pc, extra_ok, _ = cls._geometry(x)
-        u, v, _, ok = project_points(pc, prm, extra_ok)
-        val, _, _ = sample_patches(u, v, _image_index(ctx, len(u)), prm, grad=False)
-        return Linearization(_finish(measurement, val, ok), active=ok)
+        e, _, ok, _ = cls._residuals(x, measurement, ctx, grad=False)
+        return Linearization(e, active=ok)
 
     @classmethod
     def error(
@@ -234,14 +214,13 @@ class _PatchEdge(BaseEdge):
             in ``e`` and ``G`` (inactive edges have ``iz = 0``, which zeroes only part of
             ``∂(u,v)/∂ξ``, so their gradients are zeroed instead).
         """
-        prm = cls._check(ctx)
-        pc, extra_ok, geo = cls._geometry(x)
-        u, v, iz, ok = project_points(pc, prm, extra_ok)
-        val, gu, gv = sample_patches(u, v, _image_index(ctx, len(u)), prm, grad=True)
+        u, v, image, ok, proj = cls._project(x, ctx)
+        val, gu, gv = sample_patches(u, v, image, proj[-1], grad=True)
         e = _finish(measurement, val, ok)
-        g = _gradients(gu, gv, ok)
-        factors = cls._projection_jacobians(x, safe_points(pc, ok), iz, ok, geo, prm)
-        return e, g, tuple(-f for f in factors), ok
+        g = np.stack([gu.T, gv.T], axis=2)
+        if not ok.all():
+            g[~ok] = 0.0
+        return e, g, cls._rows(proj, MINUS_IDENTITY), ok
 
     @classmethod
     def linearize(
@@ -251,16 +230,20 @@ class _PatchEdge(BaseEdge):
 
         The ``(m, P², d_i)`` Jacobians factor as image gradients times a ``(2, d_i)``
         projection factor (:meth:`linearize_factored`); the normal equations need only ``GᵀG``,
-        so 2 rows carry them (:func:`graphopt.reduction.factored_to_reduced`).
+        so 2 rows carry them. This computes what
+        :func:`graphopt.reduction.factored_to_reduced` would from the factored form, fused:
+        ``GᵀG`` and ``Gᵀe`` straight from the pixel-major gradients, and ``J̃_i = R F_i`` from
+        the projection's ``∂(u,v)/∂P_c`` (2×3) before it meets any ``∂P_c/∂δ``, without
+        building ``G (m, P², 2)`` or ``F_i``.
 
         Args:
             x: As in :meth:`error`.
             measurement: As in :meth:`error`.
             ctx: As in :meth:`error`.
         """
-        e, g, factors, ok = cls.linearize_factored(x, measurement, ctx)
-        e, jac, e_lin = factored_to_reduced(e, g, factors)
-        return Linearization(e, jac, e_lin, ok)
+        e, terms, ok, proj = cls._residuals(x, measurement, ctx, grad=True)
+        s, e_lin = _reduce_patch(terms, ok)  # type: ignore[arg-type]
+        return Linearization(e, cls._rows(proj, s), e_lin, ok)  # J̃ = R (−F) = (−R) F
 
     @classmethod
     def jacobians(
@@ -275,6 +258,32 @@ class _PatchEdge(BaseEdge):
         """
         _, g, factors, _ = cls.linearize_factored(x, measurement, ctx)
         return tuple(np.matmul(g, f) for f in factors)
+
+
+def _reduce_patch(terms: np.ndarray, ok: np.ndarray) -> tuple[Triangle, np.ndarray]:
+    """The closed forms of :func:`graphopt.reduction.factored_to_reduced` for 2 rows.
+
+    From ``terms = [a, b, c, ru, rv]`` ``(5, m)``, ``GᵀG = [[a, b], [b, c]]`` and
+    ``Gᵀe = [ru, rv]`` (inactive edges are zeroed here): ``−R`` (``R`` upper triangular,
+    ``RᵀR = GᵀG``; negated for ``J_i = −G F_i``) as ``(−r00, −r01, −r11)`` and
+    ``e_lin = R⁻ᵀ Gᵀe`` ``(m, 2)``.
+    """
+    if not ok.all():
+        terms[:, ~ok] = 0.0
+    a, b, c, ru, rv = terms
+    tol = _REL_TOL * np.maximum(a, c)
+    ok0 = a > tol
+    r00 = np.sqrt(a)
+    inv00 = np.where(ok0, 1.0 / np.where(ok0, r00, 1.0), 0.0)
+    r01 = b * inv00
+    d = c - r01 * r01
+    ok1 = d > tol
+    r11 = np.sqrt(np.where(ok1, d, 0.0))
+    inv11 = np.where(ok1, 1.0 / np.where(ok1, r11, 1.0), 0.0)
+    e_lin = np.empty((len(a), 2))
+    np.multiply(ru, inv00, out=e_lin[:, 0])
+    np.multiply(rv - r01 * e_lin[:, 0], inv11, out=e_lin[:, 1])
+    return (-r00, -r01, -r11), e_lin
 
 
 class EdgePhotometricPatch(_PatchEdge):
@@ -297,15 +306,19 @@ class EdgePhotometricPatch(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        return transform_points(x[0], x[1]), None, None
+        R, t = pose_rows(x[0])
+        return apply(R, t, [x[1][:, 0], x[1][:, 1], x[1][:, 2]]), None, R
 
     @classmethod
-    def _projection_jacobians(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+    def _projection_rows(
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        return (_uv_jacobian_pose(pc, iz, prm),
-                _uv_jacobian_camera(pc, iz, prm) @ x[0][:, :3, :3])
+        M = camera_rows(pc, iz, prm, s)
+        (jp, jp_rows), (jx, jx_rows) = jacobian(len(iz), 6), jacobian(len(iz), 3)
+        pose_jacobian(pc, M, jp_rows)
+        times_rotation(M, geo, jx_rows)
+        return jp, jx
 
 
 class EdgePhotometricPatchInverseDepth(_PatchEdge):
@@ -329,22 +342,31 @@ class EdgePhotometricPatchInverseDepth(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        R, t = relative_transform(x[0], x[1])
-        pa, irho, ok = _anchor_point(x[2])
-        pc = np.matmul(R, pa[:, :, None])[:, :, 0] + t
-        return pc, ok, (R, pa, irho)
+        Ra, ta = pose_rows(x[0])
+        Rb, tb = pose_rows(x[1])
+        pa, irho, ok = anchor_point(x[2])
+        # P_c = R_j R_aᵀ (P_a − t_a) + t_j, as two rotations: cheaper than forming R_j R_aᵀ.
+        Rat = [[Ra[j][i] for j in range(3)] for i in range(3)]
+        pw = apply(Rat, None, [pa[i] - ta[i] for i in range(3)])
+        return apply(Rb, tb, pw), ok, (Rat, Rb, pa, irho)
 
     @classmethod
-    def _projection_jacobians(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+    def _projection_rows(
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        R, pa, irho = geo
-        pa = safe_points(pa, ok)
-        d = _uv_jacobian_camera(pc, iz, prm) @ R  # ∂(u,v)/∂P_a
+        Rat, Rb, pa, irho = geo
+        pa = safe_rows(pa, ok)
+        M = camera_rows(pc, iz, prm, s)
+        d = times_rotation(times_rotation(M, Rb), Rat)  # S ∂(u,v)/∂P_a
+        m = len(iz)
+        (ja, ja_rows), (jj, jj_rows), (jq, jq_rows) = jacobian(m, 6), jacobian(m, 6), jacobian(m, 3)
         # ∂P_c/∂ξ_a = R_ja [[P_a]×, −I]; a row d·[P_a]× equals d × P_a.
-        ja = np.concatenate([np.cross(d, pa[:, None, :]), -d], axis=2)
-        return ja, _uv_jacobian_pose(pc, iz, prm), _inverse_depth_point_jacobian(d, pa, irho)
+        cross_rows(d, pa, ja_rows)
+        np.negative(d, out=ja_rows[:, 3:])
+        pose_jacobian(pc, M, jj_rows)
+        inverse_depth_jacobian(d, pa, irho, jq_rows)
+        return ja, jj, jq
 
 
 class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
@@ -367,16 +389,17 @@ class EdgePhotometricPatchInverseDepthHost(_PatchEdge):
 
     @classmethod
     def _geometry(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, Any]:
-        pa, irho, ok = _anchor_point(x[1])
+        pa, irho, ok = anchor_point(x[1])
         return pa, ok, irho
 
     @classmethod
-    def _projection_jacobians(
-        cls, x: Sequence[np.ndarray], pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any,
-        prm: PhotometricParams,
+    def _projection_rows(
+        cls, pc: np.ndarray, iz: np.ndarray, ok: np.ndarray, geo: Any, prm: PhotometricParams,
+        s: Triangle,
     ) -> tuple[np.ndarray, ...]:
-        jq = _inverse_depth_point_jacobian(_uv_jacobian_camera(pc, iz, prm), pc, geo)
-        return np.zeros((len(pc), 2, 6)), jq
+        jq, jq_rows = jacobian(len(iz), 3)
+        inverse_depth_jacobian(camera_rows(pc, iz, prm, s), pc, geo, jq_rows)
+        return np.zeros((len(iz), 2, 6)), jq
 
 
 _BASES: tuple[type[BaseEdge], ...] = (
