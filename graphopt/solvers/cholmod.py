@@ -147,7 +147,9 @@ class LinearSolverCholmod(LinearSolver):
     def _lower_matrix(self, data: np.ndarray) -> sp.csc_matrix:
         """The lower triangle of the matrix with ``data`` in the analysed (full) pattern (the
         same object every call: CHOLMOD copies what it reads)."""
-        np.take(data, self._lower, out=self._lower_csc.data)
+        # The positions come from the pattern, so they are in range: "wrap" skips the buffered
+        # bounds check of the default mode and halves the gather (w10000: 0.5 ms against 1.0).
+        np.take(data, self._lower, out=self._lower_csc.data, mode="wrap")
         return self._lower_csc
 
     def _shifted_is_definite(self, data: np.ndarray, scale: np.ndarray) -> bool:
