@@ -73,15 +73,26 @@ def factored_to_reduced(
     return e, tuple(np.matmul(r, f) for f in factors), e_lin
 
 
-def _reduce2(
-    e: np.ndarray, g: np.ndarray, factors: Sequence[np.ndarray], rel_tol: float
-) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
-    """:func:`factored_to_reduced` for ``k = 2`` with elementwise closed forms (the hot path of
-    photometric edges: no batched 2x2 matmuls)."""
-    g0, g1 = g[:, :, 0], g[:, :, 1]
-    a = np.einsum("mn,mn->m", g0, g0)
-    b = np.einsum("mn,mn->m", g0, g1)
-    c = np.einsum("mn,mn->m", g1, g1)
+def reduce2(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, ru: np.ndarray, rv: np.ndarray,
+    rel_tol: float = 1e-12,
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """The two-row reduction in elementwise closed forms (the hot path of photometric edges:
+    no batched 2x2 matmuls): ``R = [[r00, r01], [0, r11]]`` with ``RᵀR = GᵀG = [[a, b], [b, c]]``
+    and ``e_lin = R⁻ᵀ Gᵀe`` for ``Gᵀe = [ru, rv]``, per edge.
+
+    Args:
+        a: ``(m,)`` ``g0·g0``.
+        b: ``(m,)`` ``g0·g1``.
+        c: ``(m,)`` ``g1·g1``.
+        ru: ``(m,)`` ``g0·e``.
+        rv: ``(m,)`` ``g1·e``.
+        rel_tol: Pivots at most ``rel_tol · max(a, c)`` count as zero (their row of ``R`` and
+            ``e_lin`` is zero).
+
+    Returns:
+        ``((r00, r01, r11), e_lin (m, 2))``.
+    """
     tol = rel_tol * np.maximum(a, c)
     ok0 = a > tol
     r00 = np.sqrt(a)
@@ -91,9 +102,21 @@ def _reduce2(
     ok1 = d > tol
     r11 = np.sqrt(np.where(ok1, d, 0.0))
     inv11 = np.where(ok1, 1.0 / np.where(ok1, r11, 1.0), 0.0)
-    e_lin = np.empty((len(e), 2))
-    e_lin[:, 0] = np.einsum("mn,mn->m", g0, e) * inv00
-    e_lin[:, 1] = (np.einsum("mn,mn->m", g1, e) - r01 * e_lin[:, 0]) * inv11
+    e_lin = np.empty((len(a), 2))
+    np.multiply(ru, inv00, out=e_lin[:, 0])
+    np.multiply(rv - r01 * e_lin[:, 0], inv11, out=e_lin[:, 1])
+    return (r00, r01, r11), e_lin
+
+
+def _reduce2(
+    e: np.ndarray, g: np.ndarray, factors: Sequence[np.ndarray], rel_tol: float
+) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+    """:func:`factored_to_reduced` for ``k = 2`` by :func:`reduce2`."""
+    g0, g1 = g[:, :, 0], g[:, :, 1]
+    (r00, r01, r11), e_lin = reduce2(
+        np.einsum("mn,mn->m", g0, g0), np.einsum("mn,mn->m", g0, g1),
+        np.einsum("mn,mn->m", g1, g1), np.einsum("mn,mn->m", g0, e),
+        np.einsum("mn,mn->m", g1, e), rel_tol)
     out = []
     for f in factors:
         j = np.empty_like(f)

@@ -32,6 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.reduction import reduce2
 from graphopt.types.image_sampling import (
     PhotometricParams,
     patch_residuals,
@@ -261,28 +262,12 @@ class _PatchEdge(BaseEdge):
 
 
 def _reduce_patch(terms: np.ndarray, ok: np.ndarray) -> tuple[Triangle, np.ndarray]:
-    """The closed forms of :func:`graphopt.reduction.factored_to_reduced` for 2 rows.
-
-    From ``terms = [a, b, c, ru, rv]`` ``(5, m)``, ``GᵀG = [[a, b], [b, c]]`` and
-    ``Gᵀe = [ru, rv]`` (inactive edges are zeroed here): ``−R`` (``R`` upper triangular,
-    ``RᵀR = GᵀG``; negated for ``J_i = −G F_i``) as ``(−r00, −r01, −r11)`` and
-    ``e_lin = R⁻ᵀ Gᵀe`` ``(m, 2)``.
-    """
+    """:func:`graphopt.reduction.reduce2` of ``terms = [a, b, c, ru, rv]`` ``(5, m)``
+    (``GᵀG = [[a, b], [b, c]]``, ``Gᵀe = [ru, rv]``; inactive edges are zeroed here): ``−R``
+    (negated for ``J_i = −G F_i``) as ``(−r00, −r01, −r11)`` and ``e_lin`` ``(m, 2)``."""
     if not ok.all():
         terms[:, ~ok] = 0.0
-    a, b, c, ru, rv = terms
-    tol = _REL_TOL * np.maximum(a, c)
-    ok0 = a > tol
-    r00 = np.sqrt(a)
-    inv00 = np.where(ok0, 1.0 / np.where(ok0, r00, 1.0), 0.0)
-    r01 = b * inv00
-    d = c - r01 * r01
-    ok1 = d > tol
-    r11 = np.sqrt(np.where(ok1, d, 0.0))
-    inv11 = np.where(ok1, 1.0 / np.where(ok1, r11, 1.0), 0.0)
-    e_lin = np.empty((len(a), 2))
-    np.multiply(ru, inv00, out=e_lin[:, 0])
-    np.multiply(rv - r01 * e_lin[:, 0], inv11, out=e_lin[:, 1])
+    (r00, r01, r11), e_lin = reduce2(*terms, rel_tol=_REL_TOL)
     return (-r00, -r01, -r11), e_lin
 
 
