@@ -194,13 +194,13 @@ class EdgeSE2(EdgeFromParts):
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
         xi, xj = x
-        u, v, c, s, dx, dy = _pose_frame(xi, xj, z[:, 2])
+        u, v, c, s, _, _ = _pose_frame(xi, xj, z[:, 2])
         zx, zy = _rotate_back(z)
         e = np.empty((len(z), 3))
-        e[:, 0] = u - zx
-        e[:, 1] = v - zy
+        np.subtract(u, zx, out=e[:, 0])
+        np.subtract(v, zy, out=e[:, 1])
         e[:, 2] = normalize_theta(xj[:, 2] - xi[:, 2] - z[:, 2])
-        return e, c, s, dx, dy
+        return e, c, s, u, v
 
     @classmethod
     def linearize(
@@ -216,9 +216,11 @@ class EdgeSE2(EdgeFromParts):
         Returns:
             ``(e (m, 3), (J_i (m, 3, 3), J_j (m, 3, 3)))``.
         """
-        e, c, s, dx, dy = cls._parts(x, measurement, ctx)
-        Jj = _rows(3, c, s, None, -s, c, None, None, None, 1.0)
-        Ji = _rows(3, -c, -s, c * dy - s * dx, s, -c, -s * dy - c * dx, None, None, -1.0)
+        e, c, s, u, v = cls._parts(x, measurement, ctx)
+        nc, ns = np.negative(c), np.negative(s)
+        Jj = _rows(3, c, s, None, ns, c, None, None, None, 1.0)
+        # c·d_y − s·d_x and −s·d_y − c·d_x are the rotated difference's v and −u.
+        Ji = _rows(3, nc, ns, v, s, nc, np.negative(u), None, None, -1.0)
         return Linearization(e, (Ji, Jj))
 
 
@@ -244,8 +246,11 @@ class EdgeSE2PointXY(EdgeFromParts):
     def _parts(
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
-        u, v, c, s, dx, dy = _pose_frame(x[0], x[1])
-        return np.stack([u - z[:, 0], v - z[:, 1]], axis=1), c, s, dx, dy
+        u, v, c, s, _, _ = _pose_frame(x[0], x[1])
+        e = np.empty((len(z), 2))
+        np.subtract(u, z[:, 0], out=e[:, 0])
+        np.subtract(v, z[:, 1], out=e[:, 1])
+        return e, c, s, u, v
 
     @classmethod
     def linearize(
@@ -261,9 +266,11 @@ class EdgeSE2PointXY(EdgeFromParts):
         Returns:
             ``(e (m, 2), (J_pose (m, 2, 3), J_point (m, 2, 2)))``.
         """
-        e, c, s, dx, dy = cls._parts(x, measurement, ctx)
-        Ji = _rows(2, -c, -s, c * dy - s * dx, s, -c, -s * dy - c * dx)
-        return Linearization(e, (Ji, _rows(2, c, s, -s, c)))
+        e, c, s, u, v = cls._parts(x, measurement, ctx)
+        nc, ns = np.negative(c), np.negative(s)
+        # As in EdgeSE2: the last column is the rotated difference's (v, −u).
+        Ji = _rows(2, nc, ns, v, s, nc, np.negative(u))
+        return Linearization(e, (Ji, _rows(2, c, s, ns, c)))
 
 
 class EdgeSE2Prior(EdgeFromParts):
