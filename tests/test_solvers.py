@@ -91,3 +91,19 @@ def test_cholmod_modes_and_orderings_give_the_same_step() -> None:
     assert np.abs(steps[0]).max() > 1e-3
     with pytest.raises(ValueError, match="unknown CHOLMOD mode"):
         LinearSolverCholmod("fast")
+
+
+@pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
+def test_cholmod_refuses_values_that_do_not_fit_the_pattern() -> None:
+    import scipy.sparse as sp
+
+    from graphopt.solvers import LinearSolverCholmod
+
+    a = sp.csc_matrix(np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]]))
+    solver = LinearSolverCholmod()
+    solver.analyze(a, np.array([1, 1, 1]))
+    rhs = np.array([1.0, 2.0, 3.0])
+    np.testing.assert_allclose(solver.solve(a.data, rhs), np.linalg.solve(a.toarray(), rhs),
+                               rtol=1e-12)
+    with pytest.raises(ValueError, match="6 values for a pattern of 7"):
+        solver.solve(a.data[:-1], rhs)
