@@ -155,13 +155,13 @@ def bench(name: str, build: Builder, kw: dict[str, Any], args: argparse.Namespac
     best = min(finals)
     target = best * (1 + args.rel) if best > 0 else args.rel
     print(f"\n== {name} (best final chi2 {best:.10g}; target within {args.rel:g})")
-    print(f"{'config':<10} {'iters':>5} {'seconds':>8} {'stop':<20} {'final chi2':>16} "
+    print(f"{'config':<12} {'iters':>5} {'seconds':>8} {'stop':<20} {'final chi2':>16} "
           f"{'it to target':>12} {'s to target':>11}")
     for label, rs in rows.items():
         r = rs[0]
         hit = next((k for k, c in enumerate(r["chi2"]) if c <= target), None)
         secs = [x["times"][hit] for x in rs] if hit is not None else []
-        print(f"{label:<10} {r['iterations']:5d} "
+        print(f"{label:<12} {r['iterations']:5d} "
               f"{statistics.median(x['seconds'] for x in rs):8.3f} {r['stop']:<20} "
               f"{r['final']:16.10g} {('-' if hit is None else str(hit + 1)):>12} "
               f"{('-' if not secs else f'{statistics.median(secs):.3f}'):>11}", flush=True)
