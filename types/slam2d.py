@@ -103,18 +103,26 @@ class VertexPointXY(VertexVector):
 
 def _pose_frame(
     xi: np.ndarray, p: np.ndarray, extra_angle: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``R(−a)(p − t_i)`` with ``a = θ_i (+ extra_angle)``, column-wise.
 
     Returns:
-        ``(u, v, c, s, dx, dy)``: the rotated difference, ``cos a``, ``sin a`` and the
-        world-frame difference ``p − t_i``, each ``(m,)``.
+        ``(u, v, c, s)``: the rotated difference, ``cos a`` and ``sin a``, each ``(m,)``.
     """
     a = xi[:, 2] if extra_angle is None else xi[:, 2] + extra_angle
     c, s = np.cos(a), np.sin(a)
     dx = p[:, 0] - xi[:, 0]
     dy = p[:, 1] - xi[:, 1]
-    return c * dx + s * dy, c * dy - s * dx, c, s, dx, dy
+    return c * dx + s * dy, c * dy - s * dx, c, s
+
+
+def _pose_entries(c: np.ndarray, s: np.ndarray, u: np.ndarray, v: np.ndarray
+                  ) -> tuple[np.ndarray, ...]:
+    """The first two rows of ``∂(R(−a)(p − t_i))/∂x_i``, row-major: ``[−c, −s, v]`` and
+    ``[s, −c, −u]`` (``c·d_y − s·d_x`` and ``−s·d_y − c·d_x`` are the rotated difference's
+    ``v`` and ``−u``)."""
+    nc = np.negative(c)
+    return nc, np.negative(s), v, s, nc, np.negative(u)
 
 
 def _rows(rows: int, *entries: np.ndarray | float | None) -> np.ndarray:
@@ -194,7 +202,7 @@ class EdgeSE2(EdgeFromParts):
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
         xi, xj = x
-        u, v, c, s, _, _ = _pose_frame(xi, xj, z[:, 2])
+        u, v, c, s = _pose_frame(xi, xj, z[:, 2])
         zx, zy = _rotate_back(z)
         e = np.empty((len(z), 3))
         np.subtract(u, zx, out=e[:, 0])
@@ -217,10 +225,8 @@ class EdgeSE2(EdgeFromParts):
             ``(e (m, 3), (J_i (m, 3, 3), J_j (m, 3, 3)))``.
         """
         e, c, s, u, v = cls._parts(x, measurement, ctx)
-        nc, ns = np.negative(c), np.negative(s)
-        Jj = _rows(3, c, s, None, ns, c, None, None, None, 1.0)
-        # c·d_y − s·d_x and −s·d_y − c·d_x are the rotated difference's v and −u.
-        Ji = _rows(3, nc, ns, v, s, nc, np.negative(u), None, None, -1.0)
+        Ji = _rows(3, *_pose_entries(c, s, u, v), None, None, -1.0)
+        Jj = _rows(3, c, s, None, -s, c, None, None, None, 1.0)
         return Linearization(e, (Ji, Jj))
 
 
@@ -246,7 +252,7 @@ class EdgeSE2PointXY(EdgeFromParts):
     def _parts(
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
-        u, v, c, s, _, _ = _pose_frame(x[0], x[1])
+        u, v, c, s = _pose_frame(x[0], x[1])
         e = np.empty((len(z), 2))
         np.subtract(u, z[:, 0], out=e[:, 0])
         np.subtract(v, z[:, 1], out=e[:, 1])
@@ -267,10 +273,7 @@ class EdgeSE2PointXY(EdgeFromParts):
             ``(e (m, 2), (J_pose (m, 2, 3), J_point (m, 2, 2)))``.
         """
         e, c, s, u, v = cls._parts(x, measurement, ctx)
-        nc, ns = np.negative(c), np.negative(s)
-        # As in EdgeSE2: the last column is the rotated difference's (v, −u).
-        Ji = _rows(2, nc, ns, v, s, nc, np.negative(u))
-        return Linearization(e, (Ji, _rows(2, c, s, ns, c)))
+        return Linearization(e, (_rows(2, *_pose_entries(c, s, u, v)), _rows(2, c, s, -s, c)))
 
 
 class EdgeSE2Prior(EdgeFromParts):
@@ -293,7 +296,7 @@ class EdgeSE2Prior(EdgeFromParts):
     def _parts(
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
-        u, v, c, s, _, _ = _pose_frame(z, x[0])
+        u, v, c, s = _pose_frame(z, x[0])
         e = np.empty((len(z), 3))
         e[:, 0] = u
         e[:, 1] = v
