@@ -13,6 +13,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+#: Default share of ``GᵀG``'s largest entry below which a direction counts as absent.
+REL_TOL = 1e-12
+
 
 def _upper_factor(a: np.ndarray) -> np.ndarray:
     """``R`` upper triangular with ``RᵀR = a`` for PSD ``(m, k, k)``; rank-deficient allowed."""
@@ -33,7 +36,7 @@ def _upper_factor(a: np.ndarray) -> np.ndarray:
 
 
 def factored_to_reduced(
-    e: np.ndarray, g: np.ndarray, factors: Sequence[np.ndarray], rel_tol: float = 1e-12
+    e: np.ndarray, g: np.ndarray, factors: Sequence[np.ndarray], rel_tol: float = REL_TOL
 ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
     """Turn ``(e, G, (F_i))`` into the reduced linearisation ``(e, (J̃_i), e_lin)``.
 
@@ -75,7 +78,7 @@ def factored_to_reduced(
 
 def reduce2(
     a: np.ndarray, b: np.ndarray, c: np.ndarray, ru: np.ndarray, rv: np.ndarray,
-    rel_tol: float = 1e-12,
+    rel_tol: float = REL_TOL,
 ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """The two-row reduction in elementwise closed forms (the hot path of photometric edges:
     no batched 2x2 matmuls): ``R = [[r00, r01], [0, r11]]`` with ``RᵀR = GᵀG = [[a, b], [b, c]]``

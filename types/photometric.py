@@ -67,9 +67,6 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # errors and the reduction
 
-#: ``rel_tol`` of :func:`graphopt.reduction.factored_to_reduced`, used by the fused reduction.
-_REL_TOL = 1e-12
-
 
 def _finish(meas: np.ndarray, val: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """``C − I`` (``val`` pixel-major ``(P², m)``) with inactive rows zeroed."""
@@ -267,7 +264,7 @@ def _reduce_patch(terms: np.ndarray, ok: np.ndarray) -> tuple[Triangle, np.ndarr
     (negated for ``J_i = −G F_i``) as ``(−r00, −r01, −r11)`` and ``e_lin`` ``(m, 2)``."""
     if not ok.all():
         terms[:, ~ok] = 0.0
-    (r00, r01, r11), e_lin = reduce2(*terms, rel_tol=_REL_TOL)
+    (r00, r01, r11), e_lin = reduce2(*terms)  # factored_to_reduced's tolerance
     return (-r00, -r01, -r11), e_lin
 
 
