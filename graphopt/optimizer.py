@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 import time
+import weakref
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, TextIO
 
@@ -345,7 +346,10 @@ class SparseOptimizer:
         t_start = time.perf_counter()
         p = self._ensure_problem()
         self._stop = self._interrupt = False
-        self.algorithm.interrupted = self._interrupted
+        # A weak reference: a bound method would make the optimizer and its algorithm a
+        # reference cycle, which keeps the whole problem (w10000: ~100 MB) alive until the
+        # garbage collector runs, and the next problem built pays for fresh memory.
+        self.algorithm.interrupted = _weak_call(weakref.WeakMethod(self._interrupted))
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
         if not np.isfinite(initial):
@@ -456,3 +460,13 @@ class SparseOptimizer:
             st, slot = self.graph.ids[vid]
             wanted.append((vid, p.stores.index(st), slot))
         return marginal_covariances(p, wanted)
+
+
+def _weak_call(method: weakref.WeakMethod) -> Callable[[], bool]:
+    """A callable that calls ``method`` while its object lives (``False`` after)."""
+
+    def call() -> bool:
+        bound = method()
+        return bool(bound is not None and bound())
+
+    return call

@@ -177,3 +177,22 @@ def test_stop_ends_the_run_at_the_next_safe_point_as_interrupted() -> None:
     timer.join()
     res = other.optimize(3)
     assert res.stop_reason == "iterations" and res.iterations == 3
+
+
+@pytest.mark.parametrize("algorithm", ["gn", "lm", "dogleg"])
+def test_optimizer_is_freed_without_the_garbage_collector(algorithm: str) -> None:
+    """No reference cycle keeps a finished optimizer (and its problem's arrays) alive until
+    the collector runs: the next problem built would pay for fresh memory."""
+    import gc
+    import weakref
+
+    opt, _, _ = build_pose_graph(algorithm)
+    opt.optimize(3)
+    problem = weakref.ref(opt._problem)
+    gone = weakref.ref(opt)
+    gc.disable()
+    try:
+        del opt
+        assert gone() is None and problem() is None
+    finally:
+        gc.enable()

@@ -232,12 +232,24 @@ class Assembler:
         if not rows:
             return np.zeros(0), None
         nnz = self.index.pattern.nnz
-        r = np.concatenate([d for d, _ in rows])
-        c = np.concatenate([o + np.arange(len(d)) for d, o in rows])
-        order = np.argsort(r, kind="stable")
         itype = np.int32 if max(nnz, off) < 2**31 else np.int64
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=nnz))]).astype(itype)
-        return np.empty(off), (indptr, c[order].astype(itype), np.ones(len(r)))
+        # A counting sort, list by list (a stable argsort of w10000's 1.2M rows took longer):
+        # within one list the positions are distinct (a term's targets are unique blocks), so
+        # each list adds one entry to each of its rows, after those of the lists before it —
+        # the order a stable sort gives, so the sums keep their order.
+        count = np.zeros(nnz + 1, dtype=np.int64)
+        for d, _ in rows:
+            count[d + 1] += 1
+        indptr = np.cumsum(count, out=count)
+        total = sum(len(d) for d, _ in rows)
+        assert indptr[-1] == total, "a U term's destinations repeat a position"
+        fill = indptr[:-1].copy()
+        cols = np.empty(total, dtype=itype)
+        for d, o in rows:
+            slot = fill[d]
+            cols[slot] = np.arange(o, o + len(d), dtype=itype)
+            fill[d] = slot + 1
+        return np.empty(off), (indptr.astype(itype), cols, np.ones(total))
 
     def _w_term(self, gi: int, gt: _GroupTerms, vi: int, ui: int, sel: np.ndarray) -> int:
         """Add the matrix-free W term of positions ``(vi, ui)``; its sums are the gradient's
