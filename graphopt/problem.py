@@ -100,7 +100,8 @@ class Problem:
         self.linearizer = Linearizer(stores, groups, positions)
         self.system = LinearSystem(stores, groups, positions, schur,
                                    matrix_free=solver.choose_matrix_free
-                                   if solver.decides_matrix_free else solver.matrix_free)
+                                   if solver.decides_matrix_free else solver.matrix_free,
+                                   u_order=solver.block_order)
         self.solver = solver
         solver.analyze(self.system.pattern, self.system.udims)
         self.trial_linearization = trial_linearization_allowed(

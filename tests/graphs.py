@@ -66,3 +66,15 @@ def build_pose_graph(algorithm="lm", solver="dense", n=40, seed=0, per_object=Fa
         opt.add_vertices(VertexSE2, np.arange(n), init, fixed=np.arange(n) == 0)
         opt.add_edges(EdgeSE2, edges, meas, information=info)
     return opt, truth, init
+
+
+def step_in_graph_order(problem, du: np.ndarray) -> np.ndarray:
+    """The U part of a step ordered by store, then slot (a solver may have the U blocks
+    numbered in another order: :meth:`LinearSolver.block_order`)."""
+    index = problem.system.index
+    rows = []
+    for si, ub in enumerate(index.ublock):
+        ub = ub[ub >= 0]
+        d = index.stores[si].vtype.dimension
+        rows.append((index.uoffset[ub][:, None] + np.arange(d)).ravel())
+    return du[np.concatenate(rows)] if rows else du

@@ -228,6 +228,11 @@ class BlockIndex:
             implicit Schur solver): then ``S``'s fill is left out of the pattern, which holds
             only the U blocks and the U-U blocks of edges (``H_uu``). A callable decides, given
             this index once its U, V and W blocks are numbered (before the pattern is built).
+        u_order: Given the U-U block keys (sorted unique ``col · n_ublocks + row``, both
+            triangles) and the U blocks' sizes, an order of the U blocks to number them in,
+            or ``None`` for the graph's order (a linear solver's
+            :meth:`~graphopt.solvers.base.LinearSolver.block_order`); asked only when no
+            vertex is marginalised.
 
     Attributes:
         stores: The vertex stores (as given).
@@ -253,7 +258,9 @@ class BlockIndex:
 
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
                  spectral_max: int = 600,
-                 matrix_free: bool | Callable[[BlockIndex], bool] = False) -> None:
+                 matrix_free: bool | Callable[[BlockIndex], bool] = False,
+                 u_order: Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None = None
+                 ) -> None:
         self.stores, self.groups, self.positions = stores, groups, positions
         self._number_blocks()
         nb = max(self.n_ublocks, 1)
@@ -281,8 +288,25 @@ class BlockIndex:
         if not self.matrix_free:
             keys += [self.fill_keys(vc) for vc in range(len(self.vclasses))]
         self._inc, self._fill = [], {}  # only needed while the pattern is built
-        self.pattern = ReducedPattern(self.uoffset, self.udims,
-                                      unique_ints(np.concatenate(keys), nb * nb))
+        block_keys = unique_ints(np.concatenate(keys), nb * nb)
+        if u_order is not None and not self.vclasses and self.n_ublocks:
+            order = u_order(block_keys, self.udims)
+            if order is not None:
+                block_keys = self._renumber_u(np.asarray(order, dtype=np.int64), block_keys)
+        self.pattern = ReducedPattern(self.uoffset, self.udims, block_keys)
+
+    def _renumber_u(self, order: np.ndarray, keys: np.ndarray) -> np.ndarray:
+        """Number the U blocks in ``order`` (new block ``b`` is old block ``order[b]``; no V
+        classes, so nothing else holds U numbers yet); return ``keys`` renumbered."""
+        nb = self.n_ublocks
+        if len(order) != nb or not np.array_equal(np.sort(order), np.arange(nb)):
+            raise ValueError(f"a U block order must be a permutation of {nb} blocks")
+        new_id = np.empty(nb, dtype=np.int64)
+        new_id[order] = np.arange(nb)
+        self.ublock = [np.where(ub >= 0, new_id[np.maximum(ub, 0)], -1) for ub in self.ublock]
+        self.udims, self.ustore = self.udims[order], self.ustore[order]
+        self.uoffset = np.concatenate([[0], np.cumsum(self.udims)]).astype(np.int64)
+        return unique_ints(new_id[keys // nb] * nb + new_id[keys % nb], nb * nb)
 
     def fill_keys(self, vc: int) -> np.ndarray:
         """The fill of V class ``vc`` (pairs of U blocks that share one of its V blocks, the

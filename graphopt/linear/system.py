@@ -40,6 +40,8 @@ class LinearSystem:
             Schur strategy is built, and :meth:`reduce` hands over a
             :class:`~graphopt.linear.implicit.SchurOperator`. A callable decides from the
             block index.
+        u_order: Chooses the U blocks' numbering (see
+            :class:`~graphopt.linear.structure.BlockIndex`; a linear solver's ``block_order``).
 
     Attributes:
         index: The block index (U/V/W blocks, numbering, pattern).
@@ -60,10 +62,12 @@ class LinearSystem:
 
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
                  config: SchurConfig | None = None,
-                 matrix_free: bool | Callable[[BlockIndex], bool] = False) -> None:
+                 matrix_free: bool | Callable[[BlockIndex], bool] = False,
+                 u_order: Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None = None
+                 ) -> None:
         self.config = config if config is not None else SchurConfig()
         self.index = BlockIndex(stores, groups, positions, self.config.cost.spectral_max,
-                                matrix_free)
+                                matrix_free, u_order)
         self.matrix_free = self.index.matrix_free
         self.assembler = Assembler(self.index, self.config.cost)
         self.reduction = None if self.matrix_free else SchurComplement(self.index, self.config)

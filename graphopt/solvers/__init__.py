@@ -69,17 +69,37 @@ class LinearSolverAuto(LinearSolver):
         self.chosen = LinearSolverImplicitSchur() if implicit else None
         return implicit
 
+    def _choose_direct(self, n: int, nnz: float) -> LinearSolver:
+        """Dense or CHOLMOD (or its fallback) for a system of ``n`` unknowns, ``nnz`` entries."""
+        dense = n <= self.dense_max_size and nnz >= self.dense_min_fill * n * n
+        return LinearSolverDense() if dense else make_solver("cholmod")
+
+    def block_order(self, keys: np.ndarray, block_sizes: np.ndarray) -> np.ndarray | None:
+        """Choose the direct solver now (the pattern's size and entries follow from the
+        blocks) and pass on its wish (see :meth:`LinearSolver.block_order`).
+
+        Args:
+            keys: Sorted unique block keys ``col · n_blocks + row``, both triangles.
+            block_sizes: Size of every block.
+        """
+        if isinstance(self.chosen, LinearSolverImplicitSchur):
+            return None
+        nb = max(len(block_sizes), 1)
+        sizes = np.asarray(block_sizes, dtype=np.float64)
+        nnz = float(sizes[keys % nb] @ sizes[keys // nb]) if len(keys) else 0.0
+        self.chosen = self._choose_direct(int(sizes.sum()), nnz)
+        return self.chosen.block_order(keys, block_sizes)
+
     def analyze(self, pattern: sp.csc_matrix, block_sizes: np.ndarray) -> None:
-        """Choose (unless implicit-Schur PCG was chosen) and analyse.
+        """Choose (unless implicit-Schur PCG or :meth:`block_order` chose) and analyse.
 
         Args:
             pattern: Full symmetric CSC pattern.
             block_sizes: Diagonal block sizes.
         """
-        if not isinstance(self.chosen, LinearSolverImplicitSchur):
-            n = pattern.shape[0]
-            dense = n <= self.dense_max_size and pattern.nnz >= self.dense_min_fill * n * n
-            self.chosen = LinearSolverDense() if dense else make_solver("cholmod")
+        if self.chosen is None:
+            self.chosen = self._choose_direct(pattern.shape[0], pattern.nnz)
+        assert self.chosen is not None
         self.chosen.analyze(pattern, block_sizes)
         self.pattern, self.block_sizes = pattern, block_sizes
 

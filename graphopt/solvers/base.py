@@ -41,6 +41,21 @@ class LinearSolver:
         """
         return self.matrix_free
 
+    def block_order(self, keys: np.ndarray, block_sizes: np.ndarray) -> np.ndarray | None:
+        """An order of the unknowns' blocks this solver wants the pattern built in, asked once
+        before the pattern exists (problems without marginalised vertices only); ``None``
+        (the default): the graph's order.
+
+        Args:
+            keys: The non-zero blocks of the system as sorted unique keys
+                ``col · n_blocks + row`` (both triangles and the diagonal).
+            block_sizes: Size of every block.
+
+        Returns:
+            The block placed at each position, or ``None``.
+        """
+        return None
+
     def analyze(self, pattern: sp.csc_matrix, block_sizes: np.ndarray) -> None:
         """Prepare for matrices with this pattern (symbolic work happens here).
 

@@ -62,8 +62,10 @@ class LinearSolverCholmod(LinearSolver):
     (w10000's smallest ratio is about 1e-7) adds 0.8 ms (a second right-hand-side column).
 
     ``ordering="auto"`` is CHOLMOD's default (AMD, METIS where AMD fills badly) for systems
-    whose blocks have at most 3 unknowns and NESDIS (CHOLMOD's nested dissection) for the
-    others. Measured, one thread, factorisation and solve: the sphere's supernodal factor
+    whose blocks have at most 3 unknowns — applied to the graph of the blocks when the
+    optimizer asks :meth:`block_order` before it builds the pattern (then factorised in the
+    order given), else to the scalar unknowns — and NESDIS (CHOLMOD's nested dissection) for
+    the others. Measured, one thread, factorisation and solve: the sphere's supernodal factor
     (13,194 unknowns, 6x6 blocks) 81–83 ms with NESDIS or METIS against 99 ms with AMD (fill
     2.09M against 2.56M entries; NESDIS's analysis 24 ms against 9, once); w10000's simplicial
     factor 46 ms with CHOLMOD's default against 87 ms with NESDIS (fill 1.23M against 1.26M);
@@ -88,6 +90,36 @@ class LinearSolverCholmod(LinearSolver):
                              "supernodal")
         self.mode, self.ordering = mode, ordering
         self._factor = None
+        self._blocks_ordered = False
+
+    def _simplicial_small(self, block_sizes: np.ndarray) -> bool:
+        """Whether these blocks get the simplicial factorisation by the ``auto`` rules."""
+        small = bool(len(block_sizes)) and int(np.max(block_sizes)) <= 3
+        return small and self.mode in ("auto", "simplicial")
+
+    def block_order(self, keys: np.ndarray, block_sizes: np.ndarray) -> np.ndarray | None:
+        """CHOLMOD's ordering of the block graph for ``ordering="auto"`` and small blocks (2-D
+        poses and points, simplicial); ``analyze`` then keeps the order it is given.
+
+        Measured on w10000 (10,000 3x3 blocks, one thread): the factorisation of the matrix
+        so ordered takes 42 ms against 47 ms in CHOLMOD's own order of the scalar unknowns
+        (AMD), for 2 % less fill (1.20M entries of ``L`` against 1.23M): a block's unknowns
+        stay together in memory, and the ordering works on a graph a ninth the size.
+
+        Args:
+            keys: Sorted unique block keys ``col · n_blocks + row``, both triangles.
+            block_sizes: Size of every block.
+        """
+        self._blocks_ordered = False
+        if self.ordering != "auto" or not self._simplicial_small(block_sizes):
+            return None
+        nb = len(block_sizes)
+        rows, cols = keys % nb, keys // nb
+        low = rows >= cols
+        b = sp.csc_matrix((np.ones(int(low.sum())), (rows[low], cols[low])), shape=(nb, nb))
+        order = _cholmod_analyze(b, mode="simplicial", ordering_method="default").P()
+        self._blocks_ordered = True
+        return np.asarray(order, dtype=np.int64)
 
     def analyze(self, pattern: sp.csc_matrix, block_sizes: np.ndarray) -> None:
         """Symbolic analysis (ordering, elimination tree) of the pattern.
@@ -114,12 +146,16 @@ class LinearSolverCholmod(LinearSolver):
         self._lower_csc.has_sorted_indices = True
         # Analyse with a structurally full matrix (ones) so the symbolic factor covers all
         # entries of the pattern whatever the values become.
-        probe = self._lower_matrix(np.ones(pattern.nnz))
+        probe = self._lower_csc
+        probe.data.fill(1.0)
         small_blocks = bool(len(block_sizes)) and int(np.max(block_sizes)) <= 3
         mode = "simplicial" if self.mode == "auto" and small_blocks else self.mode
         ordering = self.ordering
         if ordering == "auto":
-            ordering = "default" if small_blocks else "nesdis"
+            # The pattern comes in the block order asked for (block_order), else CHOLMOD's.
+            ordering = ("natural" if self._blocks_ordered else "default") if small_blocks \
+                else "nesdis"
+        self._blocks_ordered = False  # a next pattern is ordered only if asked again
         self._factor = _cholmod_analyze(probe, mode=mode, ordering_method=ordering)
         self._order = self._factor.P()  # the unknown eliminated at each step
 
