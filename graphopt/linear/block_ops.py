@@ -122,25 +122,6 @@ def csr_product_into(
     kernel(n_rows, n_cols, width, indptr, indices, data, b, out)
 
 
-def csr_matvec_into(n_rows: int, n_cols: int, indptr: np.ndarray, indices: np.ndarray,
-                    data: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
-    """``out += A @ x`` for a CSR matrix ``A`` given by its arrays (no ``csr_matrix`` object).
-
-    Args:
-        n_rows: Rows of ``A``.
-        n_cols: Columns of ``A``.
-        indptr: Row pointer (same integer type as ``indices``).
-        indices: Column indices.
-        data: Values (float64).
-        x: ``(n_cols,)`` vector.
-        out: ``(n_rows,)`` vector added to.
-    """
-    if _csr_matvec is None:  # pragma: no cover
-        out += sp.csr_matrix((data, indices, indptr), shape=(n_rows, n_cols)) @ x
-        return
-    _csr_matvec(n_rows, n_cols, indptr, indices, data, x, out)
-
-
 class _CscContraction:
     """A constant-structure CSC operator ``M`` (rows ``(t, i)``, ``shape[1]`` rows of ``B``) whose
     values come from ``A``: ``out[t] = Σ A-blocksᵀ · B-blocks`` is ``M @ B``, the scatter-add
