@@ -336,8 +336,8 @@ class Assembler:
             return _HTerm(a, b, "U", None, None, gram=gram, out=np.zeros((gram.n_out, d, d)),
                           to_h=pattern.to_s(ub_out, ub_out))
         con = self._contraction(g, sel, inv, len(uniq), d)
-        pos, post = pattern.dest(br, bc)
-        return _HTerm(a, b, "U", con, pos, post if a != b else None)
+        pos, post = pattern.dest(br, bc, transposes=a != b)
+        return _HTerm(a, b, "U", con, pos, post)
 
     def _u_gram(self, g: EdgeGroup, sel: np.ndarray, target: np.ndarray, n_t: int, d: int
                 ) -> GatheredGram | None:

@@ -145,16 +145,20 @@ class ReducedPattern:
         rows, cols = np.broadcast_arrays(rows, cols)
         return rows.reshape(len(r), -1), cols.reshape(len(r), -1)
 
-    def dest(self, br: np.ndarray, bc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def dest(self, br: np.ndarray, bc: np.ndarray, transposes: bool = True
+             ) -> tuple[np.ndarray, np.ndarray | None]:
         """Data positions of blocks ``(br, bc)`` and of their transposes, entry-aligned.
 
         Args:
             br: Row U blocks (all of one dimension).
             bc: Column U blocks (all of one dimension).
+            transposes: Also the transposes' positions (else ``None``: diagonal blocks).
         """
         if len(br) == 0:
             return np.zeros((0, 0), np.int64), np.zeros((0, 0), np.int64)
         pos, _ = self._block_positions(br, bc)
+        if not transposes:
+            return pos, None
         post, _ = self._block_positions(bc, br)  # (q, j, i) of the transpose
         d1, d2 = int(self.udims[br[0]]), int(self.udims[bc[0]])
         return pos, post.reshape(len(br), d2, d1).transpose(0, 2, 1).reshape(len(br), -1)
@@ -168,6 +172,7 @@ class ReducedPattern:
             tu2: Column U block of every result block.
         """
         pos, post = self.dest(tu1, tu2)
+        assert post is not None
         off = tu1 != tu2
         src = np.arange(pos.size).reshape(pos.shape)
         rows = np.concatenate([pos.ravel(), post[off].ravel()])

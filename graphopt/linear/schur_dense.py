@@ -92,7 +92,7 @@ class DensePanels(SchurStrategy):
             # Keep the block pairs present in S (others have no common V block at all).
             present = index.pattern.has_blocks(ga, gb)
             la, lb, ga, gb = la[present], lb[present], ga[present], gb[present]
-            dest, _ = index.pattern.dest(ga, gb)
+            dest, _ = index.pattern.dest(ga, gb, transposes=False)
             i = la[:, None, None] * du + di
             j = lb[:, None, None] * du + dj
             src = np.maximum(i, j) * n + np.minimum(i, j)  # upper triangle, column-major
