@@ -157,7 +157,32 @@ def test_cholmod_block_order_solves_like_dense() -> None:
     scalar.analyze(a, sizes)
     assert not np.array_equal(scalar._order, np.arange(a.shape[0]))
     assert LinearSolverCholmod(ordering="amd").block_order(keys, sizes) is None
-    assert LinearSolverCholmod("supernodal").block_order(keys, sizes) is None
+
+
+@pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
+@pytest.mark.parametrize("mode", ["auto", "supernodal", "simplicial"])
+def test_cholmod_block_order_of_large_blocks(mode: str) -> None:
+    """6x6 blocks (3-D poses): NESDIS on the block graph, then the pattern as given."""
+    import scipy.sparse as sp
+
+    from graphopt.solvers import LinearSolverCholmod
+
+    a, sizes = _block_spd([6] * 30, 0.2, 8)
+    nb, off = len(sizes), np.concatenate([[0], np.cumsum(sizes)])
+    coo = sp.coo_matrix(a)
+    blk = np.repeat(np.arange(nb), sizes)
+    keys = np.unique(blk[coo.col] * nb + blk[coo.row])
+    solver = LinearSolverCholmod(mode)
+    order = solver.block_order(keys, sizes)
+    assert order is not None and sorted(order) == list(range(nb))
+    perm = np.concatenate([np.arange(off[b], off[b + 1]) for b in order])
+    pa = sp.csc_matrix(a[perm][:, perm])
+    pa.sort_indices()
+    solver.analyze(pa, sizes[order])
+    np.testing.assert_array_equal(solver._order, np.arange(a.shape[0]))
+    rhs = np.random.default_rng(9).standard_normal(a.shape[0])
+    np.testing.assert_allclose(solver.solve(pa.data, rhs[perm]),
+                               np.linalg.solve(a.toarray(), rhs)[perm], rtol=1e-10, atol=1e-12)
 
 
 def test_pose_graph_is_numbered_in_the_solvers_block_order() -> None:

@@ -62,10 +62,10 @@ class LinearSolverCholmod(LinearSolver):
     (w10000's smallest ratio is about 1e-7) adds 0.8 ms (a second right-hand-side column).
 
     ``ordering="auto"`` is CHOLMOD's default (AMD, METIS where AMD fills badly) for systems
-    whose blocks have at most 3 unknowns — applied to the graph of the blocks when the
-    optimizer asks :meth:`block_order` before it builds the pattern (then factorised in the
-    order given), else to the scalar unknowns — and NESDIS (CHOLMOD's nested dissection) for
-    the others. Measured, one thread, factorisation and solve: the sphere's supernodal factor
+    whose blocks have at most 3 unknowns and NESDIS (CHOLMOD's nested dissection) for the
+    others — applied to the graph of the blocks when the optimizer asks :meth:`block_order`
+    before it builds the pattern (which is then factorised in the order given), else to the
+    scalar unknowns. Measured, one thread, factorisation and solve: the sphere's supernodal factor
     (13,194 unknowns, 6x6 blocks) 81–83 ms with NESDIS or METIS against 99 ms with AMD (fill
     2.09M against 2.56M entries; NESDIS's analysis 24 ms against 9, once); w10000's simplicial
     factor 46 ms with CHOLMOD's default against 87 ms with NESDIS (fill 1.23M against 1.26M);
@@ -92,32 +92,31 @@ class LinearSolverCholmod(LinearSolver):
         self._factor = None
         self._blocks_ordered = False
 
-    def _simplicial_small(self, block_sizes: np.ndarray) -> bool:
-        """Whether these blocks get the simplicial factorisation by the ``auto`` rules."""
-        small = bool(len(block_sizes)) and int(np.max(block_sizes)) <= 3
-        return small and self.mode in ("auto", "simplicial")
-
     def block_order(self, keys: np.ndarray, block_sizes: np.ndarray) -> np.ndarray | None:
-        """CHOLMOD's ordering of the block graph for ``ordering="auto"`` and small blocks (2-D
-        poses and points, simplicial); ``analyze`` then keeps the order it is given.
+        """For ``ordering="auto"``: the ordering of the class docstring applied to the graph of
+        the blocks (AMD for blocks of at most 3 unknowns, NESDIS for larger ones); ``analyze``
+        then keeps the order it is given.
 
-        Measured on w10000 (10,000 3x3 blocks, one thread): the factorisation of the matrix
-        so ordered takes 42 ms against 47 ms in CHOLMOD's own order of the scalar unknowns
-        (AMD), for 2 % less fill (1.20M entries of ``L`` against 1.23M): a block's unknowns
-        stay together in memory, and the ordering works on a graph a ninth the size.
+        Measured, one thread (the fill and flops equal those of the scalar orderings): on
+        w10000 (10,000 3x3 blocks) the simplicial factorisation of the matrix so ordered takes
+        41–42 ms against 46–47 ms in CHOLMOD's own order of the scalar unknowns: a block's
+        unknowns stay together in memory, and CHOLMOD's numeric factorisation no longer
+        permutes what it reads; the sphere's set-up (2,200 6x6 blocks) takes 42 ms against
+        50–60, NESDIS working on a graph a sixth the size.
 
         Args:
             keys: Sorted unique block keys ``col · n_blocks + row``, both triangles.
             block_sizes: Size of every block.
         """
         self._blocks_ordered = False
-        if self.ordering != "auto" or not self._simplicial_small(block_sizes):
+        if self.ordering != "auto" or not len(block_sizes):
             return None
         nb = len(block_sizes)
         rows, cols = keys % nb, keys // nb
         low = rows >= cols
         b = sp.csc_matrix((np.ones(int(low.sum())), (rows[low], cols[low])), shape=(nb, nb))
-        order = _cholmod_analyze(b, mode="simplicial", ordering_method="default").P()
+        method = "default" if int(np.max(block_sizes)) <= 3 else "nesdis"
+        order = _cholmod_analyze(b, mode="simplicial", ordering_method=method).P()
         self._blocks_ordered = True
         return np.asarray(order, dtype=np.int64)
 
@@ -151,10 +150,9 @@ class LinearSolverCholmod(LinearSolver):
         small_blocks = bool(len(block_sizes)) and int(np.max(block_sizes)) <= 3
         mode = "simplicial" if self.mode == "auto" and small_blocks else self.mode
         ordering = self.ordering
-        if ordering == "auto":
-            # The pattern comes in the block order asked for (block_order), else CHOLMOD's.
-            ordering = ("natural" if self._blocks_ordered else "default") if small_blocks \
-                else "nesdis"
+        if ordering == "auto":  # the pattern comes in the block order asked for, if it was
+            ordering = ("natural" if self._blocks_ordered
+                        else "default" if small_blocks else "nesdis")
         self._blocks_ordered = False  # a next pattern is ordered only if asked again
         self._factor = _cholmod_analyze(probe, mode=mode, ordering_method=ordering)
         self._order = self._factor.P()  # the unknown eliminated at each step
