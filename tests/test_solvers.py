@@ -255,3 +255,22 @@ def test_u_blocks_renumbered_in_a_solvers_order_give_the_same_run() -> None:
                                    rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="permutation of 15 blocks"):
         _poses_and_points(_ReversedDense.make(broken=True)).initialize_optimization()
+
+
+@pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
+def test_a_wrong_diagonal_hint_is_not_trusted() -> None:
+    """``pattern.diag_pos`` (set by graphopt's patterns) is checked before it is used."""
+    from graphopt.solvers import LinearSolverCholmod, LinearSolverDense
+
+    a, sizes = _block_spd([3, 2, 3] * 4, 0.3, 11)
+    a.sort_indices()
+    cols = np.repeat(np.arange(a.shape[0]), np.diff(a.indptr))
+    true_diag = np.flatnonzero(a.indices == cols)
+    rhs = np.arange(1.0, a.shape[0] + 1)
+    want = np.linalg.solve(a.toarray(), rhs)
+    for hint in (true_diag, true_diag + 1, np.zeros(3, dtype=np.int64)):
+        a.diag_pos = hint
+        for solver in (LinearSolverCholmod(ordering="default"), LinearSolverDense()):
+            solver.analyze(a, sizes)
+            np.testing.assert_array_equal(solver.diag_pos, true_diag)
+            np.testing.assert_allclose(solver.solve(a.data, rhs), want, rtol=1e-10)

@@ -77,6 +77,7 @@ class ReducedPattern:
                                  shape=(n, n))
         diag = np.arange(n)
         self.diag_pos = self.positions(diag, diag)
+        self.csc.diag_pos = self.diag_pos  # for the linear solvers' analyze (they check it)
 
     def _shape_classes(self, br: np.ndarray, bc: np.ndarray) -> list[np.ndarray]:
         """Blocks grouped by shape ``(d_row, d_col)`` (one group when all U blocks match)."""

@@ -61,15 +61,25 @@ class LinearSolver:
 
         Args:
             pattern: Full symmetric CSC pattern (both triangles; the direct solvers and PCG
-                need every diagonal entry).
+                need every diagonal entry). A pattern built by graphopt carries the data
+                position of every diagonal entry as ``pattern.diag_pos`` (checked here, in
+                ``n`` reads instead of a pass over all entries).
             block_sizes: Sizes of the diagonal blocks, in order.
         """
         self.pattern = pattern
         self.block_sizes = block_sizes
         n = pattern.shape[0]
+        diag_pos = getattr(pattern, "diag_pos", None)
+        if isinstance(diag_pos, np.ndarray) and len(diag_pos) == n:
+            ip = pattern.indptr
+            ok = np.all((diag_pos >= ip[:-1]) & (diag_pos < ip[1:])) and np.array_equal(
+                pattern.indices[diag_pos], np.arange(n))
+            if ok:
+                self._diag_pos = np.asarray(diag_pos)
+                return
         cols = np.repeat(np.arange(n), np.diff(pattern.indptr))
-        diag_pos = np.flatnonzero(pattern.indices == cols)
-        self._diag_pos = diag_pos if len(diag_pos) == n else None
+        found = np.flatnonzero(pattern.indices == cols)
+        self._diag_pos = found if len(found) == n else None
 
     @property
     def diag_pos(self) -> np.ndarray:

@@ -132,16 +132,24 @@ class LinearSolverCholmod(LinearSolver):
         # its numeric factorisation first permutes and transposes what it is given: handing it
         # the lower triangle alone halves that copy (w10000: 42.6 ms against 46.3 a
         # factorisation, the gather of the triangle included).
-        cols = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
-        lower = pattern.indices >= cols
-        self._lower = np.flatnonzero(lower)
+        if self._diag_pos is not None and pattern.has_sorted_indices:
+            # A column's lower part runs from its diagonal entry to its end: no pass over
+            # every entry (w10000: 3 ms against 14).
+            lens = pattern.indptr[1:] - self._diag_pos
+            self._lower = _ranges(self._diag_pos, lens)
+            indptr = np.concatenate([[0], np.cumsum(lens)])
+        else:
+            cols = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
+            lower = pattern.indices >= cols
+            self._lower = np.flatnonzero(lower)
+            indptr = np.concatenate([[0], np.cumsum(np.bincount(cols[lower],
+                                                                minlength=pattern.shape[1]))])
         self._nnz = pattern.nnz
         # One matrix object whose values are overwritten for every factorisation: SciPy's
         # constructor checks cost 0.15 ms a call, a tenth of a small graph's iteration.
         self._lower_csc = sp.csc_matrix(
             (np.zeros(len(self._lower)), pattern.indices[self._lower],
-             np.concatenate([[0], np.cumsum(np.bincount(cols[lower], minlength=pattern.shape[1]))]
-                            ).astype(pattern.indptr.dtype)), shape=pattern.shape)
+             indptr.astype(pattern.indptr.dtype)), shape=pattern.shape)
         self._lower_csc.has_sorted_indices = True
         # Analyse with a structurally full matrix (ones) so the symbolic factor covers all
         # entries of the pattern whatever the values become.
@@ -200,3 +208,10 @@ class LinearSolverCholmod(LinearSolver):
             return False
         d = self._factor.D()
         return bool(np.all(np.isfinite(d)) and np.all(d > 0))
+
+
+def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """``concatenate([arange(s, s + l) for s, l in zip(starts, lengths)])``, vectorised."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    return np.repeat(np.asarray(starts, dtype=np.int64) - (np.cumsum(lengths) - lengths),
+                     lengths) + np.arange(int(lengths.sum()))
