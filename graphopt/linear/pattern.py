@@ -62,6 +62,10 @@ class ReducedPattern:
         self._indptr = np.concatenate([[0], np.cumsum(per_col)]).astype(np.int64)
         self.nnz = int(self._indptr[-1])
         idx_t = np.int32 if max(n, self.nnz) < 2**31 else np.int64
+        # Block positions in the index type: half the memory of int64 for the (q, d1, d2)
+        # arrays every U term's destinations are built from.
+        self._ptr = self._indptr.astype(idx_t)
+        self._rowoff = self._rowoff.astype(idx_t)
         indices = np.empty(self.nnz, dtype=idx_t)
         # Small systems: a dense block → key-rank table is faster than binary searches.
         self._table: np.ndarray | None = None
@@ -73,7 +77,7 @@ class ReducedPattern:
             d1 = int(udims[br[sel[0]]])
             rows = uoffset[br[sel]][:, None] + np.repeat(np.arange(d1), pos.shape[1] // d1)
             indices[pos.ravel()] = rows.ravel()
-        self.csc = sp.csc_matrix((np.zeros(self.nnz), indices, self._indptr.astype(idx_t)),
+        self.csc = sp.csc_matrix((np.zeros(self.nnz), indices, self._ptr.copy()),
                                  shape=(n, n))
         diag = np.arange(n)
         self.diag_pos = self.positions(diag, diag)
@@ -103,9 +107,9 @@ class ReducedPattern:
         if rank is None:
             rank = self._lookup(bc.astype(np.int64) * self._nb + br)
         d1, d2 = int(self.udims[br[0]]), int(self.udims[bc[0]])
-        start = self._indptr[self.uoffset[bc][:, None] + np.arange(d2)] + self._rowoff[rank][:,
-                                                                                             None]
-        pos = start[:, None, :] + np.arange(d1)[None, :, None]  # (q, i, j) → col j's start + i
+        start = self._ptr[self.uoffset[bc][:, None] + np.arange(d2)] + self._rowoff[rank][:, None]
+        # (q, i, j) → column j's start + i
+        pos = start[:, None, :] + np.arange(d1, dtype=start.dtype)[None, :, None]
         return pos.reshape(len(br), d1 * d2), rank
 
     def positions(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
