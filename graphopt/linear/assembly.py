@@ -328,14 +328,18 @@ class Assembler:
         """The U-U term of positions ``(a, b)`` over edges ``sel``."""
         nb = max(self.index.n_ublocks, 1)
         pattern = self.index.pattern
-        uniq, inv = unique_ints(ub[a][sel] * nb + ub[b][sel], nb * nb, True)
-        br, bc = uniq // nb, uniq % nb
-        gram = self._u_gram(g, sel, inv, len(uniq), d) if a == b else None
+        if a == b:  # diagonal blocks: unique U blocks (a bitmap, not a sort of pair keys)
+            br, inv = unique_ints(ub[a][sel], nb, True)
+            bc = br
+        else:
+            uniq, inv = unique_ints(ub[a][sel] * nb + ub[b][sel], nb * nb, True)
+            br, bc = uniq // nb, uniq % nb
+        gram = self._u_gram(g, sel, inv, len(br), d) if a == b else None
         if gram is not None:  # diagonal blocks: (u, u) per output
             ub_out = br[gram.targets]
             return _HTerm(a, b, "U", None, None, gram=gram, out=np.zeros((gram.n_out, d, d)),
                           to_h=pattern.to_s(ub_out, ub_out))
-        con = self._contraction(g, sel, inv, len(uniq), d)
+        con = self._contraction(g, sel, inv, len(br), d)
         pos, post = pattern.dest(br, bc, transposes=a != b)
         return _HTerm(a, b, "U", con, pos, post)
 

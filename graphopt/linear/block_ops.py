@@ -282,9 +282,12 @@ class EdgeContraction(_CscContraction):
             full = np.full(m, n_targets, dtype=np.int64)
             full[sel] = target
             sel, target = np.arange(m), full
-        count = np.zeros(m * r, dtype=np.int64)
-        count.reshape(m, r)[sel] = d1
-        self.indptr = np.concatenate([[0], np.cumsum(count)]).astype(np.int32)
+        if len(sel) == m:  # every column holds d1 entries
+            self.indptr = np.arange(m * r + 1, dtype=np.int32) * np.int32(d1)
+        else:
+            count = np.zeros(m * r, dtype=np.int64)
+            count.reshape(m, r)[sel] = d1
+            self.indptr = np.concatenate([[0], np.cumsum(count)]).astype(np.int32)
         rows = (np.asarray(target)[:, None, None] * d1 + np.arange(d1)[None, None, :]).astype(
             np.int32)
         self.indices = np.broadcast_to(rows, (len(sel), r, d1)).ravel()
