@@ -110,10 +110,12 @@ def numeric_hessian(opt: SparseOptimizer, vtypes, free_masks, h=1e-6):
     return J.T @ J
 
 
-def test_marginals_equal_inverse_hessian_blocks_pose_graph() -> None:
+@pytest.mark.parametrize("solver", ["dense"] + (["cholmod"] if CHOLMOD_AVAILABLE else []))
+def test_marginals_equal_inverse_hessian_blocks_pose_graph(solver: str) -> None:
+    """Also with CHOLMOD, which has the U blocks numbered in its own order."""
     truth, init, edges, meas = pose_graph(15)
     info = np.diag([4.0, 4.0, 9.0])
-    opt = SparseOptimizer("lm", "dense")
+    opt = SparseOptimizer("lm", solver)
     opt.add_vertices(VertexSE2, np.arange(15), init, fixed=np.arange(15) == 0)
     opt.add_edges(EdgeSE2, edges, meas, information=info)
     opt.optimize(10)

@@ -65,6 +65,10 @@ def test_auto_solver_chooses_by_size_and_fill() -> None:
     opt2, _, _ = build_pose_graph("lm", LinearSolverAuto(dense_max_size=50))
     opt2.initialize_optimization()
     assert opt2.solver.chosen.name in ("cholmod", "scipy")
+    # The choice is made before the pattern (block_order): only CHOLMOD renumbers the blocks.
+    for o, renumbered in ((opt, False), (opt2, opt2.solver.chosen.name == "cholmod")):
+        ub = o.problem.system.index.ublock[0]
+        assert (not np.array_equal(ub[ub >= 0], np.arange(int((ub >= 0).sum())))) == renumbered
     assert opt.optimize(20).final_chi2 == pytest.approx(opt2.optimize(20).final_chi2, rel=1e-9)
 
 
