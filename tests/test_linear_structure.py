@@ -203,6 +203,10 @@ def test_index_helpers() -> None:
         np.testing.assert_array_equal(uniq[inv], x)
     i, j = pairs_sharing_key(np.array([0, 0, 2]), np.array([0, 1, 2, 2]))
     assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(0, 0), (1, 0), (2, 2), (2, 3)]
+    from graphopt.linear.indexing import concat_ranges
+
+    assert concat_ranges(np.array([7, 0, 3]), np.array([2, 0, 3])).tolist() == [7, 8, 3, 4, 5]
+    assert concat_ranges(np.zeros(0, np.int64), np.zeros(0, np.int64)).tolist() == []
 
 
 @pytest.mark.parametrize("size", [0, 1, 7, 5000])

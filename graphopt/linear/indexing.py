@@ -97,3 +97,15 @@ def pairs_within_key(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     w2 += w1
     w2 += 1
     return w1, w2
+
+
+def concat_ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """``concatenate([arange(s, s + l) for s, l in zip(starts, lengths)])``, vectorised.
+
+    Args:
+        starts: First value of every range.
+        lengths: Length of every range (non-negative).
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    return np.repeat(np.asarray(starts, dtype=np.int64) - (np.cumsum(lengths) - lengths),
+                     lengths) + np.arange(int(lengths.sum()))

@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from graphopt.linear.indexing import concat_ranges
+
 #: Largest ``n_ublocks²`` for which block positions are looked up in a dense table.
 POSMAP_MAX = 4_000_000
 
@@ -66,31 +68,22 @@ class ReducedPattern:
         # arrays every U term's destinations are built from.
         self._ptr = self._indptr.astype(idx_t)
         self._rowoff = self._rowoff.astype(idx_t)
-        indices = np.empty(self.nnz, dtype=idx_t)
         # Small systems: a dense block → key-rank table is faster than binary searches.
         self._table: np.ndarray | None = None
         if nb * nb <= POSMAP_MAX:
             self._table = np.full(nb * nb, -1, dtype=np.int32)
             self._table[self.block_keys] = np.arange(len(self.block_keys))
-        for sel in self._shape_classes(br, bc):
-            pos, _ = self._block_positions(br[sel], bc[sel], sel)
-            d1 = int(udims[br[sel[0]]])
-            rows = uoffset[br[sel]][:, None] + np.repeat(np.arange(d1), pos.shape[1] // d1)
-            indices[pos.ravel()] = rows.ravel()
+        # Every scalar column of block column c lists the same rows: those of c's blocks, in
+        # order (one list per block column, in key order), read once per scalar column.
+        rows = concat_ranges(uoffset[br], rdim)
+        first = np.cumsum(col_rows) - col_rows  # where block column c's list starts
+        colblock = np.repeat(np.arange(len(udims)), udims)
+        indices = rows[concat_ranges(first[colblock], col_rows[colblock])].astype(idx_t)
         self.csc = sp.csc_matrix((np.zeros(self.nnz), indices, self._ptr.copy()),
                                  shape=(n, n))
         diag = np.arange(n)
         self.diag_pos = self.positions(diag, diag)
         self.csc.diag_pos = self.diag_pos  # for the linear solvers' analyze (they check it)
-
-    def _shape_classes(self, br: np.ndarray, bc: np.ndarray) -> list[np.ndarray]:
-        """Blocks grouped by shape ``(d_row, d_col)`` (one group when all U blocks match)."""
-        dims = np.unique(self.udims)
-        if len(dims) == 1:
-            return [np.arange(len(br))] if len(br) else []
-        shape = np.searchsorted(dims, self.udims[br]) * len(dims) + np.searchsorted(
-            dims, self.udims[bc])
-        return [s for s in (np.flatnonzero(shape == k) for k in range(len(dims) ** 2)) if len(s)]
 
     def _lookup(self, keys: np.ndarray) -> np.ndarray:
         """Rank of every block key among ``block_keys`` (−1: not in the pattern)."""
