@@ -347,8 +347,9 @@ class SparseOptimizer:
         p = self._ensure_problem()
         self._stop = self._interrupt = False
         # A weak reference: a bound method would make the optimizer and its algorithm a
-        # reference cycle, which keeps the whole problem (w10000: ~100 MB) alive until the
-        # garbage collector runs, and the next problem built pays for fresh memory.
+        # reference cycle, which keeps the whole problem (w10000: 72 MB of arrays and CHOLMOD's
+        # 15 MB factor) alive until the garbage collector runs, and the next problem built
+        # pays for fresh memory.
         self.algorithm.interrupted = _weak_call(weakref.WeakMethod(self._interrupted))
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)

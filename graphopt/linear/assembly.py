@@ -246,7 +246,8 @@ class Assembler:
         # intp indices: np.take converts other index types on every call.
         first = np.full(nnz, off, dtype=np.intp)  # `off`: the zero past the outputs
         later: list[list[tuple[np.ndarray, np.ndarray]]] = []  # per layer ≥ 1: (pos, src)
-        taken = np.zeros(nnz, dtype=np.int8)  # contributions placed so far per entry
+        # Contributions placed so far per entry (at most one per list).
+        taken = np.zeros(nnz, dtype=np.int8 if len(rows) < 127 else np.int32)
         for d, o in rows:
             src = np.arange(o, o + len(d), dtype=np.intp)
             k = taken[d]

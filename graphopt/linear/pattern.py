@@ -153,7 +153,7 @@ class ReducedPattern:
             transposes: Also the transposes' positions (else ``None``: diagonal blocks).
         """
         if len(br) == 0:
-            return np.zeros((0, 0), np.int64), np.zeros((0, 0), np.int64)
+            return np.zeros((0, 0), np.int64), np.zeros((0, 0), np.int64) if transposes else None
         pos, _ = self._block_positions(br, bc)
         if not transposes:
             return pos, None
