@@ -205,21 +205,18 @@ def test_pose_graph_is_numbered_in_the_solvers_block_order() -> None:
     np.testing.assert_allclose(histories[0], histories[1], rtol=1e-9)
 
 
-class _ReversedDense:
-    """A dense solver that asks for the U blocks in reverse order (or a broken order)."""
+def _reversed_dense(broken: bool = False):
+    """A dense solver that asks for the U blocks in reverse order (or for a broken order)."""
+    from graphopt.solvers import LinearSolverDense
 
-    @staticmethod
-    def make(broken: bool = False):
-        from graphopt.solvers import LinearSolverDense
+    class Reversed(LinearSolverDense):
+        def block_order(self, keys: np.ndarray, block_sizes: np.ndarray) -> np.ndarray:
+            order = np.arange(len(block_sizes))[::-1].copy()
+            if broken:
+                order[0] = order[1]
+            return order
 
-        class Reversed(LinearSolverDense):
-            def block_order(self, keys, block_sizes):
-                order = np.arange(len(block_sizes))[::-1].copy()
-                if broken:
-                    order[0] = order[1]
-                return order
-
-        return Reversed()
+    return Reversed()
 
 
 def _poses_and_points(solver) -> object:
@@ -246,7 +243,7 @@ def test_u_blocks_renumbered_in_a_solvers_order_give_the_same_run() -> None:
     from graphopt.solvers import LinearSolverDense
 
     plain = _poses_and_points(LinearSolverDense())
-    rev = _poses_and_points(_ReversedDense.make())
+    rev = _poses_and_points(_reversed_dense())
     rev.initialize_optimization()
     index = rev.problem.system.index
     assert index.ublock[1][-1] == 0 and index.ustore[0] == 1  # the last point is block 0
@@ -258,7 +255,7 @@ def test_u_blocks_renumbered_in_a_solvers_order_give_the_same_run() -> None:
         np.testing.assert_allclose(rev.estimates_of(vtype), plain.estimates_of(vtype),
                                    rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="permutation of 15 blocks"):
-        _poses_and_points(_ReversedDense.make(broken=True)).initialize_optimization()
+        _poses_and_points(_reversed_dense(broken=True)).initialize_optimization()
 
 
 @pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
