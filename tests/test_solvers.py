@@ -130,20 +130,15 @@ def _block_spd(sizes: list[int], density: float, seed: int):
     return sp.csc_matrix(a), np.array(sizes)
 
 
-@pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
-def test_cholmod_block_order_solves_like_dense() -> None:
-    """Small blocks (2-D poses and points): CHOLMOD orders the blocks, the pattern is built in
-    that order and factorised as it comes; solutions (one and two columns) match LAPACK's."""
+def _analyze_in_block_order(solver, a, sizes: np.ndarray):
+    """Ask ``solver`` for its block order of ``a``, build the permuted matrix as the optimizer
+    would and analyse it; return ``(keys, perm, permuted matrix)``."""
     import scipy.sparse as sp
 
-    from graphopt.solvers import LinearSolverCholmod
-
-    a, sizes = _block_spd([3, 2, 3, 3, 2, 3, 1, 3] * 5, 0.15, 4)
     nb, off = len(sizes), np.concatenate([[0], np.cumsum(sizes)])
     coo = sp.coo_matrix(a)
     blk = np.repeat(np.arange(nb), sizes)
     keys = np.unique(blk[coo.col] * nb + blk[coo.row])
-    solver = LinearSolverCholmod()
     order = solver.block_order(keys, sizes)
     assert order is not None and sorted(order) == list(range(nb))
     perm = np.concatenate([np.arange(off[b], off[b + 1]) for b in order])
@@ -151,6 +146,18 @@ def test_cholmod_block_order_solves_like_dense() -> None:
     pa.sort_indices()
     solver.analyze(pa, sizes[order])
     np.testing.assert_array_equal(solver._order, np.arange(a.shape[0]))  # natural: as given
+    return keys, perm, pa
+
+
+@pytest.mark.skipif(not CHOLMOD_AVAILABLE, reason="CHOLMOD (scikit-sparse) is not installed")
+def test_cholmod_block_order_solves_like_dense() -> None:
+    """Small blocks (2-D poses and points): CHOLMOD orders the blocks, the pattern is built in
+    that order and factorised as it comes; solutions (one and two columns) match LAPACK's."""
+    from graphopt.solvers import LinearSolverCholmod
+
+    a, sizes = _block_spd([3, 2, 3, 3, 2, 3, 1, 3] * 5, 0.15, 4)
+    solver = LinearSolverCholmod()
+    keys, perm, pa = _analyze_in_block_order(solver, a, sizes)
     rng = np.random.default_rng(5)
     for rhs in (rng.standard_normal(a.shape[0]), rng.standard_normal((a.shape[0], 2))):
         np.testing.assert_allclose(solver.solve(pa.data, rhs[perm]),
@@ -167,23 +174,11 @@ def test_cholmod_block_order_solves_like_dense() -> None:
 @pytest.mark.parametrize("mode", ["auto", "supernodal", "simplicial"])
 def test_cholmod_block_order_of_large_blocks(mode: str) -> None:
     """6x6 blocks (3-D poses): NESDIS on the block graph, then the pattern as given."""
-    import scipy.sparse as sp
-
     from graphopt.solvers import LinearSolverCholmod
 
     a, sizes = _block_spd([6] * 30, 0.2, 8)
-    nb, off = len(sizes), np.concatenate([[0], np.cumsum(sizes)])
-    coo = sp.coo_matrix(a)
-    blk = np.repeat(np.arange(nb), sizes)
-    keys = np.unique(blk[coo.col] * nb + blk[coo.row])
     solver = LinearSolverCholmod(mode)
-    order = solver.block_order(keys, sizes)
-    assert order is not None and sorted(order) == list(range(nb))
-    perm = np.concatenate([np.arange(off[b], off[b + 1]) for b in order])
-    pa = sp.csc_matrix(a[perm][:, perm])
-    pa.sort_indices()
-    solver.analyze(pa, sizes[order])
-    np.testing.assert_array_equal(solver._order, np.arange(a.shape[0]))
+    _, perm, pa = _analyze_in_block_order(solver, a, sizes)
     rhs = np.random.default_rng(9).standard_normal(a.shape[0])
     np.testing.assert_allclose(solver.solve(pa.data, rhs[perm]),
                                np.linalg.solve(a.toarray(), rhs)[perm], rtol=1e-10, atol=1e-12)
