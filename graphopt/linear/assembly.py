@@ -248,20 +248,26 @@ class Assembler:
         later: list[list[tuple[np.ndarray, np.ndarray]]] = []  # per layer ≥ 1: (pos, src)
         # Contributions placed so far per entry (at most one per list).
         taken = np.zeros(nnz, dtype=np.int8 if len(rows) < 127 else np.int32)
-        for d, o in rows:
+        for li, (d, o) in enumerate(rows):
+            d = d.astype(np.intp, copy=False)  # once, not at every fancy index below
             src = np.arange(o, o + len(d), dtype=np.intp)
-            k = taken[d]
-            fresh = k == 0
-            if fresh.all():
+            if li == 0:  # nothing placed yet
                 first[d] = src
+                k = np.zeros(len(d), dtype=taken.dtype)
             else:
-                first[d[fresh]] = src[fresh]
-                for level in np.unique(k[~fresh]):
-                    at = k == level
-                    while len(later) < level:
-                        later.append([])
-                    later[level - 1].append((d[at], src[at]))
-            taken[d] += 1
+                k = taken[d]
+                fresh = k == 0
+                if fresh.all():
+                    first[d] = src
+                else:
+                    first[d[fresh]] = src[fresh]
+                    for level in np.unique(k[~fresh]):
+                        at = k == level
+                        while len(later) < level:
+                            later.append([])
+                        later[level - 1].append((d[at], src[at]))
+            if li < len(rows) - 1:
+                taken[d] = k + 1  # distinct positions: a plain scatter
         layers.append((None, first))
         for parts in later:
             layers.append((np.concatenate([p for p, _ in parts]).astype(np.intp),
