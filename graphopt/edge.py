@@ -56,11 +56,15 @@ class EdgeContext:
             :meth:`~graphopt.vertex.BaseVertex.derived` values of each edge's vertex
             (``(m, k)``), or ``None``. A cache of functions of the estimates in ``x``: numeric
             differentiation, which perturbs ``x``, calls without it.
+        measured: The edge type's :meth:`~BaseEdge.measurement_derived` values of the call's
+            edges (``(m, k)``), or ``None``: constants of the measurements, computed when the
+            group is finalised.
     """
 
     params: Any = None
     data: dict[str, np.ndarray] = field(default_factory=dict)
     derived: tuple[np.ndarray | None, ...] | None = None
+    measured: np.ndarray | None = None
 
     def subset(self, index: np.ndarray | slice) -> EdgeContext:
         """A context restricted to some edges.
@@ -71,7 +75,8 @@ class EdgeContext:
         derived = (None if self.derived is None
                    else tuple(None if d is None else d[index] for d in self.derived))
         return EdgeContext(self.params, {k: v[index] for k, v in self.data.items()},
-                           derived=derived)
+                           derived=derived,
+                           measured=None if self.measured is None else self.measured[index])
 
 
 class BaseEdge:
@@ -107,6 +112,23 @@ class BaseEdge:
     uses_derived: ClassVar[bool] = False
 
     # --- the batched type interface --------------------------------------------------------
+
+    @classmethod
+    def measurement_derived(cls, measurements: np.ndarray) -> np.ndarray | None:
+        """Per-edge constants of the measurements that ``error``/``linearize`` would otherwise
+        recompute at every call (the trigonometry of a relative pose, say), or ``None``.
+
+        Computed once when the group is finalised (measurements do not change after an edge
+        is added) and handed to the edge type as ``ctx.measured``. Optional: the type must
+        give the same result when ``ctx.measured`` is ``None``.
+
+        Args:
+            measurements: ``(m, *measurement_shape)`` measurements.
+
+        Returns:
+            ``(m, k)`` values, or ``None`` (the default: nothing to keep).
+        """
+        return None
 
     @classmethod
     def error(

@@ -180,6 +180,7 @@ class EdgeGroup:
         self.info_diagonal: np.ndarray | None = None  # (e,) when the shared matrix is diagonal
         self.kernel_index = np.zeros(0, dtype=np.int64)
         self.data: dict[str, np.ndarray] = {}
+        self.measured: np.ndarray | None = None  # the type's measurement_derived values
         self.last_chi2 = np.zeros(0)
         self.active_count = 0
         self._finalized_size = -1
@@ -269,6 +270,11 @@ class EdgeGroup:
             self.info_diagonal = np.diag(self.information).copy()
         if self._data:
             self.data = {key: np.concatenate([d[key] for d in self._data]) for key in self._data[0]}
+        self.measured = self.etype.measurement_derived(self.measurements) if self.size else None
+        if self.measured is not None and (self.measured.ndim != 2
+                                          or len(self.measured) != self.size):
+            raise GraphError(f"{self.etype.__name__}.measurement_derived returned shape "
+                             f"{self.measured.shape}, expected ({self.size}, k)")
         # Keep one chunk so further appends concatenate onto the consolidated arrays.
         self._vids, self._meas, self._kern = [self.vertex_ids], [self.measurements], [
             self.kernel_index
@@ -280,7 +286,7 @@ class EdgeGroup:
 
     def context(self) -> EdgeContext:
         """A fresh :class:`EdgeContext` over all edges of the group."""
-        return EdgeContext(self.params, self.data)
+        return EdgeContext(self.params, self.data, measured=self.measured)
 
     def information_of(self, i: int) -> np.ndarray:
         """Information matrix of edge ``i``.

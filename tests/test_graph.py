@@ -50,3 +50,37 @@ def test_resolve_maps_ids_to_slots_in_any_order() -> None:
     for a in range(2):
         si, slots = positions[0][a]
         np.testing.assert_array_equal(stores[si].ids[slots], edges[:, a])
+
+
+def test_measurement_derived_values_reach_the_edges_and_are_checked() -> None:
+    """``measurement_derived`` runs once per finalised group; its rows reach ``ctx.measured``
+    (sliced with the edges), and a result of the wrong shape names the type."""
+    seen: list[np.ndarray] = []
+
+    class Tagged(EdgeSE2):
+        @classmethod
+        def measurement_derived(cls, measurements):
+            return measurements[:, :1] * 10.0
+
+        @classmethod
+        def error(cls, x, z, ctx):
+            seen.append(ctx.measured)
+            return super().error(x, z, ctx)
+
+    truth, init, edges, meas = pose_graph(6)
+    opt = SparseOptimizer("gn", "dense")
+    opt.add_vertices(VertexSE2, np.arange(6), init, fixed=np.arange(6) == 0)
+    opt.add_edges(Tagged, edges, meas)
+    opt.compute_active_errors()
+    np.testing.assert_array_equal(seen[-1], meas[:, :1] * 10.0)
+
+    class Broken(EdgeSE2):
+        @classmethod
+        def measurement_derived(cls, measurements):
+            return measurements[:2]
+
+    bad = SparseOptimizer("gn", "dense")
+    bad.add_vertices(VertexSE2, np.arange(6), init)
+    bad.add_edges(Broken, edges, meas)
+    with pytest.raises(GraphError, match=r"Broken.measurement_derived returned shape \(2, 3\)"):
+        bad.optimize(1)

@@ -82,6 +82,28 @@ def test_se2_jacobians_match_numeric() -> None:
     _assert_jacobians(EdgeSE2Prior, (xi,), z)
 
 
+def test_se2_cached_trigonometry_gives_the_same_linearisation() -> None:
+    """The optimizer hands EdgeSE2 the poses' cos/sin (``VertexSE2.derived``) and the
+    measurements' constants (``measurement_derived``); the result equals the uncached one
+    (whose Jacobians the test above checks against numeric ones)."""
+    rng = np.random.default_rng(4)
+    m = 200
+    xi, xj, z = _se2(rng, m), _se2(rng, m), _se2(rng, m)
+    p = rng.normal(0, 5, (m, 2))
+    ctx = EdgeContext(derived=(VertexSE2.derived(xi), VertexSE2.derived(xj)),
+                      measured=EdgeSE2.measurement_derived(z))
+    for etype, x, zz, c in ((EdgeSE2, (xi, xj), z, ctx),
+                            (EdgeSE2PointXY, (xi, p), p[::-1], EdgeContext(derived=ctx.derived))):
+        plain, cached = etype.linearize(x, zz, CTX), etype.linearize(x, zz, c)
+        np.testing.assert_allclose(cached.error, plain.error, rtol=0, atol=1e-12)
+        for a, b in zip(cached.jacobians, plain.jacobians, strict=True):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+        assert np.abs(plain.jacobians[0]).max() > 1.0  # real numbers, not zeros
+    # A slice of the context (chunked linearisation) keeps the rows of the measured values.
+    sub = ctx.subset(slice(10, 20))
+    np.testing.assert_array_equal(sub.measured, ctx.measured[10:20])
+
+
 def test_se3_jacobians_match_numeric() -> None:
     rng = np.random.default_rng(2)
     m = 300

@@ -10,8 +10,11 @@ Conventions (g2o's, so that chi2 values agree with g2o's):
 * Errors: ``EdgeSE2`` ``t2v(Z⁻¹·(Xi⁻¹·Xj))``, ``EdgeSE2PointXY`` ``Xi⁻¹·p − z`` (the point in
   the pose's frame), ``EdgeSE2Prior`` ``t2v(Z⁻¹·X)``; the angle of an error is wrapped.
 
-Every function works on all edges of a type at once on columns of ``(m, 3)`` arrays (one
-``cos``/``sin`` pair per edge and element-wise arithmetic: no per-edge 2x2 matrix products).
+Every function works on all edges of a type at once on columns of ``(m, 3)`` arrays
+(element-wise arithmetic: no per-edge 2x2 matrix products). In the optimizer the trigonometry
+is not per edge: the poses' ``cos θ``/``sin θ`` come once per state from
+:meth:`VertexSE2.derived`, a relative pose's from ``EdgeSE2.measurement_derived`` once, and
+``cos(θ_i + θ_z)`` by the angle sum; called alone, the edges compute them.
 """
 
 from __future__ import annotations
@@ -69,6 +72,17 @@ class VertexSE2(BaseVertex):
     dimension: ClassVar[int] = 3
     estimate_shape: ClassVar[tuple[int, ...]] = (3,)
 
+    @classmethod
+    def derived(cls, estimates: np.ndarray) -> np.ndarray:
+        """``[cos θ, sin θ]`` per pose ``(n, 2)``: the edges read them per edge instead of
+        taking a cosine and a sine per edge (a pose has about 13 edges in w10000).
+
+        Args:
+            estimates: ``(n, 3)`` poses.
+        """
+        theta = estimates[:, 2]
+        return np.column_stack([np.cos(theta), np.sin(theta)])
+
     @staticmethod
     def oplus(estimates: np.ndarray, deltas: np.ndarray) -> np.ndarray:
         """Additive update with the angle wrapped.
@@ -102,15 +116,25 @@ class VertexPointXY(VertexVector):
 
 
 def _pose_frame(
-    xi: np.ndarray, p: np.ndarray, extra_angle: np.ndarray | None = None
+    xi: np.ndarray, p: np.ndarray, extra_angle: np.ndarray | None = None,
+    cs: tuple[np.ndarray, np.ndarray] | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``R(−a)(p − t_i)`` with ``a = θ_i (+ extra_angle)``, column-wise.
+
+    Args:
+        xi: ``(m, 3)`` poses.
+        p: ``(m, 2+)`` points (their first two columns).
+        extra_angle: Added to ``θ_i``.
+        cs: ``(cos a, sin a)`` when the caller has them (then ``extra_angle`` is not read).
 
     Returns:
         ``(u, v, c, s)``: the rotated difference, ``cos a`` and ``sin a``, each ``(m,)``.
     """
-    a = xi[:, 2] if extra_angle is None else xi[:, 2] + extra_angle
-    c, s = np.cos(a), np.sin(a)
+    if cs is not None:
+        c, s = cs
+    else:
+        a = xi[:, 2] if extra_angle is None else xi[:, 2] + extra_angle
+        c, s = np.cos(a), np.sin(a)
     dx = p[:, 0] - xi[:, 0]
     dy = p[:, 1] - xi[:, 1]
     return c * dx + s * dy, c * dy - s * dx, c, s
@@ -196,14 +220,35 @@ class EdgeSE2(EdgeFromParts):
 
     dimension: ClassVar[int] = 3
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE2, VertexSE2)
+    uses_derived: ClassVar[bool] = True
+
+    @classmethod
+    def measurement_derived(cls, measurements: np.ndarray) -> np.ndarray:
+        """``[cos θ_z, sin θ_z, R(−θ_z) t_z]`` per edge ``(m, 4)``: the measurement's part of
+        every error, computed once (w10000: 1.3 ms of each 5.6 ms linearisation).
+
+        Args:
+            measurements: ``(m, 3)`` relative poses.
+        """
+        zx, zy = _rotate_back(measurements)
+        return np.column_stack([np.cos(measurements[:, 2]), np.sin(measurements[:, 2]), zx, zy])
 
     @classmethod
     def _parts(
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
         xi, xj = x
-        u, v, c, s = _pose_frame(xi, xj, z[:, 2])
-        zx, zy = _rotate_back(z)
+        if ctx.measured is not None and ctx.derived is not None and ctx.derived[0] is not None:
+            # cos/sin of θ_i + θ_z by the angle sum, from the pose's and the measurement's
+            ci, si = ctx.derived[0][:, 0], ctx.derived[0][:, 1]
+            m = ctx.measured
+            cz, sz = m[:, 0], m[:, 1]
+            cs = (ci * cz - si * sz, si * cz + ci * sz)
+            u, v, c, s = _pose_frame(xi, xj, cs=cs)
+            zx, zy = m[:, 2], m[:, 3]
+        else:
+            u, v, c, s = _pose_frame(xi, xj, z[:, 2])
+            zx, zy = _rotate_back(z)
         e = np.empty((len(z), 3))
         np.subtract(u, zx, out=e[:, 0])
         np.subtract(v, zy, out=e[:, 1])
@@ -219,7 +264,8 @@ class EdgeSE2(EdgeFromParts):
         Args:
             x: ``(Xi (m, 3), Xj (m, 3))`` poses.
             measurement: ``(m, 3)`` relative poses.
-            ctx: Unused.
+            ctx: ``derived`` (the poses' cos/sin) and ``measured`` when the optimizer has them;
+                the result is the same without.
 
         Returns:
             ``(e (m, 3), (J_i (m, 3, 3), J_j (m, 3, 3)))``.
@@ -247,12 +293,14 @@ class EdgeSE2PointXY(EdgeFromParts):
 
     dimension: ClassVar[int] = 2
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE2, VertexPointXY)
+    uses_derived: ClassVar[bool] = True
 
     @classmethod
     def _parts(
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
-        u, v, c, s = _pose_frame(x[0], x[1])
+        d = ctx.derived[0] if ctx.derived is not None else None
+        u, v, c, s = _pose_frame(x[0], x[1], cs=None if d is None else (d[:, 0], d[:, 1]))
         e = np.empty((len(z), 2))
         np.subtract(u, z[:, 0], out=e[:, 0])
         np.subtract(v, z[:, 1], out=e[:, 1])
@@ -267,7 +315,8 @@ class EdgeSE2PointXY(EdgeFromParts):
         Args:
             x: ``(poses (m, 3), points (m, 2))``.
             measurement: ``(m, 2)`` points in the pose frames.
-            ctx: Unused.
+            ctx: ``derived`` (the poses' cos/sin) when the optimizer has it; the result is the
+                same without.
 
         Returns:
             ``(e (m, 2), (J_pose (m, 2, 3), J_point (m, 2, 2)))``.
