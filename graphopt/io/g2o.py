@@ -44,6 +44,7 @@ import numpy as np
 from graphopt.io.atomic import atomic_path
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
 from graphopt.io.text import WHITESPACE, FileFormatError, read_bytes, token_layout
+from graphopt.linear.indexing import concat_ranges
 
 __all__ = ["GraphFormatError", "read_graph", "write_g2o"]
 
@@ -182,7 +183,7 @@ def _scan(path: Path, data: bytes, skip_unknown: bool
     line_end = np.append(newlines, len(a))[np.searchsorted(newlines, heads)]
     size = np.where(keep, width, line_end - heads)
     blanked = a.copy()
-    blanked[np.repeat(heads - np.cumsum(size) + size, size) + np.arange(size.sum())] = 32
+    blanked[concat_ranges(heads, size)] = 32
     numeric = keep[line_of] & ~first
     values = _numbers(path, blanked.tobytes(), numbers[line_of[numeric]])
     value_code = code[line_of[numeric]]
