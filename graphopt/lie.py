@@ -51,17 +51,20 @@ def hat(w: np.ndarray) -> np.ndarray:
         ``(n, 3, 3)`` matrices with ``hat(w) @ v == cross(w, v)``.
     """
     n = len(w)
-    out = np.zeros((n, 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -w[:, 2], w[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = w[:, 2], -w[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -w[:, 1], w[:, 0]
-    return out
+    out = np.zeros((n, 9))  # row-major entries: three fancy-index writes, not six
+    out[:, [7, 2, 3]] = w
+    out[:, [5, 6, 1]] = -w
+    return out.reshape(n, 3, 3)
 
 
 def _coefficients(theta2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``a = sinθ/θ``, ``b = (1−cosθ)/θ²``, ``c = (θ−sinθ)/θ³``, by series below
     :data:`SMALL_ANGLE2`."""
     small = theta2 < SMALL_ANGLE2
+    if not small.any():  # the closed forms alone (the same values, fewer calls)
+        theta = np.sqrt(theta2)
+        s = np.sin(theta)
+        return s / theta, (1.0 - np.cos(theta)) / theta2, (theta - s) / (theta2 * theta)
     t2 = np.where(small, 1.0, theta2)
     theta = np.sqrt(t2)
     s, c = np.sin(theta), np.cos(theta)
@@ -162,9 +165,15 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
         ``(n, 4, 4)`` homogeneous transforms ``[[exp(ω), J_l(ω) υ], [0, 1]]``.
     """
     w, u = xi[:, :3], xi[:, 3:]
+    # so3_exp and so3_left_jacobian's expressions, sharing θ², the coefficients and [ω]×.
+    a, b, c = _coefficients(np.einsum("ni,ni->n", w, w))
+    W = hat(w)
+    WW = W @ W
     T = np.zeros((len(xi), 4, 4))
-    T[:, :3, :3] = so3_exp(w)
-    T[:, :3, 3] = np.einsum("nij,nj->ni", so3_left_jacobian(w), u)
+    eye = np.eye(3)
+    T[:, :3, :3] = eye + a[:, None, None] * W + b[:, None, None] * WW
+    V = eye + b[:, None, None] * W + c[:, None, None] * WW
+    T[:, :3, 3] = np.einsum("nij,nj->ni", V, u)
     T[:, 3, 3] = 1.0
     return T
 
