@@ -107,7 +107,9 @@ class Linearizer:
         _, a, transposed = hit
         if a is None:
             return None
-        return np.take(a, slots, axis=1).T if transposed else a[slots]
+        # np.take, not a[slots]: 4x faster on (n, 4, 4) poses (a 33 against 8 µs gather of
+        # 4,807 edges' poses).
+        return np.take(a, slots, axis=1).T if transposed else np.take(a, slots, axis=0)
 
     def context(self, gi: int) -> EdgeContext:
         """Group ``gi``'s context, with the vertices' derived values if its type uses them.
@@ -135,6 +137,9 @@ class Linearizer:
                 Jacobians would otherwise stay alive through the solves, next to the normal
                 equations formed from them.
         """
+        g = self.groups[gi]
+        if not self._lin_cache and not g.etype.linearize_on_trial:  # nothing to reuse or keep
+            return self._run(gi, "linearize")
         key = self._state()
         hit = self._lin_cache.pop(gi, None) if consume else self._lin_cache.get(gi)
         if hit is not None and hit[0] == key:
@@ -142,7 +147,6 @@ class Linearizer:
         # A stale trial's (a rejected step's) Jacobians: not alive next to the new ones.
         self._lin_cache.pop(gi, None)
         del hit
-        g = self.groups[gi]
         out = self._run(gi, "linearize")
         if g.etype.linearize_on_trial and not consume:  # the assembly's is not kept
             self._lin_cache[gi] = (key, out)
@@ -275,11 +279,14 @@ class Linearizer:
         """Per-edge ρ(s) and the weight ρ'(s) (clipped at 0)."""
         if not g.kernels:
             return s, np.ones_like(s)
+        if len(g.kernels) == 1:
+            ki = g.kernel_index
+            # One kernel for every edge: a broadcast index (O(1) to recognise) or all zeros.
+            if (len(ki) and ki.strides == (0,) and ki[0] == 0) or not np.any(ki):
+                r0, r1, _ = g.kernels[0].robustify(s)
+                return r0, np.maximum(r1, 0.0)
         rho = s.copy()
         w = np.ones_like(s)
-        if len(g.kernels) == 1 and np.all(g.kernel_index == 0):
-            r0, r1, _ = g.kernels[0].robustify(s)
-            return r0, np.maximum(r1, 0.0)
         for ki, kern in enumerate(g.kernels):
             sel = g.kernel_index == ki
             if sel.any():
