@@ -113,7 +113,20 @@ _NO_TESTS = StoppingConfig.iterations_only()
 
 
 def _dot(a: Step, b: Step) -> float:
+    if not a[1] and not b[1]:  # nothing marginalised: the u parts alone
+        return float(a[0] @ b[0])
     return float(a[0] @ b[0] + sum(float(np.vdot(x, y)) for x, y in zip(a[1], b[1], strict=True)))
+
+
+def _predicted_decrease(step: Step, damp: Step, lam: float, b: Step) -> float:
+    """``Δᵀ(λDΔ + b)``, the decrease of chi2 the damped model predicts (as ``_dot`` of
+    ``_axpy``, the same operations in the same order, without the intermediate steps)."""
+    du = step[0]
+    u = du @ (lam * (damp[0] * du) + b[0])
+    if not step[1]:
+        return float(u)
+    return float(u + sum(float(np.vdot(x, lam * (d * x) + y))
+                         for x, d, y in zip(step[1], damp[1], b[1], strict=True)))
 
 
 def _axpy(alpha: float, a: Step, beta: float, b: Step) -> Step:
@@ -340,8 +353,7 @@ class LevenbergMarquardt(Algorithm):
                                      stop=StopReason.PARAMETER_TOLERANCE)
             new_chi = self._trial(p, step)
             # Predicted decrease of chi2 = Δ'(λDΔ + b) (g2o adds 1e-3 against a zero divisor).
-            dstep = (damp[0] * step[0], [d * x for d, x in zip(damp[1], step[1], strict=True)])
-            scale = _dot(step, _axpy(self.lam, dstep, 1.0, b)) + 1e-3
+            scale = _predicted_decrease(step, damp, self.lam, b) + 1e-3
             rho = (chi - new_chi) / scale
             stop = StopReason.FUNCTION_TOLERANCE if tests.function(chi, new_chi) else None
             if rho > 0 and math.isfinite(new_chi):

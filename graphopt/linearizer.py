@@ -9,6 +9,7 @@ the linear system's business (:mod:`graphopt.linear`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +48,8 @@ class WeightedLinearization:
 
     Args:
         jacobians: Per group, per vertex position, ``J`` ``(m, rows, d)`` (C-contiguous).
-        weighted: Per group, per position, ``ρ'ΩJ`` ``(m, rows, d)`` (C-contiguous).
+        weighted: Per group, per position, ``ρ'ΩJ`` ``(m, rows, d)`` (C-contiguous); ``J``
+            itself at a position whose vertices are all fixed (no block uses it).
         weighted_errors: Per group ``ρ'Ωe`` ``(m, rows)`` (``rows``: the error dimension, or
             ``linearization_rows`` for a reduced linearisation).
     """
@@ -77,6 +79,14 @@ class Linearizer:
         # whether it is stored transposed).
         self._state_cache: dict[tuple[int, str], tuple[int, np.ndarray | None, bool]] = {}
         self.last: Evaluation | None = None
+        # (group, method, edges) whose output passed _checked as it was (no conversion): a type
+        # returns the same kinds and shapes at every call, so later calls are trusted.
+        self._trusted: set[tuple[int, str, int]] = set()
+        # Per group, per position: whether any of its vertices is free. A Jacobian of fixed
+        # vertices only reaches no block, so it is not weighted (fixed flags are structure: a
+        # change builds a new problem).
+        self._live = [tuple(bool(len(slots)) and not stores[si].fixed[slots].all()
+                            for si, slots in pos) for pos in positions]
 
     # --- gathering ---------------------------------------------------------------------------
 
@@ -216,7 +226,13 @@ class Linearizer:
             out = getattr(g.etype, method)(x, meas, ctx)
         except GraphError as exc:
             raise GraphError(f"{exc} ({self._where(g)})") from exc
-        return self._checked(g, out, method, len(meas))
+        key = (id(g), method, len(meas))
+        if type(out) is Linearization and key in self._trusted:
+            return out
+        checked = self._checked(g, out, method, len(meas))
+        if checked is out:
+            self._trusted.add(key)
+        return checked
 
     @staticmethod
     def _where(g: EdgeGroup) -> str:
@@ -275,22 +291,25 @@ class Linearizer:
     # --- weighting ---------------------------------------------------------------------------
 
     @staticmethod
-    def _robustify(g: EdgeGroup, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-edge ρ(s) and the weight ρ'(s) (clipped at 0)."""
+    def _robustify(g: EdgeGroup, s: np.ndarray, weights: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Per-edge ρ(s) and the weight ρ'(s) (clipped at 0; ``None`` unless ``weights``)."""
         if not g.kernels:
-            return s, np.ones_like(s)
+            return s, np.ones_like(s) if weights else None
         if len(g.kernels) == 1:
             ki = g.kernel_index
             # One kernel for every edge: a broadcast index (O(1) to recognise) or all zeros.
             if (len(ki) and ki.strides == (0,) and ki[0] == 0) or not np.any(ki):
-                r0, r1, _ = g.kernels[0].robustify(s)
+                if not weights:
+                    return g.kernels[0].cost(s), None
+                r0, r1 = g.kernels[0].cost_and_weight(s)
                 return r0, np.maximum(r1, 0.0)
         rho = s.copy()
         w = np.ones_like(s)
         for ki, kern in enumerate(g.kernels):
             sel = g.kernel_index == ki
             if sel.any():
-                r0, r1, _ = kern.robustify(s[sel])
+                r0, r1 = kern.cost_and_weight(s[sel])
                 rho[sel], w[sel] = r0, np.maximum(r1, 0.0)
         return rho, w
 
@@ -325,16 +344,19 @@ class Linearizer:
         return e_lin
 
     def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
-                active: np.ndarray | None, totals: list[float]) -> None:
-        """Keep a group's per-edge chi2 and active count; add its sums to ``totals``."""
+                active: np.ndarray | None, totals: list[float], chi2: float | None = None
+                ) -> None:
+        """Keep a group's per-edge chi2 and active count; add its sums to ``totals``
+        (``chi2``: ``s.sum()`` if already known)."""
         g.last_chi2 = s
         g.active_count = g.size if active is None else int(np.count_nonzero(active))
-        totals[0] += float(s.sum())
-        totals[1] += float(rho.sum())
+        chi2 = float(s.sum()) if chi2 is None else chi2
+        totals[0] += chi2
+        totals[1] += chi2 if rho is s else float(rho.sum())
         totals[2] += g.active_count
 
     def _finish(self, totals: list[float]) -> Evaluation:
-        rchi2 = totals[1] if np.isfinite(totals[1]) else float("inf")
+        rchi2 = totals[1] if math.isfinite(totals[1]) else float("inf")
         self.last = Evaluation(totals[0], rchi2, int(totals[2]))
         return self.last
 
@@ -361,7 +383,7 @@ class Linearizer:
             else:
                 out = self._run(gi, "evaluate")
             _, s = self._sq(g, out.error)
-            rho, _ = self._robustify(g, s)
+            rho, _ = self._robustify(g, s, weights=False)
             self._record(g, s, rho, out.active, totals)
         return self._finish(totals)
 
@@ -384,20 +406,25 @@ class Linearizer:
             if g.etype.linearization_rows is not None:
                 oe = self._reduced(g, out)
             rho, w = self._robustify(g, s)
-            if not np.isfinite(s.sum()):  # one sum is cheaper than isfinite().all()
+            assert w is not None
+            chi2 = float(s.sum())
+            if not math.isfinite(chi2):  # one sum is cheaper than isfinite().all()
                 self._raise_non_finite(g, e, J)
-            self._record(g, s, rho, out.active, totals)
+            self._record(g, s, rho, out.active, totals, chi2)
             J = tuple(np.ascontiguousarray(j) for j in J)
             weighted = bool(g.kernels)
+            live = self._live[gi]
             if g.info_is_identity:
                 wj = J
             elif g.info_diagonal is not None:  # a row scaling: 3x faster than the products
-                wj = tuple(j * g.info_diagonal[None, :, None] for j in J)
+                wj = tuple(j * g.info_diagonal[None, :, None] if a else j
+                           for j, a in zip(J, live, strict=True))
             else:
                 assert g.information is not None
-                wj = tuple(np.matmul(g.information, j) for j in J)
+                wj = tuple(np.matmul(g.information, j) if a else j
+                           for j, a in zip(J, live, strict=True))
             if weighted:
-                wj = tuple(j * w[:, None, None] for j in wj)
+                wj = tuple(j * w[:, None, None] if a else j for j, a in zip(wj, live, strict=True))
             jac.append(J)
             wjac.append(wj)
             wes.append(oe * w[:, None] if weighted else oe)

@@ -46,6 +46,23 @@ class RobustKernel:
         """
         raise NotImplementedError
 
+    def cost(self, s: np.ndarray) -> np.ndarray:
+        """``ρ(s)`` alone (what a trial step's chi2 needs); kernels may compute it cheaper.
+
+        Args:
+            s: Array of ``e'Ωe`` values (non-negative).
+        """
+        return self.robustify(s)[0]
+
+    def cost_and_weight(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(ρ(s), ρ'(s))`` (what a linearisation needs); kernels may compute them cheaper.
+
+        Args:
+            s: Array of ``e'Ωe`` values (non-negative).
+        """
+        r0, r1, _ = self.robustify(s)
+        return r0, r1
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(delta={self.delta:g})"
 
@@ -72,6 +89,27 @@ class RobustKernelHuber(RobustKernel):
         rho1 = np.where(inside, 1.0, d / r)
         rho2 = np.where(inside, 0.0, -0.5 * d / (r * r * r))
         return rho0, rho1, rho2
+
+    def cost(self, s: np.ndarray) -> np.ndarray:
+        """See :meth:`RobustKernel.cost` (the same values as :meth:`robustify`'s ρ).
+
+        Args:
+            s: Squared errors.
+        """
+        d = self.delta
+        inside = s <= d * d
+        return np.where(inside, s, 2.0 * d * np.sqrt(np.where(inside, 1.0, s)) - d * d)
+
+    def cost_and_weight(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """See :meth:`RobustKernel.cost_and_weight` (:meth:`robustify`'s values).
+
+        Args:
+            s: Squared errors.
+        """
+        d = self.delta
+        inside = s <= d * d
+        r = np.sqrt(np.where(inside, 1.0, s))
+        return np.where(inside, s, 2.0 * d * r - d * d), np.where(inside, 1.0, d / r)
 
 
 class RobustKernelPseudoHuber(RobustKernel):
