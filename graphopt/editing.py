@@ -13,6 +13,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from graphopt.edge import BaseEdge
+from graphopt.edge_set import EdgeSet
 from graphopt.errors import GraphError
 from graphopt.graph import Graph
 from graphopt.vertex import BaseVertex
@@ -66,3 +67,13 @@ class GraphEditing:
         """
         self.remove_vertices([vertex.id if isinstance(vertex, BaseVertex) else int(vertex)])
         return True
+
+    def edge_sets(self) -> list[EdgeSet]:
+        """One :class:`~graphopt.edge_set.EdgeSet` per edge group, over all its edges (for
+        graphs built by others, such as a file reader)."""
+        self.graph.flush()
+        out = []
+        for g in self.graph.groups.values():
+            g.finalize()
+            out.append(EdgeSet(self.graph, g, g.uids.copy()))
+        return out
