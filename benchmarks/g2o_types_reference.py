@@ -239,7 +239,15 @@ def slam2d(rng: np.random.Generator) -> list[dict[str, Any]]:
          ("VertexSE2", "VertexPointXY", "VertexSE2"), "vec", ()),
         ("EdgeSE2TwoPointsXY", [xi, p, q], rng.normal(size=(M, 4)), 4,
          ("VertexSE2", "VertexPointXY", "VertexPointXY"), "vec", ()),
+        ("EdgeSE2SensorCalib", [xi, xj, P[[0, 1, 0, 1, 0]]], z * 0.3, 3,
+         ("VertexSE2", "VertexSE2", "VertexSE2"), "se2", ()),
+        ("EdgeSE2OdomDifferentialCalib", [xi, xj, np.array([[1.0, 1.0, 0.5], [0.9, 1.1, 0.4],
+                                                            [1.05, 0.97, 0.6], [1.0, 1.0, 0.5],
+                                                            [0.8, 1.2, 0.3]])],
+         np.column_stack([rng.uniform(0.5, 1.5, (M, 2)), rng.uniform(0.1, 1.0, M)]), 3,
+         ("VertexSE2", "VertexSE2", "VertexOdomDifferentialParams"), "velocity", ()),
     ]
+    specs[-1][2][3, 1] = specs[-1][2][3, 0]  # one straight motion (v_l = v_r)
     for name, x, zz, e, vcls, mkind, pids in specs:
         params = ({"kind": "se2_offsets", "offsets": P.tolist()} if pids else None)
         c = Case(name, x, zz, _info(rng, M, e), params)
@@ -252,9 +260,28 @@ def slam2d(rng: np.random.Generator) -> list[dict[str, Any]]:
             v = [_vertex(g2o, opt, vc, 10 * i + k, se2(g2o, a[i]) if vc == "VertexSE2" else a[i])
                  for k, (vc, a) in enumerate(zip(vcls, c.x, strict=True))]
             zi = (se2(g2o, c.z[i]) if mkind == "se2" else
-                  float(c.z[i, 0]) if mkind == "float" else c.z[i])
+                  float(c.z[i, 0]) if mkind == "float" else
+                  g2o.VelocityMeasurement(*map(float, c.z[i])) if mkind == "velocity" else c.z[i])
             return _edge(g2o, opt, c.name, v, zi, c.info[i], pids)
         out.append(c.record(_g2o_chi2(c, build)))
+
+    k = 3
+    pts = [rng.normal(0, 3, (M, 2)) for _ in range(k)]
+    c = Case("EdgeSE2LotsOfXY", [xi, *pts], rng.normal(size=(M, 2 * k)), _info(rng, M, 2 * k))
+
+    def b_lots(g2o: Any, opt: Any, i: int) -> Any:
+        v = [_vertex(g2o, opt, "VertexSE2", 10 * i, se2(g2o, xi[i]))]
+        v += [_vertex(g2o, opt, "VertexPointXY", 10 * i + 1 + j, pts[j][i]) for j in range(k)]
+        e = g2o.EdgeSE2LotsOfXY()
+        e.set_dimension(2 * k)
+        e.resize(k + 1)
+        for j, vv in enumerate(v):
+            e.set_vertex(j, vv)
+        e.set_measurement(c.z[i])
+        e.set_information(c.info[i])
+        assert opt.add_edge(e)
+        return e
+    out.append(c.record(_g2o_chi2(c, b_lots)))
     return out
 
 
@@ -300,6 +327,21 @@ def sba(rng: np.random.Generator) -> list[dict[str, Any]]:
             return _edge(g2o, opt, c.name, v, zi, c.info[i])
         out.append(c.record(_g2o_chi2(c, build)))
     return out + _expmap(rng)
+
+
+def camera_updates(rng: np.random.Generator) -> dict[str, Any]:
+    """``SBACam::update`` (``VertexCam``'s ``oplus``): cameras, increments and g2o's
+    resulting ``[t, q]``."""
+    import g2opy as g2o
+
+    cams = _cams(rng, M)
+    deltas = rng.normal(0, 0.2, (M, 6))
+    result = []
+    for c, d in zip(cams, deltas, strict=True):
+        cam = g2o.SBACam(g2o.SE3Quat(quat_to_rot(c[None, 3:7])[0], np.ascontiguousarray(c[:3])))
+        cam.update(d)
+        result.append(cam.to_vector().tolist())
+    return {"cameras": cams.tolist(), "deltas": deltas.tolist(), "result": result}
 
 
 def _expmap(rng: np.random.Generator) -> list[dict[str, Any]]:
@@ -384,7 +426,8 @@ def main() -> None:
     rng = np.random.default_rng(23)
     cases = slam3d(rng) + slam2d(rng) + sba(rng) + icp(rng)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"g2opy": "2.3.0", "cases": cases}, indent=None) + "\n")
+    record = {"g2opy": "2.3.0", "cases": cases, "camera_updates": camera_updates(rng)}
+    out.write_text(json.dumps(record, indent=None) + "\n")
     for c in cases:
         print(f"{c['type']:28s} chi2 {', '.join(f'{v:.6g}' for v in c['chi2'])}")
 

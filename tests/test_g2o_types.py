@@ -27,10 +27,12 @@ from graphopt.types import (
     EdgeSBACam,
     EdgeSBAScale,
     EdgeSE2LotsOfXY,
+    EdgeSE2OdomDifferentialCalib,
     EdgeSE2Offset,
     EdgeSE2PointXYBearing,
     EdgeSE2PointXYCalib,
     EdgeSE2PointXYOffset,
+    EdgeSE2SensorCalib,
     EdgeSE2TwoPointsXY,
     EdgeSE2XYPrior,
     EdgeSE3LotsOfXYZ,
@@ -49,6 +51,7 @@ from graphopt.types import (
     SBACameraParameters,
     SCamParameters,
     VertexCam,
+    VertexIntrinsics,
     VertexPointXY,
     VertexPointXYZ,
     VertexSE2,
@@ -57,13 +60,16 @@ from graphopt.types import (
 from graphopt.types.icp import gicp_covariance, gicp_normal_frame
 
 REFERENCE = Path(__file__).parent / "data" / "g2o_types_reference.json"
-CASES = json.loads(REFERENCE.read_text())["cases"]
+RECORD = json.loads(REFERENCE.read_text())
+CASES = RECORD["cases"]
 TYPES: dict[str, Any] = {
     "EdgeSE3LotsOfXYZ": EdgeSE3LotsOfXYZ.of(3),
+    "EdgeSE2LotsOfXY": EdgeSE2LotsOfXY.of(3),
     **{t.__name__: t for t in (
         EdgePointXY, EdgePointXYZ, EdgeProjectP2MC, EdgeProjectP2SC, EdgeProjectPSI2UV,
         EdgeProjectXYZ2UVU, EdgeSBACam, EdgeSBAScale, EdgeSE2Offset, EdgeSE2PointXYBearing,
         EdgeSE2PointXYCalib, EdgeSE2PointXYOffset, EdgeSE2TwoPointsXY, EdgeSE2XYPrior,
+        EdgeSE2SensorCalib, EdgeSE2OdomDifferentialCalib,
         EdgeSE3Offset, EdgeSE3PointXYZDepth, EdgeSE3PointXYZDisparity, EdgeSE3XYZPrior,
         EdgeVVGicp, EdgeVVGicpPlaneToPlane, EdgeXYPrior, EdgeXyzVsc, EdgeXYZPrior)},
 }
@@ -110,6 +116,21 @@ def test_every_type_has_a_reference() -> None:
     assert sorted(TYPES) == sorted(c["type"] for c in CASES)
 
 
+def test_camera_update_is_sbacams() -> None:
+    """VertexCam.oplus against g2o's SBACam::update (translation in the world frame,
+    rotation right-multiplied); the intrinsics stay."""
+    rec = RECORD["camera_updates"]
+    cams, deltas, g2o = (np.array(rec[k]) for k in ("cameras", "deltas", "result"))
+    out = VertexCam.oplus(cams, deltas)
+    np.testing.assert_allclose(out[:, :3], g2o[:, :3], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(quat_to_rot(out[:, 3:7]), quat_to_rot(g2o[:, 3:7]), atol=1e-14)
+    np.testing.assert_array_equal(out[:, 7:], cams[:, 7:])
+    np.testing.assert_allclose(np.linalg.norm(out[:, 3:7], axis=1), 1.0, atol=1e-15)
+    v = VertexIntrinsics.oplus(np.array([[500.0, 510.0, 320.0, 240.0, 0.1]]),
+                               np.array([[1.0, 2.0, 3.0, 4.0]]))
+    np.testing.assert_array_equal(v, [[501.0, 512.0, 323.0, 244.0, 0.1]])
+
+
 # --- Jacobians ---------------------------------------------------------------------------
 
 
@@ -153,6 +174,7 @@ def test_slam2d_jacobians() -> None:
     _assert_jacobians(EdgeSE2PointXYCalib, (xi, p, xj), z[:, :2])
     _assert_jacobians(EdgeSE2TwoPointsXY, (xi, p, q), rng.normal(size=(m, 4)))
     _assert_jacobians(EdgeSE2LotsOfXY.of(3), (xi, p, q, p + 1), rng.normal(size=(m, 6)))
+    _assert_jacobians(EdgeSE2SensorCalib, (xi, xj, 0.3 * z), 0.1 * z)
 
 
 def _cams(rng: np.random.Generator, m: int) -> np.ndarray:

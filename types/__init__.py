@@ -25,6 +25,8 @@ module                 types
                        ``EdgeSE2PointXYBearing``, ``ParameterSE2Offset``, ``EdgeSE2Offset``,
                        ``EdgeSE2PointXYOffset``, ``EdgeSE2PointXYCalib``,
                        ``EdgeSE2TwoPointsXY``, ``EdgeSE2LotsOfXY`` (``.of(k)``)
+``sclam2d``            ``EdgeSE2SensorCalib``, ``VertexOdomDifferentialParams``,
+                       ``EdgeSE2OdomDifferentialCalib``
 ``sba_cam``            ``VertexCam`` (g2o's ``SBACam``), ``EdgeProjectP2MC``,
                        ``EdgeProjectP2SC``, ``EdgeSBACam``, ``EdgeSBAScale``,
                        ``VertexIntrinsics``
@@ -61,6 +63,8 @@ _WHERE = {
     "ParameterSE2Offset": "slam2d_sensors", "EdgeSE2Offset": "slam2d_sensors",
     "EdgeSE2PointXYOffset": "slam2d_sensors", "EdgeSE2PointXYCalib": "slam2d_sensors",
     "EdgeSE2TwoPointsXY": "slam2d_sensors", "EdgeSE2LotsOfXY": "slam2d_sensors",
+    "EdgeSE2SensorCalib": "sclam2d", "VertexOdomDifferentialParams": "sclam2d",
+    "EdgeSE2OdomDifferentialCalib": "sclam2d",
     "VertexCam": "sba_cam", "EdgeProjectP2MC": "sba_cam", "EdgeProjectP2SC": "sba_cam",
     "EdgeSBACam": "sba_cam", "EdgeSBAScale": "sba_cam", "VertexIntrinsics": "sba_cam",
     "SBACameraParameters": "sba_expmap", "EdgeProjectXYZ2UVU": "sba_expmap",
