@@ -357,7 +357,9 @@ def _expmap(rng: np.random.Generator) -> list[dict[str, Any]]:
     psi = np.column_stack([xa[:, :2] / xa[:, 2:], 1.0 / xa[:, 2]])
     se3q = lambda g2o, T: g2o.SE3Quat(np.ascontiguousarray(T[:3, :3]),  # noqa: E731
                                       np.ascontiguousarray(T[:3, 3]))
-    specs = [("EdgeProjectXYZ2UVU", [T, p], rng.normal(300, 50, (M, 3)), 3),
+    specs = [("EdgeProjectXYZ2UV", [T, p], rng.normal(300, 50, (M, 2)), 2),
+             ("EdgeSE3ProjectXYZ", [T, p], rng.normal(300, 50, (M, 2)), 2),
+             ("EdgeProjectXYZ2UVU", [T, p], rng.normal(300, 50, (M, 3)), 3),
              ("EdgeProjectPSI2UV", [A, T, psi], rng.normal(300, 50, (M, 2)), 2)]
     for name, x, z, e in specs:
         c = Case(name, x, z, _info(rng, M, e), params)
@@ -367,7 +369,13 @@ def _expmap(rng: np.random.Generator) -> list[dict[str, Any]]:
                 cam = g2o.CameraParameters(f, np.array(pp), b)
                 cam.set_id(0)
                 opt.add_parameter(cam)
-            if c.name == "EdgeProjectXYZ2UVU":
+            if c.name == "EdgeSE3ProjectXYZ":  # intrinsics as attributes, no parameter
+                v = [_vertex(g2o, opt, "VertexPointXYZ", 10 * i, c.x[1][i]),
+                     _vertex(g2o, opt, "VertexSE3Expmap", 10 * i + 1, se3q(g2o, c.x[0][i]))]
+                e = _edge(g2o, opt, c.name, v, c.z[i], c.info[i])
+                e.fx, e.fy, e.cx, e.cy = f, f, pp[0], pp[1]
+                return e
+            if c.name != "EdgeProjectPSI2UV":
                 v = [_vertex(g2o, opt, "VertexPointXYZ", 10 * i, c.x[1][i]),
                      _vertex(g2o, opt, "VertexSE3Expmap", 10 * i + 1, se3q(g2o, c.x[0][i]))]
             else:  # g2o's order: (ψ, observing, anchor)

@@ -23,6 +23,7 @@ from graphopt.types import (
     EdgeProjectP2MC,
     EdgeProjectP2SC,
     EdgeProjectPSI2UV,
+    EdgeProjectXYZ2UV,
     EdgeProjectXYZ2UVU,
     EdgeSBACam,
     EdgeSBAScale,
@@ -39,6 +40,7 @@ from graphopt.types import (
     EdgeSE3Offset,
     EdgeSE3PointXYZDepth,
     EdgeSE3PointXYZDisparity,
+    EdgeSE3ProjectXYZ,
     EdgeSE3XYZPrior,
     EdgeVVGicp,
     EdgeVVGicpPlaneToPlane,
@@ -71,7 +73,9 @@ TYPES: dict[str, Any] = {
         EdgeSE2PointXYCalib, EdgeSE2PointXYOffset, EdgeSE2TwoPointsXY, EdgeSE2XYPrior,
         EdgeSE2SensorCalib, EdgeSE2OdomDifferentialCalib,
         EdgeSE3Offset, EdgeSE3PointXYZDepth, EdgeSE3PointXYZDisparity, EdgeSE3XYZPrior,
-        EdgeVVGicp, EdgeVVGicpPlaneToPlane, EdgeXYPrior, EdgeXyzVsc, EdgeXYZPrior)},
+        EdgeVVGicp, EdgeVVGicpPlaneToPlane, EdgeXYPrior, EdgeXyzVsc, EdgeXYZPrior,
+        # graphopt's own, recorded for the API layer: g2o's numbers through SBACameraParameters
+        EdgeProjectXYZ2UV, EdgeSE3ProjectXYZ)},
 }
 
 
