@@ -7,7 +7,9 @@ with the official wheel's objects (g2opy 2.3.0, ``pip install g2opy==2.3.0``; no
 dependency), ``initialize_optimization``, ``compute_active_errors``, then each edge's
 ``chi2()``. The inputs are written in graphopt's layouts next to g2o's numbers. The depth and
 disparity edges go through a ``.g2o`` file (``ParameterCamera`` cannot be configured from
-Python in the wheel).
+Python in the wheel); ``SBACam``s are built from ``SE3Quat(R, t)`` (the wheel's
+``Quaternion`` constructors fail). Also recorded: graphopt's existing ``EdgeProjectXYZ2UV`` and
+``EdgeSE3ProjectXYZ`` on g2o's numbers, and ``SBACam::update`` (``VertexCam``'s ``oplus``).
 
 Usage::
 
