@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from graphopt.activity import only_active
 from graphopt.edge import EdgeContext, Linearization
 from graphopt.errors import GraphError
 from graphopt.storage import EdgeGroup, VertexStore
@@ -99,6 +100,7 @@ class Linearizer:
         # change builds a new problem).
         self._live = [tuple(bool(len(slots)) and not stores[si].fixed[slots].all()
                             for si, slots in pos) for pos in positions]
+        self.last_state: tuple[tuple[int, ...], tuple[int, ...]] | None = None
 
     # --- gathering ---------------------------------------------------------------------------
 
@@ -369,7 +371,12 @@ class Linearizer:
     def _finish(self, totals: list[float]) -> Evaluation:
         rchi2 = totals[1] if math.isfinite(totals[1]) else float("inf")
         self.last = Evaluation(totals[0], rchi2, int(totals[2]))
+        self.last_state = self.state_key()
         return self.last
+
+    def state_key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """What an evaluation depends on besides the structure: estimates, levels, kernels."""
+        return self._state(), tuple(g.activity_version for g in self.groups)
 
     # --- the two entry points ----------------------------------------------------------------
 
@@ -394,6 +401,8 @@ class Linearizer:
                 out = self._linearization(gi)
             else:
                 out = self._run(gi, "evaluate")
+            if g.active_edges is not None:  # edges of other levels: zero rows
+                out = only_active(out, g.active_edges)
             _, s = self._sq(g, out.error)
             rho, _ = self._robustify(g, s, weights=False)
             self._record(g, s, rho, out.active, totals)
@@ -413,6 +422,8 @@ class Linearizer:
         totals = [0.0, 0.0, 0.0]
         for gi, g in enumerate(self.groups):
             out = self._linearization(gi, consume=True)
+            if g.active_edges is not None:  # edges of other levels: zero rows
+                out = only_active(out, g.active_edges)
             e, J = out.error, out.jacobians
             oe, s = self._sq(g, e)
             if g.etype.linearization_rows is not None:
