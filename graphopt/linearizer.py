@@ -101,6 +101,10 @@ class Linearizer:
         self._live = [tuple(bool(len(slots)) and not stores[si].fixed[slots].all()
                             for si, slots in pos) for pos in positions]
         self.last_state: tuple[tuple[int, ...], tuple[int, ...]] | None = None
+        # Per group, what a trial that linearised computed besides the linearisation — Ωe,
+        # e'Ωe, ρ, ρ' — keyed by (state, activity version): the next linearize reuses it.
+        self._weights: dict[int, tuple[object, Linearization, np.ndarray, np.ndarray,
+                                       np.ndarray, np.ndarray | None]] = {}
 
     # --- gathering ---------------------------------------------------------------------------
 
@@ -152,7 +156,8 @@ class Linearizer:
         """Versions of every store's estimates: the key of cached linearisations."""
         return tuple(st.version for st in self.stores)
 
-    def _linearization(self, gi: int, consume: bool = False) -> Linearization:
+    def _linearization(self, gi: int, consume: bool = False,
+                       key: tuple[int, ...] | None = None) -> Linearization:
         """Group ``gi``'s linearisation, reusing a trial's if the state is the same.
 
         Args:
@@ -160,10 +165,11 @@ class Linearizer:
             consume: Drop the cached trial linearisation once used (the assembly's): its
                 Jacobians would otherwise stay alive through the solves, next to the normal
                 equations formed from them.
+            key: The current state (:meth:`_state`), if known.
         """
         if not self._lin_cache and not self.on_trial[gi]:  # nothing to reuse or keep
             return self._run(gi, "linearize")
-        key = self._state()
+        key = self._state() if key is None else key
         hit = self._lin_cache.pop(gi, None) if consume else self._lin_cache.get(gi)
         if hit is not None and hit[0] == key:
             return hit[1]
@@ -368,10 +374,10 @@ class Linearizer:
         totals[1] += chi2 if rho is s else float(rho.sum())
         totals[2] += g.active_count
 
-    def _finish(self, totals: list[float]) -> Evaluation:
+    def _finish(self, totals: list[float], state: tuple[int, ...]) -> Evaluation:
         rchi2 = totals[1] if math.isfinite(totals[1]) else float("inf")
         self.last = Evaluation(totals[0], rchi2, int(totals[2]))
-        self.last_state = self.state_key()
+        self.last_state = state, tuple(g.activity_version for g in self.groups)
         return self.last
 
     def state_key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -396,17 +402,20 @@ class Linearizer:
             GraphError: an error (or Jacobian) of the wrong shape, naming the type.
         """
         totals = [0.0, 0.0, 0.0]
+        self._weights.clear()
+        state = self._state()
         for gi, g in enumerate(self.groups):
-            if linearize_trial and self.on_trial[gi]:
-                out = self._linearization(gi)
-            else:
-                out = self._run(gi, "evaluate")
+            on_trial = linearize_trial and self.on_trial[gi]
+            out = (self._linearization(gi, key=state) if on_trial
+                   else self._run(gi, "evaluate"))
             if g.active_edges is not None:  # edges of other levels: zero rows
                 out = only_active(out, g.active_edges)
-            _, s = self._sq(g, out.error)
-            rho, _ = self._robustify(g, s, weights=False)
+            oe, s = self._sq(g, out.error)
+            rho, w = self._robustify(g, s, weights=on_trial)
+            if on_trial:  # the next linearize at this state takes all of it
+                self._weights[gi] = ((state, g.activity_version), out, oe, s, rho, w)
             self._record(g, s, rho, out.active, totals)
-        return self._finish(totals)
+        return self._finish(totals, state)
 
     def linearize(self) -> tuple[WeightedLinearization, Evaluation]:
         """Errors, Jacobians and robust weights of every group at the current state.
@@ -420,15 +429,23 @@ class Linearizer:
         """
         jac, wjac, wes = [], [], []
         totals = [0.0, 0.0, 0.0]
+        state = self._state()
         for gi, g in enumerate(self.groups):
-            out = self._linearization(gi, consume=True)
-            if g.active_edges is not None:  # edges of other levels: zero rows
-                out = only_active(out, g.active_edges)
+            hit = self._weights.pop(gi, None)
+            if hit is not None and hit[0] == (state, g.activity_version):
+                # The trial's linearisation at this state, weighted already.
+                self._lin_cache.pop(gi, None)
+                _, out, oe, s, rho, w = hit
+            else:
+                out = self._linearization(gi, consume=True, key=state)
+                if g.active_edges is not None:  # edges of other levels: zero rows
+                    out = only_active(out, g.active_edges)
+                oe, s = self._sq(g, out.error)
+                rho, w = self._robustify(g, s)
+            del hit
             e, J = out.error, out.jacobians
-            oe, s = self._sq(g, e)
             if g.etype.linearization_rows is not None:
                 oe = self._reduced(g, out)
-            rho, w = self._robustify(g, s)
             assert w is not None
             chi2 = float(s.sum())
             if not math.isfinite(chi2):  # one sum is cheaper than isfinite().all()
@@ -451,7 +468,7 @@ class Linearizer:
             jac.append(J)
             wjac.append(wj)
             wes.append(oe * w[:, None] if weighted else oe)
-        return WeightedLinearization(jac, wjac, wes), self._finish(totals)
+        return WeightedLinearization(jac, wjac, wes), self._finish(totals, state)
 
     def raise_non_finite(self, lin: WeightedLinearization) -> None:
         """Raise naming the first edge with a non-finite error or Jacobian.

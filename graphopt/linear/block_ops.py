@@ -126,13 +126,15 @@ class _CscContraction:
     """A constant-structure CSC operator ``M`` (rows ``(t, i)``, ``shape[1]`` rows of ``B``) whose
     values come from ``A``: ``out[t] = Σ A-blocksᵀ · B-blocks`` is ``M @ B``, the scatter-add
     done by SciPy's C loop. Subclasses set ``indices``, ``indptr``, ``shape``, ``n_targets``,
-    ``d1`` and say how ``A`` becomes the data array."""
+    ``d1`` and say how ``A`` becomes the data array; ``single`` when every block of ``A`` and
+    ``B``, in order, sums into one target (then ``AᵀB`` is one matrix product)."""
 
     indices: np.ndarray
     indptr: np.ndarray
     shape: tuple[int, int]
     n_targets: int
     d1: int
+    single: bool = False
 
     def _values(self, A: np.ndarray) -> np.ndarray:
         raise NotImplementedError
@@ -170,6 +172,12 @@ class _CscContraction:
                 when ``None``.
         """
         d2 = B.shape[-1]
+        if self.single:  # one target summing every block: one BLAS product, no scatter
+            res = np.matmul(A.reshape(-1, self.d1).T, B.reshape(-1, d2))
+            if out is None:
+                return res.reshape(1, self.d1, d2)
+            out[:self.d1 * d2] = res.reshape(-1)
+            return out[:self.d1 * d2].reshape(1, self.d1, d2)
         if self.indptr.dtype != self.indices.dtype:  # the kernel takes one index type
             res = self.apply(self.matrix(A), B)
             if out is not None:
@@ -292,6 +300,8 @@ class EdgeContraction(_CscContraction):
             np.int32)
         self.indices = np.broadcast_to(rows, (len(sel), r, d1)).ravel()
         self.shape = ((n_targets + self.scratch) * d1, m * r)
+        # A motion-only BA's pose block: all edges into one target.
+        self.single = self.all and n_targets == 1
 
     def _values(self, A: np.ndarray) -> np.ndarray:
         return A.reshape(-1) if self.all or self.scratch else A[self.sel].reshape(-1)
