@@ -11,11 +11,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
 from graphopt.errors import NotPositiveDefiniteError, SingularSystemError
 from graphopt.problem import Problem, Step
 from graphopt.result import IterationInfo, StopReason
+from graphopt.step_ops import axpy as _axpy
+from graphopt.step_ops import dot as _dot
+from graphopt.step_ops import predicted_decrease as _predicted_decrease
 from graphopt.stopping import StoppingConfig
 
 
@@ -110,29 +111,6 @@ def _never() -> bool:
 
 #: No stopping test (``iterate`` called without a config).
 _NO_TESTS = StoppingConfig.iterations_only()
-
-
-def _dot(a: Step, b: Step) -> float:
-    if not a[1] and not b[1]:  # nothing marginalised: the u parts alone
-        return float(a[0] @ b[0])
-    return float(a[0] @ b[0] + sum(float(np.vdot(x, y)) for x, y in zip(a[1], b[1], strict=True)))
-
-
-def _predicted_decrease(step: Step, damp: Step, lam: float, b: Step) -> float:
-    """``Δᵀ(λDΔ + b)``, the decrease of chi2 the damped model predicts (as ``_dot`` of
-    ``_axpy``, the same operations in the same order, without the intermediate steps)."""
-    du = step[0]
-    u = du @ (lam * (damp[0] * du) + b[0])
-    if not step[1]:
-        return float(u)
-    return float(u + sum(float(np.vdot(x, lam * (d * x) + y))
-                         for x, d, y in zip(step[1], damp[1], b[1], strict=True)))
-
-
-def _axpy(alpha: float, a: Step, beta: float, b: Step) -> Step:
-    return alpha * a[0] + beta * b[0], [
-        alpha * x + beta * y for x, y in zip(a[1], b[1], strict=True)
-    ]
 
 
 class _Tests:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graphopt.activity import IdleAnchors
+from graphopt.allocator import tune as tune_allocator
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linearizer import Evaluation, Linearizer, Positions
@@ -97,6 +98,7 @@ class Problem:
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
                  positions: Positions, solver: LinearSolver,
                  schur: SchurConfig | None = None) -> None:
+        tune_allocator()  # no page faults for the arrays every iteration allocates again
         self.stores = stores
         self.linearizer = Linearizer(stores, groups, positions)
         self.system = LinearSystem(stores, groups, positions, schur,
