@@ -319,10 +319,11 @@ class Linearizer:
             ki = g.kernel_index
             # One kernel for every edge: a broadcast index (O(1) to recognise) or all zeros.
             if (len(ki) and ki.strides == (0,) and ki[0] == 0) or not np.any(ki):
+                kern = g.kernels[0]
                 if not weights:
-                    return g.kernels[0].cost(s), None
-                r0, r1 = g.kernels[0].cost_and_weight(s)
-                return r0, np.maximum(r1, 0.0)
+                    return kern.cost(s), None
+                r0, r1 = kern.cost_and_weight(s)
+                return r0, r1 if kern.nonnegative_weight else np.maximum(r1, 0.0)
         rho = s.copy()
         w = np.ones_like(s)
         for ki, kern in enumerate(g.kernels):

@@ -21,6 +21,8 @@ class RobustKernel:
     """
 
     name = "none"
+    #: ``ρ' ≥ 0`` everywhere (the optimizer then need not clip the weights at 0).
+    nonnegative_weight = False
 
     def __init__(self, delta: float = 1.0) -> None:
         self.set_delta(delta)
@@ -75,6 +77,7 @@ class RobustKernelHuber(RobustKernel):
     """
 
     name = "huber"
+    nonnegative_weight = True
 
     def robustify(self, s: np.ndarray) -> Rho:
         """See :meth:`RobustKernel.robustify`.
@@ -97,19 +100,18 @@ class RobustKernelHuber(RobustKernel):
             s: Squared errors.
         """
         d = self.delta
-        inside = s <= d * d
-        return np.where(inside, s, 2.0 * d * np.sqrt(np.where(inside, 1.0, s)) - d * d)
+        return np.where(s <= d * d, s, 2.0 * d * np.sqrt(s) - d * d)
 
     def cost_and_weight(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """See :meth:`RobustKernel.cost_and_weight` (:meth:`robustify`'s values).
+        """See :meth:`RobustKernel.cost_and_weight` (:meth:`robustify`'s values, in fewer
+        calls: ``δ / max(√s, δ)`` is ``δ/√s`` outside and exactly 1 inside).
 
         Args:
             s: Squared errors.
         """
         d = self.delta
-        inside = s <= d * d
-        r = np.sqrt(np.where(inside, 1.0, s))
-        return np.where(inside, s, 2.0 * d * r - d * d), np.where(inside, 1.0, d / r)
+        r = np.sqrt(s)
+        return np.where(s <= d * d, s, 2.0 * d * r - d * d), d / np.maximum(r, d)
 
 
 class RobustKernelPseudoHuber(RobustKernel):

@@ -8,6 +8,7 @@ matrix-free assembly has no W blocks: its products come from the W terms' Jacobi
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -38,9 +39,10 @@ def is_finite(asm: Assembly) -> bool:
     Args:
         asm: The assembled system.
     """
-    total = asm.h_data.sum() + asm.bu.sum()
-    total += sum(float(v.sum()) for v in asm.v) + sum(float(b.sum()) for b in asm.bv)
-    return bool(np.isfinite(total))
+    total = float(asm.h_data.sum() + asm.bu.sum())
+    if asm.v:
+        total += sum(float(v.sum()) for v in asm.v) + sum(float(b.sum()) for b in asm.bv)
+    return math.isfinite(total)
 
 
 def damping(index: BlockIndex, asm: Assembly, diagonal: bool
