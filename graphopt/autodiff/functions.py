@@ -247,8 +247,12 @@ def _extremum(fn: Any, arg: Any) -> Callable[..., Any]:
             i = int(arg(flat.value))
             r = flat[i]
             return np.reshape(r, (1,) * a.ndim) if keepdims else r
-        if isinstance(axis, Sequence):
-            raise JetError(f"{_fname(fn)} over several axes")
+        if isinstance(axis, Sequence):  # move the axes last and merge them
+            axes = sorted(_pos(i, a.ndim) for i in axis)
+            moved = np.moveaxis(a, axes, list(range(a.ndim - len(axes), a.ndim)))
+            merged = np.reshape(moved, moved.shape[:a.ndim - len(axes)] + (-1,))
+            r = impl(merged, axis=-1)
+            return np.expand_dims(r, tuple(axes)) if keepdims else r
         idx = np.expand_dims(arg(a.value, axis=axis), axis)
         r = np.take_along_axis(a, idx, axis=axis)
         return r if keepdims else np.squeeze(r, axis=axis)

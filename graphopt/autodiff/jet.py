@@ -163,7 +163,7 @@ class Jet(NDArrayOperatorsMixin):
         n: Total number of tangent directions (of the edge being differentiated).
     """
 
-    __slots__ = ("value", "tangent", "lo", "n", "_base", "_key")
+    __slots__ = ("value", "tangent", "lo", "n", "_base", "_key", "seed")
     # Above ndarray's: mixed operations dispatch to the jet.
     __array_priority__ = 1000.0
 
@@ -174,6 +174,9 @@ class Jet(NDArrayOperatorsMixin):
         self.n = n
         self._base: Jet | None = None  # for a view: the jet it indexes, with self._key
         self._key: tuple[Any, ...] = ()
+        # A seed: (m, d) values whose tangent is the identity over the last axis, so that a
+        # column's derivative is known to cover one direction (see __getitem__).
+        self.seed = False
 
     # --- array-like attributes ---------------------------------------------------------------
 
@@ -202,12 +205,12 @@ class Jet(NDArrayOperatorsMixin):
         """The transpose (all axes reversed)."""
         return np.transpose(self)  # type: ignore[return-value]
 
-    def __len__(self) -> int:
-        return len(self.value)
-
     def __iter__(self) -> Any:
         for i in range(len(self.value)):
             yield self[i]
+
+    def __len__(self) -> int:
+        return len(self.value)
 
     def __repr__(self) -> str:
         return (f"Jet(shape={self.shape}, directions={self.lo}..{self.lo + len(self.tangent)}"
@@ -246,7 +249,43 @@ class Jet(NDArrayOperatorsMixin):
         k = tuple(np.asarray(a) if isinstance(a, list) else a for a in k)
         return (slice(None),) + k, _advanced_first(k)
 
+    @classmethod
+    def seeded(cls, value: np.ndarray, lo: int, n: int) -> Jet:
+        """``(m, d)`` values with derivative the identity: direction ``lo + j`` of column ``j``.
+
+        Args:
+            value: The values.
+            lo: The first column's direction.
+            n: Total directions.
+        """
+        m, d = value.shape
+        out = cls(value, np.broadcast_to(np.eye(d)[:, None, :], (d, m, d)), lo, n)
+        out.seed = True
+        return out
+
+    def _seed_columns(self, key: Any) -> Jet | None:
+        """Columns of a seed as a seed of fewer directions (``x[:, a:b]``, ``x[:, j]``)."""
+        if not (isinstance(key, tuple) and len(key) == 2 and key[0] == slice(None)):
+            return None
+        c = key[1]
+        d = self.value.shape[1]
+        if isinstance(c, int | np.integer):
+            j = int(c) % d
+            m = len(self.value)
+            return Jet(self.value[:, j], np.broadcast_to(np.ones(1), (1, m)), self.lo + j,
+                       self.n)
+        if isinstance(c, slice) and c.step in (None, 1):
+            a, b, _ = c.indices(d)
+            if b <= a:
+                return None
+            return Jet.seeded(self.value[:, a:b], self.lo + a, self.n)
+        return None
+
     def __getitem__(self, key: Any) -> Jet:
+        if self.seed:
+            narrow = self._seed_columns(key)
+            if narrow is not None:
+                return narrow
         tkey, first = self.tangent_key(key)
         value = self.value[tkey[1:]]
         tangent = self.tangent[tkey]
