@@ -1,8 +1,8 @@
 """graphopt: g2o-style graph optimisation with batched (struct-of-arrays) edges."""
 
 from graphopt.algorithms import DoglegConfig, GaussNewtonConfig, LevenbergConfig
-from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.autodiff import Jet, JetError
+from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError, NotPositiveDefiniteError, SingularSystemError
 from graphopt.jacobian_check import JacobianCheck, check_jacobians, edge_jacobians
 from graphopt.linear import SchurConfig

@@ -32,7 +32,6 @@ from graphopt.numeric import numeric_jacobians
 from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
 
-
 #: The values of ``BaseEdge.differentiation``.
 DIFFERENTIATION = ("auto", "analytic", "autodiff", "numeric")
 

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from autodiff_samples import PENDING, SAMPLES
 
 import graphopt.types
 from graphopt import BaseEdge, check_jacobians
-from autodiff_samples import PENDING, SAMPLES
 
 EDGE_TYPES = sorted(
     name for name in graphopt.types.__all__

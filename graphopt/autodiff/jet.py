@@ -20,6 +20,7 @@ indexing and the helpers both use. A NumPy function without a derivative rule ra
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,11 @@ from numpy.lib.mixins import NDArrayOperatorsMixin
 
 from graphopt.errors import GraphError
 
-__all__ = ["Jet", "JetError", "parts", "is_jet"]
+__all__ = ["HOOKS", "Jet", "JetError", "is_jet", "parts"]
+
+#: The NumPy protocol handlers, registered by :mod:`graphopt.autodiff.ufuncs` (``"ufunc"``)
+#: and :mod:`graphopt.autodiff.functions` (``"function"``) when the package is imported.
+HOOKS: dict[str, Callable[..., Any]] = {}
 
 
 class JetError(GraphError):
@@ -231,14 +236,10 @@ class Jet(NDArrayOperatorsMixin):
     # --- NumPy protocols (rules in ufuncs.py and functions.py) --------------------------------
 
     def __array_ufunc__(self, ufunc: np.ufunc, method: str, *inputs: Any, **kwargs: Any) -> Any:
-        from graphopt.autodiff.ufuncs import apply_ufunc
-
-        return apply_ufunc(ufunc, method, inputs, kwargs)
+        return HOOKS["ufunc"](ufunc, method, inputs, kwargs)
 
     def __array_function__(self, func: Any, types: Any, args: Any, kwargs: Any) -> Any:
-        from graphopt.autodiff.functions import apply_function
-
-        return apply_function(func, types, args, kwargs, like=self)
+        return HOOKS["function"](func, types, args, kwargs, like=self)
 
     # --- indexing ----------------------------------------------------------------------------
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff.jet import Jet, JetError, combine, expand, make, parts
+from graphopt.autodiff.jet import HOOKS, Jet, JetError, combine, expand, make, parts
 
 __all__ = ["apply_ufunc", "write_out"]
 
@@ -266,3 +266,6 @@ def _matmul(ps: list[tuple[np.ndarray, np.ndarray | None, int]], y: np.ndarray, 
     if a1:
         t = t[..., 0, :] if not b1 else t[..., 0]
     return Jet(y, t, lo, n)
+
+
+HOOKS["ufunc"] = apply_ufunc
