@@ -19,7 +19,7 @@ from graphopt.autodiff.jet import Jet, JetError
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
 
-__all__ = ["BLOCK_EDGES", "autodiff_linearize", "check_independent_edges"]
+__all__ = ["BLOCK_EDGES", "autodiff_linearize", "check_independent_edges", "seeded"]
 
 #: Edges per jet evaluation: one block's tangents (``k × block × …`` values per temporary)
 #: stay in the CPU cache, and the Python cost per operation is paid once per block.
@@ -73,17 +73,112 @@ def seeded(vtype: type[_VertexType], x: np.ndarray, lo: int, n: int) -> Jet:
     return out
 
 
+def _columns(j: Jet) -> None:
+    """Record each column's support of a 2-D jet (its non-zero derivative directions)."""
+    if j.value.ndim != 2 or j.seed:
+        return
+    nz = np.any(j.tangent != 0.0, axis=1)  # (k, d)
+    cols = []
+    for c in range(j.value.shape[1]):
+        rows = np.flatnonzero(nz[:, c])
+        cols.append((j.lo + int(rows[0]), j.lo + int(rows[-1]) + 1) if len(rows)
+                    else (j.lo, j.lo + 1))
+    j.columns = cols
+
+
+def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) -> Any:
+    """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values)."""
+    if type(j) is not Jet:
+        return None if j is None else j[index]
+    t = j.tangent[:, index] if isinstance(index, slice) else np.take(j.tangent, index, axis=1)
+    out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
+    out.columns = j.columns
+    return out
+
+
+_UNIQUE: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
+
+
+def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)`` with ``x[first][inverse] == x`` exactly: the distinct vertices of
+    the edges. The groupings of the last calls are tried first (the edges of a group keep
+    their vertices between iterations); one is used only if the equality holds."""
+    m = len(x)
+    flat = x.reshape(m, -1)
+    key = (id(vtype), m)
+    for first, inv in _UNIQUE.get(key, []):
+        if np.array_equal(flat[first][inv], flat):
+            return first, inv
+    h = flat @ np.random.default_rng(0).normal(size=flat.shape[1])
+    _, first, inv = np.unique(h, return_index=True, return_inverse=True)
+    if not np.array_equal(flat[first][inv], flat):  # a hash collision: no grouping
+        first, inv = np.arange(m), np.arange(m)
+    entries = _UNIQUE.setdefault(key, [])
+    entries.insert(0, (first, inv))
+    del entries[4:]
+    return first, inv
+
+
+class _Position:
+    """One vertex position's ``x ⊞ δ`` (and derived values) as jets, per block of edges.
+
+    ``oplus`` and ``derived`` run once per distinct vertex (a camera seen by thousands of
+    edges is updated once) and the rows are gathered per edge; a Euclidean vertex is a seed.
+    """
+
+    def __init__(self, vtype: type[_VertexType], x: np.ndarray, lo: int, n: int,
+                 derived: bool) -> None:
+        self.vtype, self.x, self.lo, self.n = vtype, x, lo, n
+        self.vector = vtype.oplus is VertexVector.oplus and x.ndim == 2
+        self.inverse: np.ndarray | None = None
+        self.jet: Jet | None = None
+        self.derived: Any = None
+        self.derived_ok = True
+        if not self.vector:
+            first, inv = _unique_rows(vtype, x)
+            if len(first) < len(x):
+                self.inverse = inv
+                self.jet = seeded(vtype, x[first], lo, n)
+            else:
+                self.jet = seeded(vtype, x, lo, n)
+            _columns(self.jet)
+        if derived:
+            self.derived = self._derived(self.jet if self.jet is not None
+                                         else Jet.seeded(x, lo, n))
+
+    def _derived(self, j: Jet) -> Any:
+        try:
+            d = self.vtype.derived(j)  # type: ignore[attr-defined]
+        except JetError:
+            self.derived_ok = False  # derived values are a cache: go without
+            return None
+        if type(d) is Jet:
+            _columns(d)
+        return d
+
+    def block(self, sl: slice) -> tuple[Jet, Any]:
+        """The block's ``x ⊞ δ`` jet and derived values."""
+        if self.vector:
+            return Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
+        index = sl if self.inverse is None else self.inverse[sl]
+        return _gather(self.jet, index, self.x[sl]), _gather(self.derived, index)
+
+
 def autodiff_linearize(
     edge_type: type[_EdgeType], x: Sequence[np.ndarray], measurement: np.ndarray, ctx: Any
 ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray | None]:
-    """Errors and exact Jacobians of every edge of a group, from one ``evaluate`` on jets.
+    """Errors and exact Jacobians of every edge of a group, from ``evaluate`` on jets.
+
+    The edges are evaluated in blocks of :data:`BLOCK_EDGES`. The vertex types' ``derived``
+    values (for types with ``uses_derived``) are recomputed from the jets of ``x ⊞ δ``, so
+    that the error sees the same cache it would in the optimizer, with derivatives; a
+    ``derived`` that does not run on jets is left out, as for numeric differences.
 
     Args:
         edge_type: The edge class (``evaluate``/``error``, ``vertex_types``, ``dimension``).
         x: Per position ``(m, *estimate_shape)`` estimates.
         measurement: ``(m, *measurement_shape)``.
-        ctx: The :class:`~graphopt.edge.EdgeContext`; its ``derived`` values (a cache of
-            functions of ``x``) are not passed on, as for numeric differences.
+        ctx: The :class:`~graphopt.edge.EdgeContext`.
 
     Returns:
         ``(e (m, dimension), (J_i (m, dimension, d_i), …), active (m,) or None)``; rows of
@@ -96,64 +191,44 @@ def autodiff_linearize(
     dims = [vt.dimension for vt in edge_type.vertex_types]
     n = int(sum(dims))
     offsets = np.concatenate([[0], np.cumsum(dims)]).astype(int).tolist()
-    if ctx is not None and getattr(ctx, "derived", None) is not None:
-        ctx = replace(ctx, derived=None)
     m = len(measurement)
-    if m > BLOCK_EDGES:
-        return _blocks(edge_type, x, measurement, ctx)
-    xs = [seeded(vt, np.asarray(xi), offsets[i], n)
-          for i, (vt, xi) in enumerate(zip(edge_type.vertex_types, x, strict=True))]
-    ev = edge_type.evaluate(xs, measurement, ctx)
-    e, active = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
-    shape = (m, edge_type.dimension)
-    if tuple(np.shape(e)) != shape:
-        raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(e)}, "
-                         f"expected {shape}")
-    jac = []
-    if type(e) is not Jet:  # the error does not depend on the estimates
-        value = np.asarray(e, dtype=float)
-        jac = [np.zeros((m, shape[1], d)) for d in dims]
-    else:
-        value = np.array(e.value, dtype=float)
-        t, lo = e.tangent, e.lo
-        for i, d in enumerate(dims):
-            a, b = max(offsets[i], lo), min(offsets[i] + d, lo + len(t))
-            if a >= b:
-                jac.append(np.zeros((m, shape[1], d)))
-                continue
-            block = np.moveaxis(t[a - lo: b - lo], 0, -1)
-            if b - a == d:
-                jac.append(np.ascontiguousarray(block))
-            else:
-                J = np.zeros((m, shape[1], d))
-                J[:, :, a - offsets[i]: b - offsets[i]] = block
-                jac.append(J)
-    if active is not None and not np.all(active):
-        for J in jac:
-            J[~np.asarray(active)] = 0.0
-    return value, tuple(jac), active
-
-
-def _blocks(
-    edge_type: type[_EdgeType], x: Sequence[np.ndarray], measurement: np.ndarray, ctx: Any
-) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray | None]:
-    """:func:`autodiff_linearize` over blocks of :data:`BLOCK_EDGES` edges (edges are
-    independent), so that the ``(k, block, …)`` tangents of one block stay in the CPU cache."""
-    m = len(measurement)
-    e = np.empty((m, edge_type.dimension))
-    jac = [np.empty((m, edge_type.dimension, vt.dimension)) for vt in edge_type.vertex_types]
+    want = bool(getattr(edge_type, "uses_derived", False)) and ctx is not None
+    pos = [_Position(vt, np.asarray(xi), offsets[i], n, want)
+           for i, (vt, xi) in enumerate(zip(edge_type.vertex_types, x, strict=True))]
+    want = want and all(p.derived_ok for p in pos)
+    dim = edge_type.dimension
+    e = np.empty((m, dim))
+    jac = [np.zeros((m, dim, d)) for d in dims]
     active: np.ndarray | None = None
-    for s in range(0, m, BLOCK_EDGES):
+    for s in range(0, max(m, 1), BLOCK_EDGES):
         sl = slice(s, min(s + BLOCK_EDGES, m))
-        sub = ctx.subset(sl) if ctx is not None else None
-        eb, jb, ab = autodiff_linearize(edge_type, [xi[sl] for xi in x], measurement[sl], sub)
-        e[sl] = eb
-        for J, j in zip(jac, jb, strict=True):
-            J[sl] = j
+        blocks = [p.block(sl) for p in pos]
+        sub = ctx.subset(sl) if ctx is not None and m > BLOCK_EDGES else ctx
+        if sub is not None and (want or getattr(sub, "derived", None) is not None):
+            sub = replace(sub, derived=tuple(b[1] for b in blocks) if want else None)
+        ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
+        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
+        mb = sl.stop - sl.start
+        if tuple(np.shape(eb)) != (mb, dim):
+            raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(eb)}, "
+                             f"expected {(mb, dim)}")
         if ab is not None:
             if active is None:
                 active = np.ones(m, dtype=bool)
             active[sl] = ab
+        if type(eb) is not Jet:  # the error does not depend on the estimates
+            e[sl] = eb
+            continue
+        e[sl] = eb.value
+        t, lo = eb.tangent, eb.lo
+        for i, d in enumerate(dims):
+            a, b = max(offsets[i], lo), min(offsets[i] + d, lo + len(t))
+            if a < b:
+                jac[i][sl, :, a - offsets[i]: b - offsets[i]] = np.moveaxis(
+                    t[a - lo: b - lo], 0, -1)
+    if active is not None and not active.all():
+        for J in jac:
+            J[~active] = 0.0
     return e, tuple(jac), active
 
 

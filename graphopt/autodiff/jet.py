@@ -168,7 +168,7 @@ class Jet(NDArrayOperatorsMixin):
         n: Total number of tangent directions (of the edge being differentiated).
     """
 
-    __slots__ = ("value", "tangent", "lo", "n", "_base", "_key", "seed")
+    __slots__ = ("value", "tangent", "lo", "n", "_base", "_key", "seed", "columns")
     # Above ndarray's: mixed operations dispatch to the jet.
     __array_priority__ = 1000.0
 
@@ -179,8 +179,9 @@ class Jet(NDArrayOperatorsMixin):
         self.n = n
         self._base: Jet | None = None  # for a view: the jet it indexes, with self._key
         self._key: tuple[Any, ...] = ()
-        # A seed: (m, d) values whose tangent is the identity over the last axis, so that a
-        # column's derivative is known to cover one direction (see __getitem__).
+        # For (m, d) values: each column's support (lo, hi), so that x[:, j] covers only its
+        # own directions (see __getitem__); a seed's tangent is the identity over the columns.
+        self.columns: list[tuple[int, int]] | None = None
         self.seed = False
 
     # --- array-like attributes ---------------------------------------------------------------
@@ -262,29 +263,43 @@ class Jet(NDArrayOperatorsMixin):
         m, d = value.shape
         out = cls(value, np.broadcast_to(np.eye(d)[:, None, :], (d, m, d)), lo, n)
         out.seed = True
+        out.columns = [(lo + j, lo + j + 1) for j in range(d)]
         return out
 
-    def _seed_columns(self, key: Any) -> Jet | None:
-        """Columns of a seed as a seed of fewer directions (``x[:, a:b]``, ``x[:, j]``)."""
+    def _column_view(self, key: Any) -> Jet | None:
+        """``x[:, j]`` or ``x[:, a:b]`` of a 2-D jet whose columns' supports are known
+        (:attr:`columns`): the result covers only those columns' directions."""
         if not (isinstance(key, tuple) and len(key) == 2 and key[0] == slice(None)):
             return None
         c = key[1]
+        cols = self.columns
+        assert cols is not None
         d = self.value.shape[1]
-        if isinstance(c, int | np.integer):
-            j = int(c) % d
-            m = len(self.value)
-            return Jet(self.value[:, j], np.broadcast_to(np.ones(1), (1, m)), self.lo + j,
-                       self.n)
-        if isinstance(c, slice) and c.step in (None, 1):
+        one = isinstance(c, int | np.integer)
+        if one:
+            a, b = int(c) % d, int(c) % d + 1
+        elif isinstance(c, slice) and c.step in (None, 1):
             a, b, _ = c.indices(d)
             if b <= a:
                 return None
-            return Jet.seeded(self.value[:, a:b], self.lo + a, self.n)
-        return None
+        else:
+            return None
+        lo, hi = min(x[0] for x in cols[a:b]), max(x[1] for x in cols[a:b])
+        m = len(self.value)
+        if self.seed:
+            k = hi - lo
+            t = (np.broadcast_to(np.ones(1), (1, m)) if one else
+                 np.broadcast_to(np.eye(k)[:, None, :], (k, m, k)))
+        else:
+            t = self.tangent[lo - self.lo: hi - self.lo, :, a if one else slice(a, b)]
+        out = Jet(self.value[:, a] if one else self.value[:, a:b], t, lo, self.n)
+        if not one:
+            out.seed, out.columns = self.seed, cols[a:b]
+        return out
 
     def __getitem__(self, key: Any) -> Jet:
-        if self.seed:
-            narrow = self._seed_columns(key)
+        if self.columns is not None:
+            narrow = self._column_view(key)
             if narrow is not None:
                 return narrow
         tkey, first = self.tangent_key(key)
