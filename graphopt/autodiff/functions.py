@@ -115,12 +115,12 @@ for _f in _VALUE_ONLY:
 
 # --- creation ---------------------------------------------------------------------------------
 
-def _container(value: np.ndarray, n: int) -> Any:
-    """A jet with zero derivatives over all ``n`` directions (an output to fill), or the plain
-    value for a non-float dtype."""
+def _container(value: np.ndarray, like: Jet) -> Any:
+    """A jet with zero derivatives over ``like``'s directions (an output to fill: assigning
+    a jet of other directions widens it), or the plain value for a non-float dtype."""
     if value.dtype.kind != "f":
         return value
-    return Jet(value, np.zeros((n,) + value.shape), 0, n)
+    return Jet(value, np.zeros((len(like.tangent),) + value.shape), like.lo, like.n)
 
 
 def _make_like(func: Any, fill: Any) -> Callable[..., Any]:
@@ -132,7 +132,7 @@ def _make_like(func: Any, fill: Any) -> Callable[..., Any]:
             value = np.full(s, args[0] if args else kw["fill_value"], dtype=dt)
         else:
             value = np.full(s, fill, dtype=dt) if fill is not None else np.empty(s, dtype=dt)
-        return _container(value, a.n)
+        return _container(value, a)
     return impl
 
 
@@ -144,7 +144,7 @@ HANDLED[np.full_like] = _make_like(np.full_like, None)
 
 def _create(func: Any) -> Callable[..., Any]:
     def impl(like: Jet, *args: Any, **kwargs: Any) -> Any:
-        return _container(np.asarray(func(*args, **kwargs)), like.n)
+        return _container(np.asarray(func(*args, **kwargs)), like)
     return impl
 
 
