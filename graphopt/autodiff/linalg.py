@@ -158,6 +158,21 @@ def _det(a: Any) -> Any:
     return Jet(y, y * np.einsum("...ij,k...ji->k...", inv, t), lo, a.n)
 
 
+@_implements(np.linalg.cholesky)
+def _cholesky(a: Any, upper: bool = False) -> Any:
+    if upper:
+        raise JetError("np.linalg.cholesky(..., upper=True)")
+    v, t, lo = parts(a)
+    L = np.linalg.cholesky(v)
+    if t is None:
+        return L
+    # dL = L Φ(L⁻¹ dA L⁻ᵀ), Φ: the lower triangle with the diagonal halved.
+    Li = np.linalg.inv(L)
+    S = Li @ t @ np.swapaxes(Li, -1, -2)
+    phi = np.tril(S, -1) + 0.5 * (S * np.eye(v.shape[-1]))
+    return Jet(L, L @ phi, lo, a.n)
+
+
 @_implements(np.linalg.solve)
 def _solve(a: Any, b: Any) -> Any:
     (va, ta, la), (vb, tb, lb) = parts(a), parts(b)
