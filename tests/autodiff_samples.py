@@ -320,9 +320,4 @@ APPROXIMATE = {
 
 #: Types whose error does not run on jets yet, with the reason (the test expects them to fail
 #: and reports it when one starts to pass).
-PENDING = {
-    name: "image_sampling writes samples with out= into plain float buffers (np.take(..., "
-          "out=), np.empty) and may sample in float32; its error needs like= buffers first"
-    for name in ("EdgePhotometricPatch", "EdgePhotometricPatchInverseDepth",
-                 "EdgePhotometricPatchInverseDepthHost")
-}
+PENDING: dict[str, str] = {}
