@@ -181,3 +181,41 @@ def test_unsupported_and_cross_edge_errors_name_the_type() -> None:
     _fit(EdgeCurveNumeric)  # numeric differences do not need the jet
     with pytest.raises(GraphError, match="differentiation must be one of"):
         type("Bad", (EdgeCurve,), {"differentiation": "symbolic"})
+
+
+def test_advanced_indexing_views_and_mixed_supports() -> None:
+    x = RNG.normal(size=(5, 6))
+
+    def f(a: Any) -> Any:
+        y = a.reshape(5, 2, 3)
+        picked = y[np.arange(5), :, np.array([2, 0, 1, 2, 0])]  # non-adjacent: (5, 2)
+        c = np.zeros_like(a[:, :2])
+        view = c[:, :]
+        np.multiply(a[:, 4], 2.0, out=view[:, 1])  # widens c through two views
+        c[:, 0] = a[:, 3] * a[:, 5]
+        mixed = np.concatenate([a[:, :1], np.ones((5, 1)), a[:, 5:] ** 2], axis=1)
+        p = np.prod(np.concatenate([a[:, :2], np.zeros((5, 1))], axis=1), axis=1)
+        return np.column_stack([picked, c, mixed, p, np.max(a, axis=1), np.sum(a[:, 2:4], 1)])
+
+    _check(f, x)
+
+
+def test_a_switched_type_keeps_its_analytic_parent_for_checks() -> None:
+    from custom_types import EdgeCurve as EdgeCurveAna
+    from custom_types import EdgeCurveAutodiff
+
+    from graphopt import check_jacobians
+
+    assert EdgeCurveAutodiff.differentiation_method() == "autodiff"
+    assert EdgeCurveAutodiff.analytic_type is EdgeCurveAna
+    assert not EdgeCurveAutodiff.has_analytic_jacobians()
+    x = [RNG.normal(0.5, 0.2, (6, 3))]
+    z = np.stack([np.linspace(0, 1, 6), np.ones(6)], 1)
+    assert check_jacobians(EdgeCurveAutodiff, x, z).worst < 1e-13
+    lin = EdgeCurveAutodiff.linearize(x, z, None)
+    (ja,) = EdgeCurveAna.jacobians(x, z, None)
+    np.testing.assert_allclose(lin.jacobians[0], ja, rtol=1e-13)
+    with pytest.raises(GraphError, match="position 0"):
+        edge_jacobians(EdgeCurveAutodiff, [x[0][:, :2]], z)
+    with pytest.raises(GraphError, match="method must be one of"):
+        edge_jacobians(EdgeCurveAutodiff, x, z, method="symbolic")
