@@ -113,6 +113,8 @@ def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     _, first, inv = np.unique(h, return_index=True, return_inverse=True)
     if not np.array_equal(flat[first][inv], flat):  # a hash collision: no grouping
         first, inv = np.arange(m), np.arange(m)
+    if len(_UNIQUE) > 64:  # many group sizes seen: start over (a cache, bounded)
+        _UNIQUE.clear()
     entries = _UNIQUE.setdefault(key, [])
     entries.insert(0, (first, inv))
     del entries[4:]

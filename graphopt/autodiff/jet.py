@@ -231,6 +231,12 @@ class Jet(NDArrayOperatorsMixin):
         self.__array__()
         return 0.0
 
+    def __int__(self) -> int:
+        self.__array__()
+        return 0
+
+    __index__ = __int__
+
     def __bool__(self) -> bool:
         return bool(self.value)
 
