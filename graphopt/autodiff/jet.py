@@ -104,8 +104,19 @@ def combine(shape: tuple[int, ...], n: int, terms: list[tuple[int, np.ndarray, b
         for _, t, _ in rest:
             acc += expand(t, len(shape))
         return full(acc, shape), lo
-    acc = np.zeros(target)
-    for tlo, t, _ in terms:
+    # Different supports: start from a term that covers the union if there is one (written
+    # into if it is a temporary, else copied), not from zeros, and add the others into it.
+    cover = next((i for i, t in enumerate(terms)
+                  if t[0] == lo and t[1].shape[0] == hi - lo), None)
+    if cover is None:
+        acc = np.zeros(target)
+        rest = terms
+    else:
+        _, t0, fresh0 = terms[cover]
+        acc = t0 if fresh0 and t0.shape == target and t0.flags.writeable else \
+            np.array(np.broadcast_to(expand(t0, len(shape)), target))
+        rest = terms[:cover] + terms[cover + 1:]
+    for tlo, t, _ in rest:
         acc[tlo - lo: tlo - lo + t.shape[0]] += expand(t, len(shape))
     return acc, lo
 
