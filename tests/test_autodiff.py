@@ -219,3 +219,22 @@ def test_a_switched_type_keeps_its_analytic_parent_for_checks() -> None:
         edge_jacobians(EdgeCurveAutodiff, [x[0][:, :2]], z)
     with pytest.raises(GraphError, match="method must be one of"):
         edge_jacobians(EdgeCurveAutodiff, x, z, method="symbolic")
+
+
+def test_small_angle_branches_give_exact_derivatives_at_zero() -> None:
+    from graphopt.lie import hat, se3_exp, so3_exp
+
+    d = Jet.seeded(np.zeros((4, 3)), 0, 3)
+    R = so3_exp(d)
+    np.testing.assert_array_equal(R.value, np.broadcast_to(np.eye(3), (4, 3, 3)))
+    for i in range(3):  # ∂exp([δ]×)/∂δ_i at 0 = [e_i]×, exactly
+        np.testing.assert_array_equal(R.tangent[i], np.broadcast_to(hat(np.eye(3)[i:i + 1])[0],
+                                                                    (4, 3, 3)))
+    T = se3_exp(Jet.seeded(np.zeros((2, 6)), 0, 6))
+    for i in range(3, 6):  # the translation part: ∂/∂υ_i = e_i
+        np.testing.assert_array_equal(T.tangent[i][:, :3, 3], np.broadcast_to(np.eye(3)[i - 3],
+                                                                             (2, 3)))
+    # Inside the series' range (θ < 1e-4) the derivative matches the closed form's.
+    w = np.array([[3e-5, -2e-5, 1e-5]])
+    r = _check(lambda a: so3_exp(a).reshape(1, 9), w, tol=1e-9)
+    assert np.all(np.isfinite(r.tangent))
