@@ -53,10 +53,11 @@ def hat(w: np.ndarray) -> np.ndarray:
         ``(n, 3, 3)`` matrices with ``hat(w) @ v == cross(w, v)``.
     """
     n = len(w)
-    out = np.zeros((n, 9))  # row-major entries: three fancy-index writes, not six
-    out[:, [7, 2, 3]] = w
-    out[:, [5, 6, 1]] = -w
-    return out.reshape(n, 3, 3)
+    out = np.zeros((n, 3, 3), like=w)  # like=: a jet w gives a jet (graphopt.autodiff)
+    out[:, 0, 1], out[:, 0, 2] = -w[:, 2], w[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = w[:, 2], -w[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -w[:, 1], w[:, 0]
+    return out
 
 
 def _coefficients(theta2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -166,14 +167,14 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     Returns:
         ``(n, 4, 4)`` homogeneous transforms ``[[exp(ω), J_l(ω) υ], [0, 1]]``.
     """
-    if len(xi) == 1:  # one pose (motion-only BA): scalar arithmetic, a fifth of the calls
-        return _se3_exp_one(*xi[0].tolist())
+    if len(xi) == 1 and type(xi) is np.ndarray:  # one pose (motion-only BA): scalar arithmetic,
+        return _se3_exp_one(*xi[0].tolist())  # a fifth of the calls (not for a jet)
     w, u = xi[:, :3], xi[:, 3:]
     # so3_exp and so3_left_jacobian's expressions, sharing θ², the coefficients and [ω]×.
     a, b, c = _coefficients(np.einsum("ni,ni->n", w, w))
     W = hat(w)
     WW = W @ W
-    T = np.zeros((len(xi), 4, 4))
+    T = np.zeros((len(xi), 4, 4), like=xi)
     eye = np.eye(3)
     T[:, :3, :3] = eye + a[:, None, None] * W + b[:, None, None] * WW
     V = eye + b[:, None, None] * W + c[:, None, None] * WW
@@ -249,7 +250,7 @@ def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
         R: ``(n, 3, 3)`` rotations.
         t: ``(n, 3)`` translations.
     """
-    T = np.zeros((len(R), 4, 4))
+    T = np.zeros((len(R), 4, 4), like=R)
     T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
     return T
 
