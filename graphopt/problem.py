@@ -127,8 +127,9 @@ class Problem:
                       if len(up.uslots) or up.vclass >= 0]
 
     def reset_timing(self) -> None:
-        """Start a new :class:`Timing` (one per iteration)."""
-        self.timing = Timing()
+        """Start a new :class:`Timing` (one per iteration; the same object, zeroed)."""
+        t = self.timing
+        t.linearize = t.schur = t.solve = 0.0
 
     # --- linearisation -----------------------------------------------------------------------
 
