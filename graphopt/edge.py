@@ -268,6 +268,9 @@ class BaseEdge:
         return cls.measurement_shape if cls.measurement_shape is not None else (cls.dimension,)
 
     # --- per-object front ------------------------------------------------------------------
+    # A thin record: values are converted and checked when the optimizer takes the edges into
+    # its arrays (in bulk, at the next initialisation or query). ``_uid``: -1 not added, -2
+    # added and waiting in the optimizer's buffer, else the edge's uid in ``_group``.
 
     def __init__(
         self,
@@ -278,22 +281,21 @@ class BaseEdge:
         params: Any = None,
         data: dict[str, Any] | None = None,
     ) -> None:
-        self._vertices: list[BaseVertex | int | None] = [None] * len(self.vertex_types)
-        if vertices is not None:
-            if len(vertices) != len(self.vertex_types):
-                raise ValueError(
-                    f"{type(self).__name__} takes {len(self.vertex_types)} vertices, "
-                    f"got {len(vertices)}"
-                )
+        k = len(self.vertex_types)
+        if vertices is None:
+            self._vertices: list[BaseVertex | int | None] = [None] * k
+        else:
+            if len(vertices) != k:
+                raise ValueError(f"{type(self).__name__} takes {k} vertices, got {len(vertices)}")
             self._vertices = list(vertices)
-        self._measurement = None if measurement is None else np.asarray(measurement, float)
-        self._information = None if information is None else np.asarray(information, float)
+        self._measurement = _own(measurement)
+        self._information = _own(information)
         self._robust_kernel = robust_kernel
         self.params = params
-        self.data = dict(data or {})
+        self.data = dict(data) if data else {}
         self._level = 0
-        self._group: Any = None  # the EdgeGroup once added
-        self._uid = -1  # the edge's uid in its group
+        self._group: Any = None
+        self._uid = -1
         self._graph: Any = None
 
     @property
@@ -305,12 +307,13 @@ class BaseEdge:
         return int(g.index_of(np.array([self._uid]))[0])
 
     def _detach(self) -> None:
-        """Keep the edge's values on the object and leave the group (the edge was removed)."""
-        i = self._index
-        self._measurement = self._group.measurements[i].copy()
-        self._information = self._group.information_of(i)
-        self._robust_kernel = self._group.kernel_of(i)
-        self._level = int(self._group.levels[i])
+        """Keep the edge's values on the object and leave the group (removed or rejected)."""
+        if self._uid >= 0:
+            i = self._index
+            self._measurement = self._group.measurements[i].copy()
+            self._information = self._group.information_of(i)
+            self._robust_kernel = self._group.kernel_of(i)
+            self._level = int(self._group.levels[i])
         self._group, self._uid, self._graph = None, -1, None
 
     def set_vertex(self, i: int, vertex: BaseVertex | int) -> None:
@@ -320,7 +323,7 @@ class BaseEdge:
             i: Position, ``0 <= i < len(vertex_types)``.
             vertex: A vertex object or its id.
         """
-        if not 0 <= i < len(self.vertex_types):
+        if not 0 <= i < len(self._vertices):
             raise IndexError(f"{type(self).__name__} has no vertex position {i}")
         self._vertices[i] = vertex
 
@@ -340,9 +343,9 @@ class BaseEdge:
     @property
     def measurement(self) -> np.ndarray | None:
         """The measurement."""
-        if self._group is not None:
+        if self._uid >= 0:
             return self._group.measurements[self._index].copy()
-        return self._measurement
+        return None if self._measurement is None else np.asarray(self._measurement, float)
 
     def set_measurement(self, z: Any) -> None:
         """Set the measurement (before the edge is added).
@@ -350,16 +353,16 @@ class BaseEdge:
         Args:
             z: Array of shape ``measurement_shape``.
         """
-        self._measurement = np.asarray(z, dtype=float)
+        self._measurement = _own(z)
 
     @property
     def information(self) -> np.ndarray:
         """The information matrix."""
-        if self._group is not None:
+        if self._uid >= 0:
             return self._group.information_of(self._index)
         if self._information is None:
             return np.eye(self.dimension)
-        return self._information
+        return np.asarray(self._information, dtype=float)
 
     def set_information(self, info: Any) -> None:
         """Set the information matrix (before the edge is added).
@@ -367,22 +370,22 @@ class BaseEdge:
         Args:
             info: ``(dimension, dimension)`` symmetric positive semi-definite matrix.
         """
-        self._information = np.asarray(info, dtype=float)
+        self._information = _own(info)
 
     @property
     def robust_kernel(self) -> RobustKernel | None:
         """The robust kernel or ``None``."""
-        if self._group is not None:
+        if self._uid >= 0:
             return self._group.kernel_of(self._index)
         return self._robust_kernel
 
     def set_robust_kernel(self, kernel: RobustKernel | None) -> None:
-        """Set the robust kernel.
+        """Set the robust kernel (also after the edge was added: no new structure).
 
         Args:
             kernel: A kernel, or ``None`` for plain least squares.
         """
-        if self._group is not None:
+        if self._uid >= 0:
             self._group.set_kernel(self._index, kernel)
         else:
             self._robust_kernel = kernel
@@ -390,7 +393,7 @@ class BaseEdge:
     def level(self) -> int:
         """The edge's level (g2o's ``level()``): it is active when the optimizer is initialised
         with this level."""
-        if self._group is not None:
+        if self._uid >= 0:
             self._group.finalize()
             return int(self._group.levels[self._index])
         return self._level
@@ -402,7 +405,7 @@ class BaseEdge:
             level: A non-negative integer.
         """
         level = check_level(level)
-        if self._group is not None:
+        if self._uid >= 0:
             self._group.set_levels(np.array([self._index]), level)
         else:
             self._level = level
@@ -412,8 +415,15 @@ class BaseEdge:
         ``chi2()``; evaluated with all edges of its group, once per state)."""
         if self._group is None:
             raise ValueError("the edge is not in an optimizer")
-        return float(self._graph.edge_chi2(self._group)[self._index])
+        chi = self._graph.edge_chi2(self._group)  # takes buffered edges into the arrays first
+        return float(chi[self._index])
 
     def __repr__(self) -> str:
-        ids = [v.id if isinstance(v, BaseVertex) else v for v in self._vertices]
+        ids = [v._id if isinstance(v, BaseVertex) else v for v in self._vertices]
         return f"{type(self).__name__}(vertices={ids})"
+
+
+def _own(value: Any) -> Any:
+    """A copy of an array (a caller may reuse its buffer for the next object), else the value
+    (converted, and copied, in bulk when the edges are taken into the arrays)."""
+    return value.copy() if type(value) is np.ndarray else value

@@ -100,12 +100,12 @@ class EdgeGroup:
             raise GraphError(
                 f"{self.etype.__name__}: robust_kernel must be a RobustKernel, got {kernel!r}"
             )
-        key = _kernel_key(kernel)
+        key = kernel_key(kernel)
         slot = self._kernel_keys.get(key)
-        if slot is not None and _kernel_key(self.kernels[slot]) == key:
+        if slot is not None and kernel_key(self.kernels[slot]) == key:
             return slot
         for i, k in enumerate(self.kernels):  # a kernel changed after it was added
-            if _kernel_key(k) == key:
+            if kernel_key(k) == key:
                 self._kernel_keys[key] = i
                 return i
         self.kernels.append(kernel)
@@ -269,7 +269,7 @@ class EdgeGroup:
             remap[used] = np.arange(len(used))
             self.kernel_index = remap[self.kernel_index]
             self.kernels = [self.kernels[int(u)] for u in used]
-            self._kernel_keys = {_kernel_key(k): i for i, k in enumerate(self.kernels)}
+            self._kernel_keys = {kernel_key(k): i for i, k in enumerate(self.kernels)}
         if len(used) <= 1 and len(self.kernel_index):
             value = np.int64(self.kernel_index[0])
             if (self.kernel_index == value).all():
@@ -341,8 +341,12 @@ class EdgeGroup:
         self.activity_version += 1
 
 
-def _kernel_key(kernel: RobustKernel) -> Any:
-    """What makes two kernels interchangeable: their type and parameters (or identity)."""
+def kernel_key(kernel: RobustKernel) -> Any:
+    """What makes two kernels interchangeable: their type and parameters (or identity).
+
+    Args:
+        kernel: A kernel.
+    """
     key = (type(kernel), *kernel.__dict__.values())
     try:
         hash(key)

@@ -18,6 +18,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge
 from graphopt.errors import GraphError
+from graphopt.removal import remove_edges
 from graphopt.robust_kernel import RobustKernel
 from graphopt.storage import EdgeGroup
 
@@ -238,7 +239,7 @@ class EdgeSet:
         """
         rows = self._rows()
         sel = np.arange(len(self)) if mask is None else self._select(mask, "remove")
-        self._graph.remove_edges(self._group, np.unique(np.atleast_1d(rows[sel])))
+        remove_edges(self._graph, self._group, np.unique(np.atleast_1d(rows[sel])))
         keep = np.ones(len(self), dtype=bool)
         keep[sel] = False
         self._uids = self._uids[keep]

@@ -1,0 +1,193 @@
+"""Objects added one at a time, turned into arrays in bulk.
+
+``add_vertex``/``add_edge`` only record the object (a few checks of attributes that are
+``None``); when the optimizer next needs its arrays (initialisation, a query, a bulk call), the
+buffered objects of one type become one batch: the functions here gather their fields into
+arrays and name the first object whose field has the wrong shape or kind. The batch then goes
+through the same checks as ``add_vertices``/``add_edges``. A :class:`BatchError` carries the
+object to blame, which the graph drops from its buffer (it can be fixed and added again).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from operator import attrgetter, is_
+from typing import Any
+
+import numpy as np
+
+from graphopt.edge import BaseEdge
+from graphopt.edge_group import EdgeGroup, kernel_key
+from graphopt.errors import GraphError
+from graphopt.vertex import BaseVertex
+
+_is_none = partial(is_, None)
+
+
+class BatchError(GraphError):
+    """A :class:`GraphError` caused by one object of a batch.
+
+    Args:
+        message: The message (naming the object).
+        culprit: The object.
+    """
+
+    def __init__(self, message: str, culprit: Any) -> None:
+        super().__init__(message)
+        self.culprit = culprit
+
+
+def _shape_of(value: Any) -> tuple[int, ...] | None:
+    """The shape of ``value`` as a float array, or ``None`` if it is not numeric."""
+    try:
+        return np.asarray(value, dtype=float).shape
+    except (TypeError, ValueError):
+        return None
+
+
+def _stack(values: list[Any], shape: tuple[int, ...]) -> np.ndarray | None:
+    """``(n, *shape)`` floats, or ``None`` if some value is not numeric of that shape."""
+    try:
+        arr = np.array(values, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    return arr if arr.shape == (len(values), *shape) else None
+
+
+def _kernel_slot(group: EdgeGroup, kernel: Any, blame: Any, i: int) -> int:
+    """The group's slot of a kernel (a :class:`BatchError` for edge ``i`` if it is none)."""
+    try:
+        return group.kernel_slot(kernel)
+    except GraphError as exc:
+        raise blame(i, str(exc)) from None
+
+
+def vertex_batch(vtype: type[BaseVertex], objs: list[BaseVertex]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Ids, estimates and flags of buffered vertices of one type.
+
+    Args:
+        vtype: Their type.
+        objs: The vertices.
+
+    Returns:
+        ``(ids (n,), estimates (n, *estimate_shape), fixed (n,), marginalized (n,))``.
+
+    Raises:
+        BatchError: naming the first vertex whose estimate is not numeric, of the wrong shape,
+            or invalid (non-finite or off the manifold).
+    """
+    n = len(objs)
+    shape = tuple(vtype.estimate_shape)
+    ids = np.fromiter((v._id for v in objs), np.int64, n)  # type: ignore[misc]
+    est = _stack([v._estimate for v in objs], shape)
+    if est is None:
+        for v in objs:
+            got = _shape_of(v._estimate)
+            if got != shape:
+                what = "is not numeric" if got is None else f"has shape {got}, expected {shape}"
+                raise BatchError(f"vertex {v._id} ({vtype.__name__}): estimate {what}", v)
+    assert est is not None
+    ok = vtype.validate(est)
+    if not np.all(ok):
+        i = int(np.flatnonzero(~ok)[0])
+        raise BatchError(f"vertex {int(ids[i])} ({vtype.__name__}): invalid estimate "
+                         f"(non-finite or off the manifold): "
+                         f"{np.array2string(est[i], threshold=20)}", objs[i])
+    fixed = np.fromiter((v._fixed for v in objs), bool, n)
+    marg = np.fromiter((v._marginalized for v in objs), bool, n)
+    return ids, est, fixed, marg
+
+
+def edge_batch(group: EdgeGroup, objs: list[BaseEdge]) -> dict[str, Any]:
+    """The arrays of buffered edges of one group, as ``add_edges`` takes them.
+
+    Args:
+        group: Their group.
+        objs: The edges.
+
+    Returns:
+        ``vids (m, k)``, ``meas``, ``info`` (``(e, e)`` when no edge has its own, else
+        ``(m, e, e)``), ``kernel`` (one slot or ``(m,)``), ``levels`` (one or ``(m,)``),
+        ``data``.
+
+    Raises:
+        BatchError: naming the first edge with a vertex that is not a vertex or an id, a
+            measurement or information matrix of the wrong shape, or other data keys.
+    """
+    et = group.etype
+    m, e = len(objs), et.dimension
+    try:  # vertex objects (the common case), else ids or a mix
+        flat = [v._id for o in objs for v in o._vertices]
+    except AttributeError:
+        flat = [v._id if isinstance(v, BaseVertex) else v for o in objs for v in o._vertices]
+    vids = np.array(flat)
+    if vids.dtype.kind not in "iu" or vids.shape != (m * group.k,):
+        for o in objs:
+            for pos, v in enumerate(o._vertices):
+                vid = v._id if isinstance(v, BaseVertex) else v
+                if not isinstance(vid, int | np.integer) or isinstance(vid, bool):
+                    raise BatchError(f"{o!r}: vertex {pos} is not a vertex with an id or an "
+                                     f"integer id: {v!r}", o)
+    vids = vids.astype(np.int64, copy=False).reshape(m, group.k)
+
+    def blame(i: int, what: str) -> BatchError:
+        return BatchError(f"{et.__name__} on vertices {vids[i].tolist()}: {what}", objs[i])
+
+    meas = _stack(list(map(attrgetter("_measurement"), objs)), group.mshape)
+    if meas is None:
+        for i, o in enumerate(objs):
+            got = _shape_of(o._measurement)
+            if got != group.mshape:
+                raise blame(i, "measurement is not numeric" if got is None else
+                            f"measurement has shape {got}, expected {group.mshape}")
+    infos = list(map(attrgetter("_information"), objs))
+    if all(map(_is_none, infos)):
+        info = np.eye(e)
+    else:
+        eye = np.eye(e)
+        info = _stack([eye if x is None else x for x in infos], (e, e))
+        if info is None:
+            for i, x in enumerate(infos):
+                got = (e, e) if x is None else _shape_of(x)
+                if got != (e, e):
+                    raise blame(i, "information is not numeric" if got is None else
+                                f"information has shape {got}, expected {(e, e)}")
+    # Kernel slots: one lookup per distinct kernel value (ORB-SLAM gives every edge its own
+    # kernel object, with a few distinct widths).
+    kernels = list(map(attrgetter("_robust_kernel"), objs))
+    kern: list[int] | int
+    if kernels.count(kernels[0]) == m:  # one kernel object (or none) for all (kernels
+        # compare by identity)
+        kern = _kernel_slot(group, kernels[0], blame, 0)
+    else:
+        by_value: dict[Any, int] = {}
+        kern = []
+        for i, k in enumerate(kernels):
+            key = None if k is None else kernel_key(k)
+            slot = by_value.get(key)
+            if slot is None:
+                slot = by_value[key] = _kernel_slot(group, k, blame, i)
+            kern.append(slot)
+        if min(kern) == max(kern):
+            kern = kern[0]
+    levels = list(map(attrgetter("_level"), objs))
+    keys = objs[0].data.keys()
+    data: dict[str, np.ndarray] = {}
+    if any(map(attrgetter("data"), objs)):
+        for i, o in enumerate(objs):
+            if o.data.keys() != keys:
+                raise blame(i, f"data keys {sorted(o.data)}, the batch's first edge has "
+                               f"{sorted(keys)}")
+        for key in keys:
+            try:
+                data[key] = np.array([o.data[key] for o in objs])
+            except ValueError:
+                first = np.shape(objs[0].data[key])
+                i = next(i for i, o in enumerate(objs) if np.shape(o.data[key]) != first)
+                raise blame(i, f"data[{key!r}] has shape {np.shape(objs[i].data[key])}, the "
+                               f"batch's first edge {first}") from None
+    return {"vids": vids, "meas": meas, "info": info,
+            "kernel": kern if isinstance(kern, int) else np.array(kern),
+            "levels": levels[0] if min(levels) == max(levels) else np.array(levels),
+            "data": data}
