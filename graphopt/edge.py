@@ -406,7 +406,7 @@ class BaseEdge:
         """
         level = check_level(level)
         if self._uid >= 0:
-            self._group.set_levels(np.array([self._index]), level)
+            self._group.set_levels(self._index, level)
         else:
             self._level = level
 

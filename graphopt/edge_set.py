@@ -45,13 +45,19 @@ def group_errors(graph: Graph, g: EdgeGroup) -> tuple[np.ndarray, np.ndarray]:
     if g.size == 0:
         return np.zeros((0, g.dim)), np.zeros(0)
     hit = graph._evals.get(id(g))
-    slot_key = (g.size, g.removals, tuple((id(s), len(s), s.removals)
-                                          for s in graph.stores.values()))
-    if hit is None or hit[0] is not g or hit[1] != slot_key:
-        hit = (g, slot_key, graph.group_slots(g), None, None)
-    stores = hit[2]
+    if hit is not None and hit[0] is g and hit[1] == (g.size, g.removals):
+        # Slots move only when vertices of the group's stores are removed.
+        stores = hit[2]
+        if hit[3] != tuple(st.removals for st, _ in stores):
+            hit = None
+    else:
+        hit = None
+    if hit is None:
+        stores = graph.group_slots(g)
+        hit = (g, (g.size, g.removals), stores, tuple(st.removals for st, _ in stores), None,
+               None)
     state = tuple(st.version for st, _ in stores)
-    if hit[3] != state:
+    if hit[4] != state:
         x = tuple(st.estimates[slots] for st, slots in stores)
         out = g.etype.evaluate(x, g.measurements, g.context())
         e = np.asarray(out.error, dtype=float)
@@ -67,9 +73,9 @@ def group_errors(graph: Graph, g: EdgeGroup) -> tuple[np.ndarray, np.ndarray]:
             s = np.einsum("me,me->m", e, oe)
         e.flags.writeable = False
         s.flags.writeable = False
-        hit = (g, slot_key, stores, state, (e, s))
-    graph._evals[id(g)] = hit
-    return hit[4]
+        hit = (*hit[:4], state, (e, s))
+        graph._evals[id(g)] = hit
+    return hit[5]
 
 
 def _check_levels(levels: Any, m: int, who: str) -> int | np.ndarray:

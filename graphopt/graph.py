@@ -8,6 +8,7 @@ input is validated here, once, with messages that name the type and the ids;
 
 from __future__ import annotations
 
+import gc
 from typing import Any
 
 import numpy as np
@@ -350,6 +351,20 @@ class Graph:
             GraphError: naming the first invalid object, which leaves the buffer (it is not
                 added; fix it and add it again). The others stay buffered.
         """
+        if not (self._vbuf or self._ebuf):
+            return
+        # The batches allocate a container or two per object and free them at once: the
+        # cyclic collector, which such allocations trigger, would scan every live object
+        # each time (2-3x the flush's own time on 25,000 edges); nothing here makes cycles.
+        enabled = gc.isenabled()
+        gc.disable()
+        try:
+            self._flush()
+        finally:
+            if enabled:
+                gc.enable()
+
+    def _flush(self) -> None:
         if self._vbuf:
             by_type: dict[type[BaseVertex], list[BaseVertex]] = {}
             for v in self._vbuf.values():

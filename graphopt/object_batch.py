@@ -160,15 +160,17 @@ def edge_batch(group: EdgeGroup, objs: list[BaseEdge]) -> dict[str, Any]:
     if kernels.count(kernels[0]) == m:  # one kernel object (or none) for all (kernels
         # compare by identity)
         kern = _kernel_slot(group, kernels[0], blame, 0)
-    else:
-        by_value: dict[Any, int] = {}
-        kern = []
-        for i, k in enumerate(kernels):
-            key = None if k is None else kernel_key(k)
-            slot = by_value.get(key)
-            if slot is None:
-                slot = by_value[key] = _kernel_slot(group, k, blame, i)
-            kern.append(slot)
+    else:  # by value (type and parameters; inline: a function call per kernel costs more)
+        keys = [None if k is None else (k.__class__, *k.__dict__.values()) for k in kernels]
+        try:
+            first = dict.fromkeys(keys)
+        except TypeError:  # a kernel with unhashable parameters: by identity
+            keys = [None if k is None else kernel_key(k) for k in kernels]
+            first = dict.fromkeys(keys)
+        where = {key: i for i, key in reversed(list(enumerate(keys)))}
+        slot_of = {key: -1 if key is None else _kernel_slot(group, kernels[where[key]], blame,
+                                                              where[key]) for key in first}
+        kern = list(map(slot_of.__getitem__, keys))
         if min(kern) == max(kern):
             kern = kern[0]
     levels = list(map(attrgetter("_level"), objs))
