@@ -245,3 +245,24 @@ def test_a_level_change_reuses_the_problem_and_gives_fresh_results(scene) -> Non
     es[:1].remove()  # removing edges rebuilds
     opt.optimize(1)
     assert opt.problem is not p
+
+
+class EdgeWithDepth(EdgeSE3ProjectXYZ):
+    """The projection edge with a depth test (types22 adds g2o's to the projection types)."""
+
+    @classmethod
+    def depth_positive(cls, x, measurement, ctx):
+        return transform_points(x[0], x[1])[:, 2] > 0.0
+
+
+def test_is_depth_positive_gathers_the_estimates_of_the_set(scene) -> None:
+    opt = SparseOptimizer()
+    c = len(scene.poses)
+    opt.add_vertices(VertexSE3Expmap, np.arange(c), scene.poses, fixed=scene.fixed)
+    pts = scene.points.copy()
+    pts[::7, 2] *= -1.0  # behind every camera
+    opt.add_vertices(VertexPointXYZ, c + np.arange(len(pts)), pts, marginalized=True)
+    es = opt.add_edges(EdgeWithDepth, scene.ids, scene.meas, params=CAMERA)
+    behind = (scene.ids[:, 1] - c) % 7 == 0
+    np.testing.assert_array_equal(es.is_depth_positive(), ~behind)
+    np.testing.assert_array_equal(es[behind].is_depth_positive(), False)
