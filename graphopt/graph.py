@@ -1,9 +1,11 @@
 """The graph: vertices and edges by id, checked on the way in, stored as arrays.
 
 :class:`Graph` owns the stores (one per vertex type) and groups (one per edge type and parameter
-object) of :mod:`graphopt.storage`, the id → (store, slot) map and the per-object fronts. Every
-input is validated here, once, with messages that name the type and the ids;
-:meth:`Graph.resolve` then turns the edges' vertex ids into store slots for the numeric layers.
+object) of :mod:`graphopt.storage`, the id → (store, slot) map and the buffers of objects added
+one at a time (taken into the arrays in bulk by :meth:`Graph.flush`, see
+:mod:`graphopt.object_batch`). Every input is validated here, once, with messages that name the
+type and the ids; :meth:`Graph.resolve` then turns the edges' vertex ids into store slots for
+the numeric layers.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 from graphopt.edge import BaseEdge, check_level
 from graphopt.edge_set import group_errors
 from graphopt.errors import GraphError
-from graphopt.object_batch import BatchError, edge_batch, vertex_batch
+from graphopt.object_batch import BatchError, checked_information, edge_batch, vertex_batch
 from graphopt.robust_kernel import RobustKernel
 from graphopt.storage import EdgeGroup, VertexStore
 from graphopt.vertex import BaseVertex
@@ -279,7 +281,7 @@ class Graph:
             The uid of the first edge appended.
         """
         et = group.etype
-        m, e = len(vids), et.dimension
+        m = len(vids)
         if m == 0:
             return group.next_uid  # nothing to add (and no empty group to register)
 
@@ -289,40 +291,7 @@ class Graph:
         bad = ~np.isfinite(meas.reshape(m, -1)).all(axis=1)
         if bad.any():
             raise blame(int(np.flatnonzero(bad)[0]), "non-finite measurement")
-        infos = info.reshape(-1, e, e)
-
-        def bad_info(ok: np.ndarray, what: str) -> GraphError:
-            # Name the first edge whose own matrix fails (or say the one matrix is shared).
-            if len(infos) == m:
-                return blame(int(np.flatnonzero(~ok)[0]), what)
-            return GraphError(f"{et.__name__} (one matrix for all {m} edges): {what}")
-
-        finite = np.isfinite(infos).all(axis=(1, 2))
-        if not finite.all():
-            raise bad_info(finite, "non-finite information matrix")
-        sym = np.isclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12).all(axis=(1, 2))
-        if not sym.all():
-            raise bad_info(sym, "information matrix is not symmetric")
-
-        def psd(mats: np.ndarray) -> np.ndarray:
-            low = np.linalg.eigvalsh(mats)
-            return low[:, 0] >= -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)
-
-        # Distinct matrices only (most files share a few, often one: a comparison is 30x
-        # cheaper than finding the distinct rows); per edge only to name a failure. One matrix
-        # repeated for every edge (every edge of w10000 and Victoria Park) is stored once: the
-        # weighting is then a broadcast, not m products.
-        if len(infos) > 1 and bool((infos == infos[0]).all()):
-            distinct = infos[:1]
-            info = infos[0].copy()
-        elif len(infos) <= 1 or e <= 3:  # eigenvalues of all: cheaper than finding distinct
-            distinct = infos
-        else:  # distinct rows as bytes: 13x faster than np.unique(axis=0) on 6x6 matrices
-            rows = np.ascontiguousarray(infos).reshape(len(infos), -1)
-            keys = rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).ravel()
-            distinct = infos[np.unique(keys, return_index=True)[1]]
-        if not psd(distinct).all():
-            raise bad_info(psd(infos), "information matrix is not positive semi-definite")
+        info = checked_information(et, vids, info)
         for pos, vt in enumerate(et.vertex_types):
             # Check each distinct id once; report the first edge that names a bad one.
             col = vids[:, pos]

@@ -4,8 +4,9 @@
 ``None``); when the optimizer next needs its arrays (initialisation, a query, a bulk call), the
 buffered objects of one type become one batch: the functions here gather their fields into
 arrays and name the first object whose field has the wrong shape or kind. The batch then goes
-through the same checks as ``add_vertices``/``add_edges``. A :class:`BatchError` carries the
-object to blame, which the graph drops from its buffer (it can be fixed and added again).
+through the same checks as ``add_vertices``/``add_edges`` (the information matrices' are here,
+:func:`checked_information`, shared by both paths). A :class:`BatchError` carries the object (or
+row) to blame, which the graph drops from its buffer (it can be fixed and added again).
 """
 
 from __future__ import annotations
@@ -193,3 +194,53 @@ def edge_batch(group: EdgeGroup, objs: list[BaseEdge]) -> dict[str, Any]:
             "kernel": kern if isinstance(kern, int) else np.array(kern),
             "levels": levels[0] if min(levels) == max(levels) else np.array(levels),
             "data": data}
+
+
+def checked_information(et: type[BaseEdge], vids: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """Information matrices checked (finite, symmetric, positive semi-definite); one matrix
+    repeated for every edge comes back as one ``(e, e)`` matrix (every edge of w10000 and
+    Victoria Park: the weighting is then a broadcast, not ``m`` products).
+
+    Args:
+        et: The edge type.
+        vids: ``(m, k)`` the edges' vertex ids (to name one).
+        info: ``(e, e)`` shared or ``(m, e, e)``.
+
+    Raises:
+        BatchError: naming the first edge whose own matrix fails (its index as culprit);
+            a ``GraphError`` for a shared matrix.
+    """
+    m, e = len(vids), et.dimension
+    infos = info.reshape(-1, e, e)
+
+    def bad_info(ok: np.ndarray, what: str) -> GraphError:
+        if len(infos) == m:
+            i = int(np.flatnonzero(~ok)[0])
+            return BatchError(f"{et.__name__} on vertices {vids[i].tolist()}: {what}", i)
+        return GraphError(f"{et.__name__} (one matrix for all {m} edges): {what}")
+
+    finite = np.isfinite(infos).all(axis=(1, 2))
+    if not finite.all():
+        raise bad_info(finite, "non-finite information matrix")
+    sym = np.isclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12).all(axis=(1, 2))
+    if not sym.all():
+        raise bad_info(sym, "information matrix is not symmetric")
+
+    def psd(mats: np.ndarray) -> np.ndarray:
+        low = np.linalg.eigvalsh(mats)
+        return low[:, 0] >= -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)
+
+    # Distinct matrices only (most files share a few, often one: a comparison is 30x cheaper
+    # than finding the distinct rows); per edge only to name a failure.
+    if len(infos) > 1 and bool((infos == infos[0]).all()):
+        distinct = infos[:1]
+        info = infos[0].copy()
+    elif len(infos) <= 1 or e <= 3:  # eigenvalues of all: cheaper than finding distinct
+        distinct = infos
+    else:  # distinct rows as bytes: 13x faster than np.unique(axis=0) on 6x6 matrices
+        rows = np.ascontiguousarray(infos).reshape(len(infos), -1)
+        keys = rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).ravel()
+        distinct = infos[np.unique(keys, return_index=True)[1]]
+    if not psd(distinct).all():
+        raise bad_info(psd(infos), "information matrix is not positive semi-definite")
+    return info
