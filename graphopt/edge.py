@@ -418,6 +418,15 @@ class BaseEdge:
         chi = self._graph.edge_chi2(self._group)  # takes buffered edges into the arrays first
         return float(chi[self._index])
 
+    def is_depth_positive(self) -> bool:
+        """Whether the edge's point is in front of its camera(s) at the current estimates
+        (g2o's ``isDepthPositive``; projection types; evaluated with all edges of its group,
+        once per state)."""
+        if self._group is None:
+            raise ValueError("the edge is not in an optimizer")
+        ok = self._graph.edge_depth_positive(self._group)  # takes buffered edges in first
+        return bool(ok[self._index])
+
     def __repr__(self) -> str:
         ids = [v._id if isinstance(v, BaseVertex) else v for v in self._vertices]
         return f"{type(self).__name__}(vertices={ids})"

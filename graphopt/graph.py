@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from graphopt.edge import BaseEdge, check_level
-from graphopt.edge_set import group_errors
+from graphopt.edge_set import group_depth_positive, group_errors
 from graphopt.errors import GraphError
 from graphopt.object_batch import BatchError, checked_information, edge_batch, vertex_batch
 from graphopt.robust_kernel import RobustKernel
@@ -376,6 +376,15 @@ class Graph:
             g: The group.
         """
         return group_errors(self, g)[1]
+
+    def edge_depth_positive(self, g: EdgeGroup) -> np.ndarray:
+        """``(m,)`` the depth test of every edge of a group (see
+        :func:`~graphopt.edge_set.group_depth_positive`).
+
+        Args:
+            g: The group.
+        """
+        return group_depth_positive(self, g)
 
     def edges(self) -> list[BaseEdge]:
         """The edges added one at a time (bulk edges live only as arrays)."""

@@ -266,3 +266,9 @@ def test_is_depth_positive_gathers_the_estimates_of_the_set(scene) -> None:
     behind = (scene.ids[:, 1] - c) % 7 == 0
     np.testing.assert_array_equal(es.is_depth_positive(), ~behind)
     np.testing.assert_array_equal(es[behind].is_depth_positive(), False)
+    # One edge at a time (g2o's isDepthPositive): the same answers, from one group evaluation.
+    objs = [EdgeWithDepth(list(map(int, ids)), z, params=CAMERA)
+            for ids, z in zip(scene.ids[:20], scene.meas[:20], strict=True)]
+    for e in objs:
+        opt.add_edge(e)
+    assert [e.is_depth_positive() for e in objs] == (~behind[:20]).tolist()
