@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.edge import BaseEdge, check_level
+from graphopt.edge import BaseEdge
+from graphopt.edge_object import check_level
 from graphopt.edge_set import group_depth_positive, group_errors
 from graphopt.errors import GraphError
 from graphopt.object_batch import BatchError, checked_information, edge_batch, vertex_batch
