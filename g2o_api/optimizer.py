@@ -135,12 +135,15 @@ class SparseOptimizer:
         return True
 
     def add_edge(self, edge: BaseEdge) -> bool:
-        """File an edge (False if it is already in a graph or a vertex is missing).
+        """File an edge (False, as g2o, if it is already in a graph, a vertex is missing or
+        one vertex is named twice).
 
         Args:
             edge: The edge record.
         """
-        if edge._opt is not None or None in edge._v:
+        vs = edge._v
+        if edge._opt is not None or None in vs or (
+                len(vs) == 2 and vs[0] is vs[1]) or (len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
             return False
         self._edges[edge] = None
         edge._opt = self
