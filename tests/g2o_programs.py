@@ -70,7 +70,7 @@ def ba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, outlier_ratio: float = 
             edge.set_measurement(z)
             edge.set_information(np.identity(2))
             if robust:
-                edge.set_robust_kernel(g2o.RobustKernelHuber())
+                edge.set_robust_kernel(g2o.RobustKernelHuber(np.sqrt(5.991)))
             edge.set_parameter_id(0, 0)
             optimizer.add_edge(edge)
         if inlier:
