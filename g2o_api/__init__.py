@@ -37,11 +37,13 @@ _NAMES: dict[str, _Any] = {
 }
 globals().update(_NAMES)
 
-__all__ = sorted([
+__all__ = [
     "SE2", "AngleAxis", "BaseEdge", "BaseVertex", "BlockSolver", "CameraParameters", "Flag",
     "Isometry", "Isometry3d", "LinearSolver", "OptimizationAlgorithm", "Parameter",
     "ParameterSE3Offset", "Quaternion", "RobustKernel", "SE3Quat", "Sim3", "SparseOptimizer",
-    "StereoCameraParameters", *_NAMES])
+    "StereoCameraParameters",
+]
+__all__ += sorted(_NAMES)
 
 
 def __dir__() -> list[str]:

@@ -142,8 +142,8 @@ class SparseOptimizer:
             edge: The edge record.
         """
         vs = edge._v
-        if edge._opt is not None or None in vs or (
-                len(vs) == 2 and vs[0] is vs[1]) or (len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
+        if edge._opt is not None or None in vs or (len(vs) == 2 and vs[0] is vs[1]) or (
+                len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
             return False
         self._edges[edge] = None
         edge._opt = self
