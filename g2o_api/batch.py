@@ -61,10 +61,15 @@ class Batch:
                 raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
                                  f"{int(vids[i, p])} is not a {b.gtype.__name__} like the "
                                  "other edges' vertices at its position")
-        self.levels = np.array([r._level for r in records], dtype=np.int64)
+        self.levels = np.fromiter((r._level for r in records), dtype=np.int64, count=m)
         self.kernels: list[Any] = []  # graphopt kernels by code
         self._codes: dict[Any, int] = {}
-        self.kcodes = np.array([self.code(r._kernel) for r in records], dtype=np.int64)
+        kernels = [r._kernel for r in records]
+        first = kernels[0] if m else None
+        if all(k is first for k in kernels):  # one object (or None) for all: one code
+            self.kcodes = np.full(m, self.code(first), dtype=np.int64)
+        else:
+            self.kcodes = np.fromiter((self.code(k) for k in kernels), dtype=np.int64, count=m)
         self.group: EdgeGroup | None = None
         self.core_pos = np.full(m, -1, dtype=np.int64)
         self.measured = gtype.measurement_derived(meas) if m else None
