@@ -29,7 +29,7 @@ from graphopt.stopping import StoppingConfig
 from .batch import Batch
 from .edges import BaseEdge
 from .params import Parameter
-from .solvers import Flag, OptimizationAlgorithm, OptimizationAlgorithmLevenberg
+from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
 from .vertices import Bank, BaseVertex, core_type
 
 __all__ = ["SparseOptimizer"]
@@ -218,7 +218,7 @@ class SparseOptimizer:
     @staticmethod
     def _capture(v: BaseVertex) -> None:
         """Keep a bound vertex's current estimate in the record (its bank is being dropped)."""
-        if v._bank is not None and v._bank.store is not None:
+        if v._bank is not None:
             v._est = v._from_row(v._bank.estimates()[v._slot])
 
     def _core_param(self, cls: type, key: tuple[Any, ...]) -> Any:
@@ -256,8 +256,8 @@ class SparseOptimizer:
             raws, where = [], []
             for i, v in enumerate(recs):
                 b = v._bank
-                if b is not None and b.store is not None:
-                    est[i] = b.store.estimates[v._slot]
+                if b is not None:
+                    est[i] = b.estimates()[v._slot]
                 else:
                     raws.append(v._est if v._est is not None else v._default())
                     where.append(i)
@@ -479,5 +479,3 @@ class SparseOptimizer:
         """graphopt's optimizer behind this one (built on demand)."""
         return self._prepare()
 
-
-_ = Flag  # re-exported by the package

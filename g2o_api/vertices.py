@@ -111,12 +111,15 @@ class BaseVertex:
                 or a vector as list, tuple or array).
         """
         bank = self._bank
-        if bank is None or bank.store is None:
+        if bank is None:
             self._est = estimate.copy() if type(estimate) is np.ndarray else (
                 list(estimate) if isinstance(estimate, list | tuple) else self._clone(estimate))
             return
         row = self._to_array([estimate], [self._id])[0]
         st = bank.store
+        if st is None:
+            bank.initial[self._slot] = row
+            return
         st.check_estimates(row[None], np.array([self._id]))
         st.estimates[self._slot] = row
         st.version += 1
@@ -124,11 +127,11 @@ class BaseVertex:
     def estimate(self) -> Any:
         """The estimate (read from the store after ``initialize_optimization``)."""
         bank = self._bank
-        if bank is None or bank.store is None:
+        if bank is None:
             if self._est is None:
                 return None
             return self._from_row(self._to_array([self._est], [self._id])[0])
-        return self._from_row(bank.store.estimates[self._slot])
+        return self._from_row(bank.estimates()[self._slot])
 
     def set_fixed(self, fixed: bool) -> None:
         """Hold the vertex constant.
@@ -138,7 +141,7 @@ class BaseVertex:
         """
         self._fixed = bool(fixed)
         bank = self._bank
-        if bank is not None and bank.store is not None:
+        if bank is not None:
             bank.user_fixed[self._slot] = self._fixed
             if self._opt is not None:
                 self._opt._flags_changed()
@@ -155,7 +158,7 @@ class BaseVertex:
         """
         self._marg = bool(marginalized)
         bank = self._bank
-        if bank is not None and bank.store is not None:
+        if bank is not None:
             bank.marg[self._slot] = self._marg
             if self._opt is not None:
                 self._opt._flags_changed()
