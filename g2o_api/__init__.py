@@ -11,9 +11,10 @@ from __future__ import annotations
 
 from typing import Any as _Any
 
-from .edges import EDGE_CLASSES as _EDGES
 from .edges import UNSUPPORTED as _UNSUPPORTED
 from .edges import unsupported as _unsupported
+from .edges_sba import SBA_EDGES as _SBA
+from .edges_slam import SLAM_EDGES as _SLAM
 from .geometry import SE2, Isometry3d, SE3Quat
 from .optimizer import SparseOptimizer
 from .params import CameraParameters, Parameter, ParameterSE3Offset, StereoCameraParameters
@@ -27,6 +28,7 @@ from .solvers import BlockSolver, Flag, LinearSolver, OptimizationAlgorithm, Rob
 from .vertices import VERTEX_CLASSES as _VERTICES
 from .vertices import BaseVertex
 
+_EDGES = {**_SBA, **_SLAM}
 BaseEdge = _EDGES["EdgeSE2"].__mro__[1]
 RobustKernel = RobustKernelBase
 Isometry = Isometry3d

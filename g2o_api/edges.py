@@ -14,11 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import SE2, _RigidBase
-from .sim3 import Sim3
 from .vertices import BaseVertex
 
-__all__ = ["EDGE_CLASSES", "UNSUPPORTED", "BaseEdge"]
+__all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
 
 
 class BaseEdge:
@@ -35,6 +33,8 @@ class BaseEdge:
     _vertex_as: dict[int, str] = {}
     #: Parameter slots (``set_parameter_id``) and what they hold.
     _nparams = 0
+    #: graphopt.types parameter class built from ``_params_key()`` (intrinsics on the edge).
+    _param_type = ""
 
     def __init__(self) -> None:
         self._v: list[BaseVertex | None] = [None] * self._k
@@ -214,198 +214,20 @@ class BaseEdge:
     def _from_measurement(cls, row: np.ndarray) -> Any:
         return row.copy()
 
+    @classmethod
+    def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
+        """Per-edge arrays graphopt's type reads (``Xw`` of the pose-only edges)."""
+        return {}
+
     @staticmethod
     def _depth(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any) -> np.ndarray:
         raise NotImplementedError("is_depth_positive: not a projection edge")
 
 
-def _rigid_measurements(raws: list[Any], rows: int) -> np.ndarray:
-    out = np.zeros((len(raws), rows, 4))
-    for i, r in enumerate(raws):
-        if isinstance(r, _RigidBase):
-            out[i, :3, :3], out[i, :3, 3] = r._R, r._t
-        elif isinstance(r, Sim3):
-            out[i, :3, :3], out[i, :3, 3] = r._s * r._R, r._t
-        else:
-            out[i, :3] = np.asarray(r, dtype=float)[:3]
-    if rows == 4:
-        out[:, 3, 3] = 1.0
-    return out
-
-
-def _depth_pose_point(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any
-                      ) -> np.ndarray:
-    T, X = x
-    return np.einsum("mj,mj->m", T[:, 2, :3], X) + T[:, 2, 3] > 0
-
-
-class EdgeSE3ProjectXYZ(BaseEdge):
-    """g2o's ``EdgeSE3ProjectXYZ``: vertices ``(point, pose)``, intrinsics in ``fx, fy, cx,
-    cy``."""
-
-    __slots__ = ("fx", "fy", "cx", "cy")
-    _gname = "EdgeSE3ProjectXYZ"
-    _perm = (1, 0)
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.fx = self.fy = self.cx = self.cy = 0.0
-
-    def _params_key(self) -> tuple[Any, ...]:
-        return (self.fx, self.fy, self.cx, self.cy)
-
-    def cam_project(self, p: Any) -> np.ndarray:
-        """Pixel of a camera-frame point.
-
-        Args:
-            p: ``(3,)`` point.
-        """
-        p = np.asarray(p, dtype=float).reshape(3)
-        return np.array([self.fx * p[0] / p[2] + self.cx, self.fy * p[1] / p[2] + self.cy])
-
-    _depth = staticmethod(_depth_pose_point)
-
-
-class EdgeProjectXYZ2UV(BaseEdge):
-    """g2o's ``EdgeProjectXYZ2UV``: vertices ``(point, pose)``, a ``CameraParameters``
-    parameter."""
-
-    __slots__ = ()
-    _gname = "EdgeProjectXYZ2UV"
-    _perm = (1, 0)
-    _nparams = 1
-    _depth = staticmethod(_depth_pose_point)
-
-
-class EdgeProjectPSI2UV(BaseEdge):
-    """g2o's ``EdgeProjectPSI2UV``: vertices ``(inverse-depth point, pose, anchor pose)``, a
-    ``CameraParameters`` parameter; the point vertex is a ``VertexPointXYZ`` holding
-    ``[u, v, ρ]``."""
-
-    __slots__ = ()
-    _k = 3
-    _gname = "EdgeInverseDepthProjection"
-    _perm = (2, 1, 0)
-    _vertex_as = {0: "VertexPointInverseDepth"}
-    _nparams = 1
-
-
-class EdgeSE2(BaseEdge):
-    """g2o's ``EdgeSE2`` (measurement ``SE2``)."""
-
-    __slots__ = ()
-    _dim = 3
-    _gname = "EdgeSE2"
-    _mshape = (3,)
-
-    @classmethod
-    def _measurements(cls, raws: list[Any]) -> np.ndarray:
-        return BaseEdge._measurements.__func__(cls, [r._v if type(r) is SE2 else r
-                                                     for r in raws])
-
-    @classmethod
-    def _from_measurement(cls, row: np.ndarray) -> Any:
-        return SE2._of(row.copy())
-
-
-class EdgeSE2Prior(EdgeSE2):
-    """g2o's ``EdgeSE2Prior`` (unary, measurement ``SE2``)."""
-
-    __slots__ = ()
-    _k = 1
-    _gname = "EdgeSE2Prior"
-    _perm = (0,)
-
-
-class EdgeSE2PointXY(BaseEdge):
-    """g2o's ``EdgeSE2PointXY``: the point in the pose's frame."""
-
-    __slots__ = ()
-    _gname = "EdgeSE2PointXY"
-
-
-class EdgeSE3(BaseEdge):
-    """g2o's ``EdgeSE3`` (measurement ``Isometry3d``)."""
-
-    __slots__ = ()
-    _dim = 6
-    _gname = "EdgeSE3"
-    _mshape = (3, 4)
-
-    @classmethod
-    def _measurements(cls, raws: list[Any]) -> np.ndarray:
-        return _rigid_measurements(raws, 3)
-
-    @classmethod
-    def _from_measurement(cls, row: np.ndarray) -> Any:
-        from .geometry import Isometry3d
-
-        return Isometry3d(row)
-
-
-class EdgeSE3Prior(EdgeSE3):
-    """g2o's ``EdgeSE3Prior`` (unary, measurement ``Isometry3d``, a ``ParameterSE3Offset``)."""
-
-    __slots__ = ()
-    _k = 1
-    _gname = "EdgeSE3Prior"
-    _perm = (0,)
-    _nparams = 1
-
-
-class EdgeSE3PointXYZ(BaseEdge):
-    """g2o's ``EdgeSE3PointXYZ`` (a ``ParameterSE3Offset``)."""
-
-    __slots__ = ()
-    _dim = 3
-    _gname = "EdgeSE3PointXYZ"
-    _mshape = (3,)
-    _nparams = 1
-
-
-class EdgeSE3Expmap(BaseEdge):
-    """g2o's ``EdgeSE3Expmap`` (measurement ``SE3Quat``)."""
-
-    __slots__ = ()
-    _dim = 6
-    _gname = "EdgeSE3Expmap"
-    _mshape = (4, 4)
-
-    @classmethod
-    def _measurements(cls, raws: list[Any]) -> np.ndarray:
-        return _rigid_measurements(raws, 4)
-
-    @classmethod
-    def _from_measurement(cls, row: np.ndarray) -> Any:
-        from .geometry import SE3Quat
-
-        return SE3Quat._of(row[:3, :3].copy(), row[:3, 3].copy())
-
-
-class EdgeSim3(EdgeSE3Expmap):
-    """g2o's ``EdgeSim3`` (measurement ``Sim3``)."""
-
-    __slots__ = ()
-    _dim = 7
-    _gname = "EdgeSim3"
-
-    @classmethod
-    def _from_measurement(cls, row: np.ndarray) -> Any:
-        sR = row[:3, :3]
-        s = float(np.cbrt(np.linalg.det(sR)))
-        return Sim3._of(sR / s, row[:3, 3].copy(), s)
-
-
-EDGE_CLASSES: dict[str, type[BaseEdge]] = {
-    c.__name__: c for c in (EdgeSE3ProjectXYZ, EdgeProjectXYZ2UV, EdgeProjectPSI2UV, EdgeSE2,
-                            EdgeSE2Prior, EdgeSE2PointXY, EdgeSE3, EdgeSE3Prior, EdgeSE3PointXYZ,
-                            EdgeSE3Expmap, EdgeSim3)}
-
 #: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
 UNSUPPORTED = (
     "EdgeGICP", "EdgeVVGicp", "Edge_V_V_GICP", "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam",
     "EdgeSBAScale", "EdgeProjectP2MC", "EdgeProjectP2SC", "EdgeProjectXYZ2UVU",
-    "EdgeSE3ProjectXYZOnlyPose", "EdgeStereoSE3ProjectXYZ", "EdgeStereoSE3ProjectXYZOnlyPose",
     "EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ", "EdgePointXY", "EdgePointXYZ",
     "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2Offset",
     "EdgeSE2PointXYBearing", "EdgeSE2PointXYCalib", "EdgeSE2PointXYOffset",

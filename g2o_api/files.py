@@ -23,7 +23,7 @@ from graphopt.types.isometry3 import pose_from_qt, pose_to_qt
 from graphopt.types.slam_graph import build_graph
 
 from .batch import Batch
-from .edges import EDGE_CLASSES
+from .edges_slam import SLAM_EDGES as EDGE_CLASSES
 from .params import ParameterSE3Offset
 from .vertices import VERTEX_CLASSES, Bank
 

@@ -226,10 +226,8 @@ class SparseOptimizer:
         edges by parameter object)."""
         full = (cls._gname, key)
         if full not in self._core_params:
-            if cls._nparams == 0 and len(key) == 4:  # intrinsics on the edge (fx, fy, cx, cy)
-                from graphopt.types.projection import CameraParameters
-
-                value: Any = CameraParameters(*key)
+            if cls._nparams == 0 and cls._param_type:  # intrinsics on the edge (fx, fy, ...)
+                value: Any = core_type(cls._param_type)(*key)
             elif cls._nparams == 0:
                 value = None
             else:
@@ -285,7 +283,7 @@ class SparseOptimizer:
             meas = self._measurements(cls, recs)
             info = self._information(cls, recs)
             batches.append(Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids,
-                                 banks, meas, info, {}))
+                                 banks, meas, info, cls._data(recs)))
         self._batches = batches
 
     @staticmethod
