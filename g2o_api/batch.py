@@ -71,6 +71,7 @@ class Batch:
         else:
             self.kcodes = np.fromiter((self.code(k) for k in kernels), dtype=np.int64, count=m)
         self.group: EdgeGroup | None = None
+        self.kernels_dirty = False
         self.core_pos = np.full(m, -1, dtype=np.int64)
         self.measured = gtype.measurement_derived(meas) if m else None
         self._cache: tuple[Any, ...] | None = None
@@ -97,11 +98,22 @@ class Batch:
             i: Index in the batch.
             kernel: A g2o kernel or ``None``.
         """
-        c = self.code(kernel)
-        self.kcodes[i] = c
-        pos = int(self.core_pos[i])
-        if pos >= 0 and self.group is not None:
-            self.group.set_kernel(pos, None if c < 0 else self.kernels[c])
+        self.kcodes[i] = self.code(kernel)
+        if self.core_pos[i] >= 0 and not self.kernels_dirty:
+            self.kernels_dirty = True  # reaches the optimizer's arrays before its next use
+            self.owner._kernels_changed(self)
+
+    def sync_kernels(self) -> None:
+        """Write the kernels of the active edges into the optimizer's group (one assignment
+        per distinct kernel)."""
+        self.kernels_dirty = False
+        if self.group is None:
+            return
+        sub = np.flatnonzero(self.core_pos >= 0)
+        codes = self.kcodes[sub]
+        for c in np.unique(codes).tolist():
+            self.group.set_kernel(self.core_pos[sub[codes == c]], None if c < 0 else
+                                  self.kernels[c])
 
     def set_level(self, i: int, level: int) -> None:
         """Edge ``i``'s level (applied at the next ``initialize_optimization``).
@@ -162,7 +174,7 @@ class Batch:
                 chi2 = np.einsum("mi,ij,mj->m", e, self.info, e)
             else:
                 chi2 = np.einsum("mi,mij,mj->m", e, self.info, e)
-            self._cache = (state, e, chi2, x)
+            self._cache = (state, e, chi2, x, None)
         return self._cache[1], self._cache[2], self._cache[3]
 
     def errors(self) -> np.ndarray:
@@ -175,8 +187,12 @@ class Batch:
 
     def depth_positive(self) -> np.ndarray:
         """``(m,)`` whether each edge's point is in front of its camera."""
-        x = self._evaluate()[2]
-        return self.cls._depth(x, self.data, self.params)
+        self._evaluate()
+        assert self._cache is not None
+        if self._cache[4] is None:
+            self._cache = (*self._cache[:4], self.cls._depth(self._cache[3], self.data,
+                                                             self.params))
+        return self._cache[4]
 
     def information_of(self, i: int) -> np.ndarray:
         """Edge ``i``'s information matrix.

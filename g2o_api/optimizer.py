@@ -52,7 +52,7 @@ class SparseOptimizer:
         self._core_dirty = True
         self._level = 0
         self._core_params: dict[Any, Any] = {}
-        self._loaded: Any = None
+        self._kernel_batches: list[Batch] = []
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -335,7 +335,15 @@ class SparseOptimizer:
         self._core = core
         self._core_dirty = False
 
+    def _kernels_changed(self, batch: Batch) -> None:
+        self._kernel_batches.append(batch)
+
     def _prepare(self) -> CoreOptimizer:
+        if self._kernel_batches:
+            for b in self._kernel_batches:
+                if b.kernels_dirty:
+                    b.sync_kernels()
+            self._kernel_batches = []
         if not (self._records_dirty or self._core_dirty or self._core is None):
             return self._core
         # Filing creates many small containers while the program holds many records: the
