@@ -152,6 +152,12 @@ def _point_offset(graph: GraphFile) -> int:
     pose, point = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for tag, block in graph.vertices.items():
         (point if tag in _POINT_EDGES else pose).append(np.asarray(block.ids, np.int64))
+    if graph.separate_landmarks:
+        # GTSAM's LANDMARK2 numbers landmarks as L(j), apart from the poses X(i): the ids
+        # the edges name count too (such files rarely have vertex lines).
+        for tag, block in graph.edges.items():
+            for c, vtag in enumerate(EDGE_TYPES[tag][1]):
+                (point if vtag in _POINT_EDGES else pose).append(block.ids[:, c])
     pose_ids, point_ids = np.concatenate(pose), np.concatenate(point)
     if not len(point_ids) or not np.isin(point_ids, pose_ids).any():
         return 0

@@ -313,6 +313,7 @@ def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]
             f"errors (rotation block x4, mixed x2; chi2 is g2o's); {len(rows.get(8, [[]])[-1])} "
             f"of {sum(len(r[1]) for r in rows.values())} EDGE3 lines had none: identity in rpy")
     elif tag == "LANDMARK2":
+        out.separate_landmarks = True
         out.notes.append("LANDMARK2 (GTSAM: pose landmark x y Ixx Ixy Iyy) read as EDGE_SE2_XY")
 
 

@@ -75,6 +75,8 @@ class GraphFile:
         equiv: ``(k, 2)`` id pairs of TORO ``EQUIV`` lines.
         skipped: Unknown tag → number of lines skipped (when the reader was told to skip).
         notes: One-line remarks a reader made (e.g. which information order it detected).
+        separate_landmarks: Whether landmark numbers live in a key space of their own
+            (GTSAM's ``LANDMARK2``).
     """
 
     path: str
@@ -85,3 +87,6 @@ class GraphFile:
     equiv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     skipped: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: GTSAM ``LANDMARK2`` lines were read: their landmark numbers are GTSAM's ``L(j)`` keys,
+    #: a key space of their own that may reuse pose numbers.
+    separate_landmarks: bool = False
