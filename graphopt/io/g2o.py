@@ -36,29 +36,19 @@ import bz2
 import gzip
 import os
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from graphopt.io import g2o_layouts as gl
 from graphopt.io.atomic import atomic_path
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
-from graphopt.io.text import WHITESPACE, FileFormatError, read_bytes, token_layout
+from graphopt.io.g2o_lines import GraphFormatError, parse_ids, positive_definite, symmetric
+from graphopt.io.text import WHITESPACE, read_bytes, token_layout
 from graphopt.linear.indexing import concat_ranges
 
 __all__ = ["GraphFormatError", "read_graph", "write_g2o"]
-
-
-class GraphFormatError(FileFormatError):
-    """A graph file that cannot be read; the message is one line naming the file and line.
-
-    Args:
-        path: The file.
-        message: What is wrong.
-        line: 1-based line number, if the problem is on a line.
-    """
-
-    kind = "graph file"
 
 
 # Tag → (canonical tag, allowed numbers of values after the tag (empty: one or more), layout).
@@ -80,7 +70,10 @@ _TAGS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "FIX": ("FIX", (), "one or more vertex ids"),
     "EQUIV": ("EQUIV", (2,), "id id"),
 }
+_TAGS.update({tag: (tag, (lay.count, *gl.CLASSIC.get(tag, ())), lay.text)
+              for tag, lay in gl.LAYOUTS.items()})
 _VERTEX_TAGS = ("VERTEX_SE2", "VERTEX_XY", "VERTEX_SE3:QUAT", "VERTEX_TRACKXYZ")
+_ALL_VERTEX_TAGS = (*_VERTEX_TAGS, *(t for t, lay in gl.LAYOUTS.items() if lay.kind == "vertex"))
 # Canonical edge tag → (vertex tags of its two ends, measurement columns, information size).
 _EDGES = {
     "EDGE_SE2": (("VERTEX_SE2", "VERTEX_SE2"), 3, 3),
@@ -88,30 +81,9 @@ _EDGES = {
     "EDGE_SE3:QUAT": (("VERTEX_SE3:QUAT", "VERTEX_SE3:QUAT"), 7, 6),
     "EDGE_SE3_TRACKXYZ": (("VERTEX_SE3:QUAT", "VERTEX_TRACKXYZ"), 3, 3),
 }
+_ALL_EDGE_TAGS = (*_EDGES, *(t for t, lay in gl.LAYOUTS.items() if lay.kind == "edge"))
 _TORO_EDGE2 = ([0, 0, 1, 2, 0, 1], [0, 1, 1, 2, 2, 2])  # I11 I12 I22 I33 I13 I23
 _RPY_TO_QVEC = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])  # error scale: rpy ≈ 2 q_vec
-_MAX_ID = 2.0**53  # ids are read as doubles: exact below this
-
-
-def _symmetric(values: np.ndarray, rows: Sequence[int], cols: Sequence[int]) -> np.ndarray:
-    """``(m, d, d)`` symmetric matrices with ``values[:, k]`` at ``(rows[k], cols[k])``."""
-    d = max(cols) + 1
-    out = np.zeros((len(values), d, d))
-    out[:, rows, cols] = values
-    out[:, cols, rows] = values
-    return out
-
-
-def _positive_definite(info: np.ndarray) -> np.ndarray:
-    """``(m,)`` whether each symmetric matrix is positive definite (all Cholesky pivots > 0)."""
-    a = np.array(info, dtype=float)
-    ok = np.ones(len(a), dtype=bool)
-    for k in range(a.shape[-1]):
-        pivot = a[:, k, k]
-        ok &= pivot > 0
-        col = a[:, k + 1:, k] / np.where(ok, pivot, 1.0)[:, None]
-        a[:, k + 1:, k + 1:] -= col[:, :, None] * a[:, None, k, k + 1:]
-    return ok
 
 
 def _rpy_to_quat(rpy: np.ndarray) -> np.ndarray:
@@ -131,7 +103,7 @@ def _rpy_to_quat(rpy: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-_TAG_WIDTH = 32  # no known tag is longer
+_TAG_WIDTH = 40  # no known tag is longer
 
 
 def _scan(path: Path, data: bytes, skip_unknown: bool
@@ -234,23 +206,12 @@ def _table(path: Path, tag: str, values: np.ndarray, counts: np.ndarray, numbers
     return out
 
 
-def _ids(path: Path, tag: str, values: np.ndarray, lines: np.ndarray) -> np.ndarray:
-    """Id columns as int64; an error on a negative, fractional or huge one."""
-    bad = (values < 0) | (values != np.floor(values)) | (values >= _MAX_ID)
-    if bad.any():
-        k = int(np.flatnonzero(bad.any(axis=1))[0])
-        v = values[k][bad[k]][0]
-        raise GraphFormatError(path, f"{tag}: id {v:g} is not a non-negative integer",
-                               int(lines[k]))
-    return values.astype(np.int64)
-
-
 def _edge2_information(path: Path, values: np.ndarray, lines: np.ndarray,
                        notes: list[str]) -> np.ndarray:
     """EDGE2 information in whichever order (TORO's or g2o's) makes all of it positive definite."""
-    orders = {"TORO's (I11 I12 I22 I33 I13 I23)": _symmetric(values, *_TORO_EDGE2),
-              "g2o's (I11 I12 I13 I22 I23 I33)": _symmetric(values, *np.triu_indices(3))}
-    fits = {name: _positive_definite(info) for name, info in orders.items()}
+    orders = {"TORO's (I11 I12 I22 I33 I13 I23)": symmetric(values, *_TORO_EDGE2),
+              "g2o's (I11 I12 I13 I22 I23 I33)": symmetric(values, *np.triu_indices(3))}
+    fits = {name: positive_definite(info) for name, info in orders.items()}
     score = {name: int(ok.sum()) for name, ok in fits.items()}
     (toro, g2o), m = orders, len(values)
     name = toro if score[toro] >= score[g2o] else g2o
@@ -271,22 +232,24 @@ def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]
     """Append one tag's rows, converted to the canonical tag, to ``pieces`` (offsets: ``out``)."""
     canonical = _TAGS[tag][0]
     for count, (v, lines) in rows.items():
-        if tag in ("FIX", "EQUIV"):
-            pieces[tag].append((_ids(path, tag, v, lines), lines))
+        if tag in gl.LAYOUTS:
+            gl.convert(path, tag, v, lines, out, pieces)
+        elif tag in ("FIX", "EQUIV"):
+            pieces[tag].append((parse_ids(path, tag, v, lines), lines))
         elif tag == "PARAMS_SE3OFFSET":
-            for pid, values, line in zip(_ids(path, tag, v[:, :1], lines)[:, 0].tolist(),
+            for pid, values, line in zip(parse_ids(path, tag, v[:, :1], lines)[:, 0].tolist(),
                                          v[:, 1:], lines.tolist(), strict=True):
-                if pid in out.offsets:
+                if pid in out.offsets or pid in out.parameters:
                     raise GraphFormatError(path, f"duplicate PARAMS_SE3OFFSET id {pid}", line)
                 out.offsets[pid] = values
         elif canonical in _VERTEX_TAGS:
             values = v[:, 1:]
             if tag == "VERTEX3":
                 values = np.column_stack([values[:, :3], _rpy_to_quat(values[:, 3:])])
-            pieces[canonical].append((_ids(path, tag, v[:, :1], lines)[:, 0], values, lines))
+            pieces[canonical].append((parse_ids(path, tag, v[:, :1], lines)[:, 0], values, lines))
         else:
             nid = 3 if tag == "EDGE_SE3_TRACKXYZ" else 2
-            ids = _ids(path, tag, v[:, :nid], lines)
+            ids = parse_ids(path, tag, v[:, :nid], lines)
             _, cols, dim = _EDGES[canonical]
             cols = 6 if tag == "EDGE3" else cols
             meas, tail = v[:, nid:nid + cols], v[:, nid + cols:]
@@ -294,15 +257,15 @@ def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]
                 info = _edge2_information(path, tail, lines, out.notes)
             elif tag == "EDGE3":
                 meas = np.column_stack([meas[:, :3], _rpy_to_quat(meas[:, 3:])])
-                info = _symmetric(tail, *np.triu_indices(6)) if count == 29 else np.eye(6)[None]
+                info = symmetric(tail, *np.triu_indices(6)) if count == 29 else np.eye(6)[None]
                 info = info * _RPY_TO_QVEC[:, None] * _RPY_TO_QVEC + np.zeros((len(v), 1, 1))
             else:
-                info = _symmetric(tail, *np.triu_indices(dim))
+                info = symmetric(tail, *np.triu_indices(dim))
             loops = np.flatnonzero(ids[:, 0] == ids[:, 1])
             if len(loops) and canonical in ("EDGE_SE2", "EDGE_SE3:QUAT"):
                 raise GraphFormatError(path, f"{tag}: edge from vertex {ids[loops[0], 0]} to "
                                              "itself", lines[loops[0]])
-            bad = np.flatnonzero(~_positive_definite(info))
+            bad = np.flatnonzero(~positive_definite(info))
             if len(bad):
                 raise GraphFormatError(path, f"{tag}: information matrix is not positive "
                                              "definite", lines[bad[0]])
@@ -337,14 +300,21 @@ def _check_references(path: Path, graph: GraphFile, fix_lines: np.ndarray,
             raise GraphFormatError(
                 path, f"duplicate {tag} id {ids[k]} (first defined on line {first})", lines[k])
     for tag, edges in graph.edges.items():
-        for end, vtag in enumerate(_EDGES[tag][0]):
+        ends = _EDGES[tag][0] if tag in _EDGES else gl.LAYOUTS[tag].vertices
+        for end, vtag in enumerate(ends):
             if vtag not in graph.vertices:
                 continue
             missing = ~np.isin(edges.ids[:, end], graph.vertices[vtag].ids)
             if (k := _earliest(missing, edges.lines)) is not None:
                 raise GraphFormatError(path, f"{tag} names vertex {edges.ids[k, end]}, which has "
                                              f"no {vtag} line in this file", edges.lines[k])
-        if edges.params is not None:
+        if tag in gl.LAYOUTS:
+            pids = gl.edge_params(edges)
+            absent = ~np.isin(pids, [*graph.offsets, *graph.parameters])
+            if (k := _earliest(absent.any(axis=1), edges.lines)) is not None:
+                raise GraphFormatError(path, f"{tag} names parameter {pids[k][absent[k]][0]}, "
+                                             "which no PARAMS_ line defines", edges.lines[k])
+        elif edges.params is not None:
             missing = ~np.isin(edges.params, list(graph.offsets))
             if (k := _earliest(missing, edges.lines)) is not None:
                 raise GraphFormatError(path, f"{tag} names parameter {edges.params[k]}, which no "
@@ -384,7 +354,8 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
         raise GraphFormatError(path, "no vertex or edge lines" + (
             f" (skipped {sum(skipped.values())} lines with unknown tags)" if skipped else ""))
     graph = GraphFile(path=str(path), skipped=skipped)
-    pieces: dict[str, list[tuple]] = {t: [] for t in (*_VERTEX_TAGS, *_EDGES, "FIX", "EQUIV")}
+    pieces: dict[str, list[tuple]] = {t: [] for t in (*_ALL_VERTEX_TAGS, *_ALL_EDGE_TAGS, "FIX",
+                                                      "EQUIV")}
     for tag, group in groups.items():
         _convert(path, tag, _table(path, tag, *group), graph, pieces)
     merged = {}
@@ -393,10 +364,12 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
             merged[tag] = [np.zeros((0, 2), np.int64), np.zeros(0, np.int64)]
             continue
         parts = [np.concatenate(p) for p in zip(*parts, strict=True)]
-        order = np.argsort(parts[3 if tag in _EDGES else -1], kind="stable")
+        order = np.argsort(parts[3 if tag in _ALL_EDGE_TAGS else -1], kind="stable")
         merged[tag] = [p[order] for p in parts]
-        if tag in _VERTEX_TAGS:
+        if tag in _ALL_VERTEX_TAGS:
             graph.vertices[tag] = VertexBlock(*merged[tag])
+        elif tag in gl.LAYOUTS:
+            graph.edges[tag] = EdgeBlock(*merged[tag])
         elif tag in _EDGES:
             ids, meas, info, lines, extra = merged[tag]
             graph.edges[tag] = EdgeBlock(ids, meas, info, lines, extra[:, 0] if extra.shape[1]
@@ -449,7 +422,8 @@ def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool =
     if len(graph.equiv) and not drop_equiv:
         raise ValueError(f"write_g2o: {len(graph.equiv)} EQUIV pairs, which g2o cannot store; "
                          "merge them first or pass drop_equiv=True")
-    unknown = (set(graph.vertices) - set(_VERTEX_TAGS)) | (set(graph.edges) - set(_EDGES))
+    unknown = ((set(graph.vertices) - set(_ALL_VERTEX_TAGS))
+               | (set(graph.edges) - set(_ALL_EDGE_TAGS)))
     if unknown:
         raise ValueError(f"write_g2o: no g2o line for {', '.join(sorted(unknown))}")
     track = graph.edges.get("EDGE_SE3_TRACKXYZ")
@@ -461,14 +435,17 @@ def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool =
     with atomic_path(path) as tmp, opener(tmp, "wt", encoding="ascii") as f:
         for pid, offset in sorted(graph.offsets.items()):
             f.write(_lines_of("PARAMS_SE3OFFSET", [np.array([pid]), np.reshape(offset, (1, 7))], 1))
+        gl.write(f, graph, "param", _lines_of)
         for tag in _VERTEX_TAGS:
             if tag in graph.vertices:
                 block = graph.vertices[tag]
                 f.write(_lines_of(tag, [block.ids, block.values], 1))
+        gl.write(f, graph, "vertex", _lines_of)
         for tag, (_, _, dim) in _EDGES.items():
             if tag in graph.edges:
                 e = graph.edges[tag]
                 ids = [e.ids] + ([e.params] if e.params is not None else [])
                 upper = e.information[:, *np.triu_indices(dim)]
                 f.write(_lines_of(tag, [*ids, e.measurements, upper], len(ids) + 1))
+        gl.write(f, graph, "edge", _lines_of)
         f.write(_lines_of("FIX", [np.asarray(graph.fixed)], 1))

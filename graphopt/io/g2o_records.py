@@ -48,11 +48,12 @@ class EdgeBlock:
     """All edge lines of one canonical tag.
 
     Args:
-        ids: ``(m, 2)`` vertex ids (from, to).
+        ids: ``(m, k)`` vertex ids in g2o's order (``k = 2`` for the pose-graph tags).
         measurements: ``(m, k)`` measurements in the tag's canonical columns.
         information: ``(m, e, e)`` information matrices, in g2o's convention for the tag.
         lines: ``(m,)`` 1-based line numbers (0 for generated edges).
-        params: ``(m,)`` parameter id per edge (``EDGE_SE3_TRACKXYZ``), else ``None``.
+        params: ``(m,)`` parameter id per edge (``EDGE_SE3_TRACKXYZ``), ``(m, p)`` for the other
+            tags with parameters (``p`` may be 0), else ``None``.
     """
 
     ids: np.ndarray
@@ -71,6 +72,8 @@ class GraphFile:
         vertices: Canonical vertex tag → its lines.
         edges: Canonical edge tag → its lines.
         offsets: ``PARAMS_SE3OFFSET`` id → ``(7,)`` offset ``x y z qx qy qz qw``.
+        parameters: The other parameter lines: id → ``(tag, values)``
+            (:data:`graphopt.io.g2o_layouts.LAYOUTS`; g2o's parameter ids are global).
         fixed: ``(k,)`` ids named by ``FIX`` lines.
         equiv: ``(k, 2)`` id pairs of TORO ``EQUIV`` lines.
         skipped: Unknown tag → number of lines skipped (when the reader was told to skip).
@@ -83,6 +86,7 @@ class GraphFile:
     vertices: dict[str, VertexBlock] = field(default_factory=dict)
     edges: dict[str, EdgeBlock] = field(default_factory=dict)
     offsets: dict[int, np.ndarray] = field(default_factory=dict)
+    parameters: dict[int, tuple[str, np.ndarray]] = field(default_factory=dict)
     fixed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     equiv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     skipped: dict[str, int] = field(default_factory=dict)
