@@ -36,15 +36,15 @@ import bz2
 import gzip
 import os
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from graphopt.io import g2o_layouts as gl
 from graphopt.io.atomic import atomic_path
-from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
 from graphopt.io.g2o_lines import GraphFormatError, parse_ids, positive_definite, symmetric
+from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
 from graphopt.io.text import WHITESPACE, read_bytes, token_layout
 from graphopt.linear.indexing import concat_ranges
 
@@ -70,8 +70,10 @@ _TAGS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "FIX": ("FIX", (), "one or more vertex ids"),
     "EQUIV": ("EQUIV", (2,), "id id"),
 }
+_POSE_GRAPH_TAGS = tuple(_TAGS)  # named one by one in an unknown tag's error
 _TAGS.update({tag: (tag, (lay.count, *gl.CLASSIC.get(tag, ())), lay.text)
               for tag, lay in gl.LAYOUTS.items()})
+_TAGS.update({tag: (tag, (), "n id_1..id_n d z_1..z_d N I_1..I_N") for tag in gl.DYNAMIC})
 _VERTEX_TAGS = ("VERTEX_SE2", "VERTEX_XY", "VERTEX_SE3:QUAT", "VERTEX_TRACKXYZ")
 _ALL_VERTEX_TAGS = (*_VERTEX_TAGS, *(t for t, lay in gl.LAYOUTS.items() if lay.kind == "vertex"))
 # Canonical edge tag → (vertex tags of its two ends, measurement columns, information size).
@@ -135,8 +137,9 @@ def _scan(path: Path, data: bytes, skip_unknown: bool
         k = int(np.argmax(unknown[code]))  # the first line with an unknown tag
         shown = tags[code[k]] + ("..." if width[k] >= _TAG_WIDTH else "")
         raise GraphFormatError(
-            path, f"unknown tag {shown!r} (known: {' '.join(_TAGS)}; --skip-unknown / "
-            f"skip_unknown=True skips such lines)", numbers[k])
+            path, f"unknown tag {shown!r} (known: {' '.join(_POSE_GRAPH_TAGS)}, "
+            f"g2o's other slam2d, slam3d, sba, sim3, sclam2d and icp tags, {len(_TAGS)} in all "
+            "(docs/slam.md §2); --skip-unknown / skip_unknown=True skips such lines)", numbers[k])
     skipped = {tags[u]: int(np.count_nonzero(code == u)) for u in np.flatnonzero(unknown)}
     counts = np.bincount(line_of, minlength=len(heads)) - 1
     bad = np.zeros(len(heads), dtype=bool)
@@ -195,11 +198,11 @@ def _table(path: Path, tag: str, values: np.ndarray, counts: np.ndarray, numbers
           ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Value count → ``(values (n, count), line numbers (n,))`` for one tag's lines."""
     allowed = _TAGS[tag][1]
-    if not allowed:  # FIX: any number of ids per line, one row per id
+    if tag == "FIX":  # any number of ids per line, one row per id
         return {1: (values[:, None], np.repeat(numbers, counts))}
     offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     out = {}
-    for count in allowed:
+    for count in allowed or np.unique(counts).tolist():  # (sized lines: per count)
         sel = counts == count
         if sel.any():
             out[count] = (values[offsets[sel][:, None] + np.arange(count)], numbers[sel])
@@ -234,6 +237,8 @@ def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]
     for count, (v, lines) in rows.items():
         if tag in gl.LAYOUTS:
             gl.convert(path, tag, v, lines, out, pieces)
+        elif tag in gl.DYNAMIC:
+            gl.convert_dynamic(path, tag, v, lines, pieces)
         elif tag in ("FIX", "EQUIV"):
             pieces[tag].append((parse_ids(path, tag, v, lines), lines))
         elif tag == "PARAMS_SE3OFFSET":
@@ -300,7 +305,7 @@ def _check_references(path: Path, graph: GraphFile, fix_lines: np.ndarray,
             raise GraphFormatError(
                 path, f"duplicate {tag} id {ids[k]} (first defined on line {first})", lines[k])
     for tag, edges in graph.edges.items():
-        ends = _EDGES[tag][0] if tag in _EDGES else gl.LAYOUTS[tag].vertices
+        ends = _EDGES[tag][0] if tag in _EDGES else gl.ends(tag)
         for end, vtag in enumerate(ends):
             if vtag not in graph.vertices:
                 continue
@@ -308,7 +313,7 @@ def _check_references(path: Path, graph: GraphFile, fix_lines: np.ndarray,
             if (k := _earliest(missing, edges.lines)) is not None:
                 raise GraphFormatError(path, f"{tag} names vertex {edges.ids[k, end]}, which has "
                                              f"no {vtag} line in this file", edges.lines[k])
-        if tag in gl.LAYOUTS:
+        if tag not in _EDGES:
             pids = gl.edge_params(edges)
             absent = ~np.isin(pids, [*graph.offsets, *graph.parameters])
             if (k := _earliest(absent.any(axis=1), edges.lines)) is not None:
@@ -356,7 +361,8 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
     graph = GraphFile(path=str(path), skipped=skipped)
     pieces: dict[str, list[tuple]] = {t: [] for t in (*_ALL_VERTEX_TAGS, *_ALL_EDGE_TAGS, "FIX",
                                                       "EQUIV")}
-    for tag, group in groups.items():
+    # tags in the order of their first line: a duplicate parameter id names its later line
+    for tag, group in sorted(groups.items(), key=lambda kv: int(kv[1][2][0])):
         _convert(path, tag, _table(path, tag, *group), graph, pieces)
     merged = {}
     for tag, parts in pieces.items():  # each canonical tag's lines in file order
@@ -364,11 +370,11 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
             merged[tag] = [np.zeros((0, 2), np.int64), np.zeros(0, np.int64)]
             continue
         parts = [np.concatenate(p) for p in zip(*parts, strict=True)]
-        order = np.argsort(parts[3 if tag in _ALL_EDGE_TAGS else -1], kind="stable")
+        order = np.argsort(parts[3 if len(parts) == 5 else -1], kind="stable")
         merged[tag] = [p[order] for p in parts]
         if tag in _ALL_VERTEX_TAGS:
             graph.vertices[tag] = VertexBlock(*merged[tag])
-        elif tag in gl.LAYOUTS:
+        elif tag in gl.LAYOUTS or "#" in tag:
             graph.edges[tag] = EdgeBlock(*merged[tag])
         elif tag in _EDGES:
             ids, meas, info, lines, extra = merged[tag]
@@ -388,14 +394,17 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
 # --------------------------------------------------------------------------------------------
 
 
-def _lines_of(tag: str, columns: list[np.ndarray], n_ids: int) -> str:
-    """``tag id… v…`` lines, ids as integers and values with ``%.17g``."""
+def _lines_of(tag: str, columns: list[np.ndarray], n_ids: int,
+              sizes: Sequence[int] = ()) -> str:
+    """``tag id… v…`` lines: the first ``n_ids`` columns and those at ``sizes`` as integers,
+    the other values with ``%.17g``."""
     if len(columns[0]) == 0:
         return ""
     table = np.column_stack([np.asarray(c, dtype=float).reshape(len(c), -1) for c in columns])
     if not np.isfinite(table).all():
         raise ValueError(f"write_g2o: {tag} contains NaN or inf")
-    fmt = " ".join([tag] + ["%d"] * n_ids + ["%.17g"] * (table.shape[1] - n_ids))
+    kinds = ["%d" if c < n_ids or c in sizes else "%.17g" for c in range(table.shape[1])]
+    fmt = " ".join([tag, *kinds])
     return "\n".join(fmt % tuple(row) for row in table.tolist()) + "\n"
 
 
@@ -423,7 +432,8 @@ def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool =
         raise ValueError(f"write_g2o: {len(graph.equiv)} EQUIV pairs, which g2o cannot store; "
                          "merge them first or pass drop_equiv=True")
     unknown = ((set(graph.vertices) - set(_ALL_VERTEX_TAGS))
-               | (set(graph.edges) - set(_ALL_EDGE_TAGS)))
+               | {t for t in graph.edges if t not in _ALL_EDGE_TAGS
+                  and t.split("#")[0] not in gl.DYNAMIC})
     if unknown:
         raise ValueError(f"write_g2o: no g2o line for {', '.join(sorted(unknown))}")
     track = graph.edges.get("EDGE_SE3_TRACKXYZ")

@@ -33,7 +33,8 @@ import numpy as np
 from graphopt.io.g2o_lines import GraphFormatError, parse_ids, positive_definite, symmetric
 from graphopt.io.g2o_records import EdgeBlock, GraphFile
 
-__all__ = ["CAMERA_DEFAULTS", "CLASSIC", "LAYOUTS", "Layout", "convert", "write"]
+__all__ = ["CAMERA_DEFAULTS", "CLASSIC", "DYNAMIC", "LAYOUTS", "Layout", "convert",
+           "convert_dynamic", "edge_params", "ends", "write"]
 
 
 @dataclass(frozen=True)
@@ -134,6 +135,63 @@ LAYOUTS: dict[str, Layout] = {
 #: accepts: ``VERTEX_CAM`` with its intrinsics (``… fx fy cx cy baseline``).
 CLASSIC: dict[str, tuple[int, ...]] = {"VERTEX_CAM": (13,)}
 
+#: Tags whose lines carry their sizes, as g2opy 2.3.0 writes them:
+#: ``TAG n id_1 … id_n d z_1 … z_d N I_1 … I_N`` (``n = k + 1`` vertices: a pose and ``k``
+#: points; ``d = k·dim`` measurement values; ``N = d(d+1)/2`` information values). Tag →
+#: (pose tag, point tag, point dimension). Records key them ``TAG#k`` (one block per ``k``).
+DYNAMIC: dict[str, tuple[str, str, int]] = {
+    "EDGE_SE2_LOTSOFXY": (_SE2, _XY, 2),
+    "EDGE_SE3_LOTSOF_XYZ": (_SE3, _XYZ, 3),
+}
+
+
+def ends(key: str) -> tuple[str, ...]:
+    """The vertex tag at each position of a generic edge key (``TAG`` or ``TAG#k``).
+
+    Args:
+        key: A tag of :data:`LAYOUTS` or a ``TAG#k`` key of :data:`DYNAMIC`.
+    """
+    if "#" in key:
+        tag, k = key.split("#")
+        pose, point, _ = DYNAMIC[tag]
+        return (pose,) + (point,) * int(k)
+    return LAYOUTS[key].vertices
+
+
+def convert_dynamic(path: Path, tag: str, v: np.ndarray, lines: np.ndarray,
+                    pieces: dict[str, list[tuple]]) -> None:
+    """Convert the lines of a :data:`DYNAMIC` tag that have ``count`` values each.
+
+    Args:
+        path: The file (for messages).
+        tag: The tag.
+        v: ``(n, count)`` the values after the tag (one count for all rows).
+        lines: ``(n,)`` 1-based line numbers.
+        pieces: Key ``TAG#k`` → list of ``(ids, measurements, information, lines, params)``.
+    """
+    dim, count = DYNAMIC[tag][2], v.shape[1]
+    # count = 1 + n + 1 + d + 1 + d(d+1)/2 with d = dim·(n − 1): the n that fits, if any
+    n = next((n for n in range(2, count) if 3 + n + dim * (n - 1) * (1 + (dim * (n - 1) + 1) / 2)
+              == count), 0)
+    d = dim * (n - 1)
+    want = np.array([n, d, d * (d + 1) // 2])
+    got = v[:, [0, 1 + n, 2 + n + d]] if n else np.full((len(v), 3), -1.0)
+    bad = np.flatnonzero((got != want).any(axis=1))
+    if len(bad):
+        raise GraphFormatError(path, f"{tag} needs n id_1..id_n d z_1..z_d N I_1..I_N with "
+                                     f"d = {dim}(n-1) and N = d(d+1)/2, found {count} values "
+                                     f"starting {' '.join(f'{x:g}' for x in v[bad[0], :3])}",
+                               int(lines[bad[0]]))
+    ids = parse_ids(path, tag, v[:, 1:1 + n], lines)
+    info = symmetric(v[:, 3 + n + d:], *np.triu_indices(d))
+    bad = np.flatnonzero(~positive_definite(info))
+    if len(bad):
+        raise GraphFormatError(path, f"{tag}: information matrix is not positive definite",
+                               int(lines[bad[0]]))
+    pieces.setdefault(f"{tag}#{n - 1}", []).append(
+        (ids, v[:, 2 + n:2 + n + d], info, lines, np.zeros((len(v), 0), np.int64)))
+
+
 #: The intrinsics ``fx fy cx cy baseline`` of a ``VERTEX_CAM`` line without them: those of
 #: g2o's default ``SBACam`` (g2opy 2.3.0 writes the pose only and reads it into a default one).
 CAMERA_DEFAULTS = (1.0, 1.0, 0.5, 0.5, 0.0)
@@ -184,19 +242,28 @@ def edge_params(block: EdgeBlock) -> np.ndarray:
 
 
 def write(f: TextIO, graph: GraphFile, kinds: str,
-          lines_of: Callable[[str, list[np.ndarray], int], str]) -> None:
+          lines_of: Callable[..., str]) -> None:
     """Write the generic parameters, vertices or edges of ``graph`` in :data:`LAYOUTS` order.
 
     Args:
         f: The open file.
         graph: The records.
         kinds: ``"param"``, ``"vertex"`` or ``"edge"``.
-        lines_of: ``(tag, columns, number of integer columns) -> text``.
+        lines_of: ``(tag, columns, number of leading integer columns[, other integer
+            columns]) -> text``.
     """
     if kinds == "param":
         for pid, (tag, values) in sorted(graph.parameters.items()):
             f.write(lines_of(tag, [np.array([pid]), np.reshape(values, (1, -1))], 1))
         return
+    if kinds == "edge":
+        for key in sorted(k for k in graph.edges if "#" in k):
+            e = graph.edges[key]
+            m, n, d = len(e.ids), e.ids.shape[1], e.measurements.shape[1]
+            upper = np.asarray(e.information)[:, *np.triu_indices(d)]
+            f.write(lines_of(key.split("#")[0], [np.full(m, n), e.ids, np.full(m, d),
+                                                 e.measurements, np.full(m, upper.shape[1]),
+                                                 upper], n + 1, [n + 1, n + 2 + d]))
     for tag, lay in LAYOUTS.items():
         if lay.kind == "vertex" and kinds == "vertex" and tag in graph.vertices:
             block = graph.vertices[tag]
