@@ -66,9 +66,10 @@ from graphopt.io.g2o_layouts import edge_params
 from graphopt.io.g2o_records import EdgeBlock, GraphFile
 from graphopt.lie import quat_to_rot, rot_to_quat
 from graphopt.optimizer import SparseOptimizer
-from graphopt.types.isometry3 import pose_from_qt, quat_to_matrix
+from graphopt.types.isometry3 import pose_from_qt, pose_to_qt, quat_to_matrix
 
-__all__ = ["EDGE_TAGS", "VERTEX_TAGS", "add_edges", "edge_type", "estimates", "known",
+__all__ = ["EDGE_TAGS", "TAG_OF_TYPE", "VERTEX_TAGS", "add_edges", "edge_block", "edge_type",
+           "estimates", "known",
            "parameters", "spec", "values", "vertex_type"]
 
 
@@ -116,6 +117,10 @@ class VertexTag:
     to_values: Callable[[np.ndarray], np.ndarray] = _same
 
 
+def _flat(z: np.ndarray) -> np.ndarray:
+    return np.asarray(z, float).reshape(len(z), -1).copy()
+
+
 @dataclass(frozen=True)
 class EdgeTag:
     """An edge tag's graphopt type and conversions.
@@ -126,6 +131,7 @@ class EdgeTag:
         to_measurement: ``(m, w)`` file values → graphopt's measurements.
         params: The parameter tag each parameter id must name.
         why_not: Why such lines cannot be built (``None``: they can).
+        to_values: graphopt's measurements → ``(m, w)`` file values (``None``: not writable).
     """
 
     type_name: str
@@ -133,6 +139,7 @@ class EdgeTag:
     to_measurement: Callable[[np.ndarray], np.ndarray] = _same
     params: tuple[str, ...] = ()
     why_not: str | None = None
+    to_values: Callable[[np.ndarray], np.ndarray] | None = _flat
 
 
 VERTEX_TAGS: dict[str, VertexTag] = {
@@ -157,21 +164,23 @@ EDGE_TAGS: dict[str, EdgeTag] = {
     "EDGE_SE2_TWOPOINTSXY": EdgeTag("EdgeSE2TwoPointsXY", (0, 1, 2)),
     "EDGE_SE2_CALIB": EdgeTag("EdgeSE2SensorCalib", (0, 1, 2)),
     "EDGE_SE2_ODOM_DIFFERENTIAL_CALIB": EdgeTag("EdgeSE2OdomDifferentialCalib", (0, 1, 2)),
-    "EDGE_SE3_PRIOR": EdgeTag("EdgeSE3Prior", (0,), pose_from_qt, _SE3O),
+    "EDGE_SE3_PRIOR": EdgeTag("EdgeSE3Prior", (0,), pose_from_qt, _SE3O, None, pose_to_qt),
     "EDGE_SE3_XYZ_PRIOR": EdgeTag("EdgeSE3XYZPrior", (0,), params=_SE3O),
-    "EDGE_SE3_OFFSET": EdgeTag("EdgeSE3Offset", (0, 1), pose_from_qt, _SE3O * 2),
+    "EDGE_SE3_OFFSET": EdgeTag("EdgeSE3Offset", (0, 1), pose_from_qt, _SE3O * 2, None,
+                               pose_to_qt),
     "EDGE_POINTXYZ": EdgeTag("EdgePointXYZ"),
     "EDGE_POINTXYZ_PRIOR": EdgeTag("EdgeXYZPrior", (0,)),
     "EDGE_PROJECT_DEPTH": EdgeTag("EdgeSE3PointXYZDepth", params=_KCAM),
     "EDGE_PROJECT_DISPARITY": EdgeTag("EdgeSE3PointXYZDisparity", params=_KCAM),
     "EDGE_V_V_GICP": EdgeTag("EdgeVVGicp", to_measurement=lambda v: v[:, [0, 1, 2, 6, 7, 8]]
-                             .reshape(len(v), 2, 3)),
-    "EDGE_SE3:EXPMAP": EdgeTag("EdgeSE3Expmap", to_measurement=_expmap_in),
+                             .reshape(len(v), 2, 3), to_values=None),  # (no normals to write)
+    "EDGE_SE3:EXPMAP": EdgeTag("EdgeSE3Expmap", to_measurement=_expmap_in,
+                               to_values=_expmap_out),
     "EDGE_PROJECT_XYZ2UV:EXPMAP": EdgeTag("EdgeProjectXYZ2UV", (1, 0), params=_SBA),
     "EDGE_PROJECT_XYZ2UVU:EXPMAP": EdgeTag("EdgeProjectXYZ2UVU", (1, 0), params=_SBA),
     "EDGE_SE3_PROJECT_XYZ:EXPMAP": EdgeTag(
         "EdgeSE3ProjectXYZ", (1, 0), why_not="g2o writes no intrinsics (fx fy cx cy) for it"),
-    "EDGE_SIM3:EXPMAP": EdgeTag("EdgeSim3", to_measurement=_sim3_in),
+    "EDGE_SIM3:EXPMAP": EdgeTag("EdgeSim3", to_measurement=_sim3_in, to_values=_sim3_out),
     "EDGE_PROJECT_SIM3_XYZ:EXPMAP": EdgeTag("EdgeSim3ProjectXYZ", params=("unit camera",)),
     "EDGE_PROJECT_INVERSE_SIM3_XYZ:EXPMAP": EdgeTag("EdgeInverseSim3ProjectXYZ",
                                                     params=("unit camera",)),
@@ -319,6 +328,40 @@ def add_edges(opt: SparseOptimizer, graph: GraphFile, tag: str, ids: np.ndarray,
             opt.add_edges(etype, ordered[sel], meas[sel], info[sel], params=params)
         except GraphError as exc:
             raise GraphError(f"{_where(graph, block, int(sel[0]))}: {tag}: {exc}") from None
+
+
+#: graphopt type name → tag, for writers (the first tag naming the type).
+TAG_OF_TYPE: dict[str, str] = {}
+for _tag, _spec in [*VERTEX_TAGS.items(), *EDGE_TAGS.items()]:
+    TAG_OF_TYPE.setdefault(_spec.type_name, _tag)
+
+
+def edge_block(type_name: str, vids: np.ndarray, meas: np.ndarray, info: np.ndarray,
+               pids: np.ndarray) -> tuple[str, EdgeBlock]:
+    """The file key and records of edges held in graphopt's layout (a writer's side of
+    :func:`add_edges`).
+
+    Args:
+        type_name: The graphopt edge type's name (``EdgeSE3LotsOfXYZ_3`` for ``.of(3)``).
+        vids: ``(m, k)`` vertex ids in graphopt's order.
+        meas: ``(m, …)`` graphopt's measurements.
+        info: ``(m, d, d)`` information matrices.
+        pids: ``(m, p)`` parameter ids in g2o's order.
+
+    Raises:
+        NotImplementedError: No g2o line holds such edges.
+    """
+    base, _, k = type_name.partition("_")
+    tag = TAG_OF_TYPE.get(type_name) or (TAG_OF_TYPE.get(base) if k.isdigit() else None)
+    spec_ = EDGE_TAGS.get(tag or "")
+    if spec_ is None or spec_.to_values is None:
+        raise NotImplementedError(f"no g2o file line holds {type_name} edges")
+    key = f"{tag}#{k}" if k.isdigit() else tag
+    order = list(spec(key).order)
+    ids = np.empty_like(vids)
+    ids[:, order] = vids
+    return key, EdgeBlock(ids, spec_.to_values(np.asarray(meas, float)), np.asarray(info, float),
+                          np.zeros(len(vids), np.int64), np.asarray(pids, np.int64))
 
 
 def known(key: str) -> bool:
