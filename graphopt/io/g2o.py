@@ -6,6 +6,10 @@ its canonical g2o tag (see :mod:`graphopt.io.g2o_records`):
 - g2o: ``VERTEX_SE2``, ``EDGE_SE2``, ``VERTEX_XY``, ``EDGE_SE2_XY``, ``VERTEX_SE3:QUAT``,
   ``EDGE_SE3:QUAT``, ``VERTEX_TRACKXYZ``, ``EDGE_SE3_TRACKXYZ``, ``PARAMS_SE3OFFSET``, ``FIX``.
 - GTSAM: ``LANDMARK2 pose landmark x y Ixx Ixy Iyy`` → ``EDGE_SE2_XY`` (same columns).
+- g2o's other slam2d, slam3d, sba, sim3, sclam2d and icp tags, as the g2opy 2.3.0 wheel writes
+  them (:mod:`graphopt.io.g2o_layouts`): parameters go to :attr:`GraphFile.parameters`, vertex and
+  edge lines to blocks under their own tag (sized ``LOTSOF`` lines under ``TAG#k``), ids in
+  g2o's order, the information from its upper triangle.
 - TORO: ``VERTEX2``/``EDGE2`` → ``VERTEX_SE2``/``EDGE_SE2``; ``VERTEX3``/``EDGE3`` (roll, pitch,
   yaw with ``R = Rz(yaw) Ry(pitch) Rx(roll)``) → ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``;
   ``EQUIV a b`` → :attr:`GraphFile.equiv` (merging is the builder's job).

@@ -19,6 +19,9 @@ tag                     ids     values
 ``EDGE_SE3:QUAT``       2       measurement ``x y z qx qy qz qw``; information 6x6 ([t, q_vec])
 ``EDGE_SE3_TRACKXYZ``   2       measurement ``x y z``; information 3x3; a parameter id per edge
 ======================  ======  =========================================================
+
+g2o's other tags (:data:`graphopt.io.g2o_layouts.LAYOUTS`) keep their own tag and the columns
+of the g2opy 2.3.0 wheel's lines; their parameters are in :attr:`GraphFile.parameters`.
 """
 
 from __future__ import annotations
