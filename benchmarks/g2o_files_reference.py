@@ -70,6 +70,49 @@ def _priors(rng: np.random.Generator) -> list[tuple[ref.Case, Any]]:
     return [(se3, b_se3), (se2, b_se2)]
 
 
+def _expmap_sim3(rng: np.random.Generator) -> list[tuple[ref.Case, Any]]:
+    """``EdgeSE3Expmap``, ``EdgeSim3`` and the two Sim3 projections (ORB-SLAM's loop closing),
+    which the types reference does not build (graphopt's types for them come from the sba_pose
+    and sim3 modules)."""
+    from graphopt.lie import se3_exp
+
+    m = ref.M
+    Ti, Tj, Z = (se3_exp(rng.normal(0, 0.5, (m, 6))) for _ in range(3))
+    exp = ref.Case("EdgeSE3Expmap", [Ti, Tj], Z, ref._info(rng, m, 6))
+
+    def se3q(g2o: Any, T: np.ndarray) -> Any:
+        return g2o.SE3Quat(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]))
+
+    def b_exp(g2o: Any, opt: Any, i: int) -> Any:
+        v = [ref._vertex(g2o, opt, "VertexSE3Expmap", 10 * i + k, se3q(g2o, a[i]))
+             for k, a in enumerate(exp.x)]
+        return ref._edge(g2o, opt, "EdgeSE3Expmap", v, se3q(g2o, Z[i]), exp.info[i])
+
+    scale = rng.uniform(0.5, 2.0, (3, m))
+    sim = ref.Case("EdgeSim3", [Ti, Tj], Z, ref._info(rng, m, 7))
+
+    def sim3(g2o: Any, T: np.ndarray, s: float) -> Any:
+        return g2o.Sim3(np.asfortranarray(T[:3, :3]), T[:3, 3].copy(), float(s))
+
+    def b_sim(g2o: Any, opt: Any, i: int) -> Any:
+        v = [ref._vertex(g2o, opt, "VertexSim3Expmap", 10 * i + k, sim3(g2o, a[i], scale[k, i]))
+             for k, a in enumerate(sim.x)]
+        return ref._edge(g2o, opt, "EdgeSim3", v, sim3(g2o, Z[i], scale[2, i]), sim.info[i])
+
+    out = [(exp, b_exp), (sim, b_sim)]
+    p = ref._in_front(rng, Ti[:, :3, :3], Ti[:, :3, 3])
+    for name in ("EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ"):
+        case = ref.Case(name, [p, Ti], rng.normal(0, 0.5, (m, 2)), ref._info(rng, m, 2))
+
+        def b_proj(g2o: Any, opt: Any, i: int, case: ref.Case = case) -> Any:
+            v = [ref._vertex(g2o, opt, "VertexPointXYZ", 10 * i, p[i]),
+                 ref._vertex(g2o, opt, "VertexSim3Expmap", 10 * i + 1,
+                             sim3(g2o, Ti[i], scale[0, i]))]
+            return ref._edge(g2o, opt, case.name, v, case.z[i], case.info[i])
+        out.append((case, b_proj))
+    return out
+
+
 def _camera_files(g2o: Any, rng: np.random.Generator) -> dict[str, str]:
     """Depth and disparity graphs: g2opy cannot configure a ``ParameterCamera`` from Python,
     so the graph is loaded from lines like the types reference's and saved again."""
@@ -119,7 +162,7 @@ def main() -> None:
     ref.slam2d(rng)
     ref.sba(rng)
     ref.icp(rng)
-    for case, build in _priors(rng):
+    for case, build in _priors(rng) + _expmap_sim3(rng):
         save(case, build)
     for name, text in _camera_files(g2o, rng).items():
         chi2, edges = _chi2_of_file(g2o, text)

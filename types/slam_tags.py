@@ -212,7 +212,7 @@ def _type(name: str, tag: str) -> Any:
     try:
         return getattr(gt, name)
     except (AttributeError, ImportError):
-        raise GraphError(f"{tag}: graphopt has no {name} type yet, so such lines cannot be "
+        raise GraphError(f"graphopt has no {name} type yet, so {tag} lines cannot be "
                          "built") from None
 
 
@@ -297,7 +297,10 @@ def add_edges(opt: SparseOptimizer, graph: GraphFile, tag: str, ids: np.ndarray,
     info_of, block = spec(tag), graph.edges[tag]
     if info_of.why_not is not None:
         raise GraphError(f"{_where(graph, block, 0)}: {tag} cannot be built: {info_of.why_not}")
-    etype = edge_type(tag)
+    try:
+        etype = edge_type(tag)
+    except GraphError as exc:
+        raise GraphError(f"{_where(graph, block, 0)}: {exc}") from None
     meas = np.asarray(block.measurements, float)
     info = np.asarray(block.information, float)
     bad = ~(np.isfinite(meas).all(axis=1) & np.isfinite(info).reshape(len(info), -1).all(axis=1))
