@@ -339,13 +339,18 @@ def _check_references(path: Path, graph: GraphFile, fix_lines: np.ndarray,
                                          "the file never defines", lines[k])
 
 
-def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> GraphFile:
+def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False,
+               dialect: str = "g2opy") -> GraphFile:
     """Read a g2o, TORO or GTSAM graph file, every line converted to its canonical g2o tag.
 
     Args:
         path: The file (plain, ``.gz`` or ``.bz2``; detected from the content).
         skip_unknown: Skip lines with unknown tags (counted per tag in
             :attr:`GraphFile.skipped` and noted) instead of failing on the first.
+        dialect: ``"g2opy"`` (the official wheel's lines, default) or ``"classic"`` (g2o's C++
+            ``read``, which stores ``VERTEX_SE3:EXPMAP`` and ``EDGE_SE3:EXPMAP`` inverted; the
+            records are the same either way). The tags where they differ otherwise are told
+            apart by their value counts.
 
     Returns:
         The contents; blocks keep the file's line order and line numbers.
@@ -358,6 +363,7 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
             vertex, an edge from a vertex to itself. One line naming the file and line.
     """
     path = Path(path)
+    gl.to_dialect(GraphFile(str(path)), dialect)  # a bad dialect fails before reading
     groups, skipped = _scan(path, read_bytes(path, GraphFormatError), skip_unknown)
     if not groups:
         raise GraphFormatError(path, "no vertex or edge lines" + (
@@ -387,6 +393,7 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
     (fixed, fix_lines), (equiv, equiv_lines) = merged["FIX"], merged["EQUIV"]
     graph.fixed, graph.equiv = fixed[:, 0].astype(np.int64), equiv.astype(np.int64)
     _check_references(path, graph, fix_lines, equiv_lines)
+    graph = gl.to_dialect(graph, dialect)
     if skipped:
         graph.notes.append("skipped lines with unknown tags: " + ", ".join(
             f"{t} x{n}" for t, n in sorted(skipped.items())))
@@ -412,7 +419,8 @@ def _lines_of(tag: str, columns: list[np.ndarray], n_ids: int,
     return "\n".join(fmt % tuple(row) for row in table.tolist()) + "\n"
 
 
-def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool = False) -> None:
+def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool = False,
+              dialect: str = "g2opy") -> None:
     """Write ``graph`` as a g2o file (canonical tags, ``%.17g``), atomically.
 
     Parameters come first, then vertices, edges and ``FIX`` lines. A ``.gz``/``.bz2`` suffix
@@ -422,12 +430,14 @@ def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool =
         path: Destination; never the file ``graph`` was read from.
         graph: The contents (canonical tags only).
         drop_equiv: Leave out ``EQUIV`` pairs (g2o has no such line) instead of refusing.
+        dialect: ``"g2opy"`` (default) or ``"classic"`` (see :func:`read_graph`).
 
     Raises:
         ValueError: ``path`` is ``graph``'s input file, a block has an unknown tag or NaN/inf,
             or the graph has ``EQUIV`` pairs and ``drop_equiv`` is false. ``path`` is then
             untouched and no temporary file is left.
     """
+    graph = gl.to_dialect(graph, dialect)
     source, target = Path(graph.path), Path(path)
     same = source.exists() and target.exists() and os.path.samefile(target, source)
     if same or target.resolve() == source.resolve():

@@ -24,7 +24,7 @@ may order them otherwise, which is the builder's business (:mod:`graphopt.types.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -33,8 +33,9 @@ import numpy as np
 from graphopt.io.g2o_lines import GraphFormatError, parse_ids, positive_definite, symmetric
 from graphopt.io.g2o_records import EdgeBlock, GraphFile
 
-__all__ = ["CAMERA_DEFAULTS", "CLASSIC", "DYNAMIC", "LAYOUTS", "Layout", "convert",
-           "convert_dynamic", "edge_params", "ends", "write"]
+__all__ = ["CAMERA_DEFAULTS", "CLASSIC", "DIALECTS", "DYNAMIC", "INVERTED_IN_CLASSIC", "LAYOUTS",
+           "Layout", "convert", "convert_dynamic", "edge_params", "ends", "invert_qt",
+           "to_dialect", "write"]
 
 
 @dataclass(frozen=True)
@@ -190,6 +191,48 @@ def convert_dynamic(path: Path, tag: str, v: np.ndarray, lines: np.ndarray,
                                int(lines[bad[0]]))
     pieces.setdefault(f"{tag}#{n - 1}", []).append(
         (ids, v[:, 2 + n:2 + n + d], info, lines, np.zeros((len(v), 0), np.int64)))
+
+
+#: What g2o's classic C++ ``read``/``write`` (its ``master`` line) store inverted: the pose of
+#: ``VERTEX_SE3:EXPMAP`` and the measurement of ``EDGE_SE3:EXPMAP`` (``T_wc`` for ``T_cw``).
+#: ``read_graph``/``write_g2o`` with ``dialect="classic"`` invert them.
+INVERTED_IN_CLASSIC = ("VERTEX_SE3:EXPMAP", "EDGE_SE3:EXPMAP")
+DIALECTS = ("g2opy", "classic")
+
+
+def invert_qt(v: np.ndarray) -> np.ndarray:
+    """g2o's ``SE3Quat::inverse`` on ``(n, 7)`` ``x y z qx qy qz qw`` rows: the conjugate
+    quaternion and ``t' = q̄ (−t)`` (Eigen's quaternion-vector product, as written).
+
+    Args:
+        v: ``(n, 7)`` poses.
+    """
+    u, w = -v[:, 3:6], v[:, 6:7]
+    t = -v[:, :3]
+    uv = 2.0 * np.cross(u, t)
+    return np.column_stack([t + w * uv + np.cross(u, uv), u, w])
+
+
+def to_dialect(graph: GraphFile, dialect: str) -> GraphFile:
+    """``graph`` with the blocks :data:`INVERTED_IN_CLASSIC` inverted when ``dialect`` is
+    ``"classic"`` (a shallow copy; ``graph`` itself is not changed). Its own inverse.
+
+    Args:
+        graph: The records.
+        dialect: ``"g2opy"`` (the layouts above) or ``"classic"``.
+    """
+    if dialect not in DIALECTS:
+        raise ValueError(f"g2o dialect must be one of {', '.join(DIALECTS)}, got {dialect!r}")
+    if dialect == "g2opy":
+        return graph
+    out = replace(graph, vertices=dict(graph.vertices), edges=dict(graph.edges))
+    if "VERTEX_SE3:EXPMAP" in out.vertices:
+        b = out.vertices["VERTEX_SE3:EXPMAP"]
+        out.vertices["VERTEX_SE3:EXPMAP"] = replace(b, values=invert_qt(b.values))
+    if "EDGE_SE3:EXPMAP" in out.edges:
+        e = out.edges["EDGE_SE3:EXPMAP"]
+        out.edges["EDGE_SE3:EXPMAP"] = replace(e, measurements=invert_qt(e.measurements))
+    return out
 
 
 #: The intrinsics ``fx fy cx cy baseline`` of a ``VERTEX_CAM`` line without them: those of
