@@ -126,6 +126,20 @@ def test_every_layout_counts_its_values() -> None:
     assert LAYOUTS["PARAMS_CAMERACALIB"].count == 12
 
 
+def test_pose_only_and_stereo_lines_are_read_and_refused(tmp_path: Path) -> None:
+    """As g2opy 2.3.0 writes them (its save of one edge of each)."""
+    text = ("VERTEX_SE3:EXPMAP 0 0 0 0 0 0 0 1\nVERTEX_TRACKXYZ 1 0.1 0.2 5\n"
+            "EDGE_SE3_PROJECT_XYZONLYPOSE:EXPMAP 0 1 2 2 0 2\n"
+            "EDGE_STEREO_SE3_PROJECT_XYZ:EXPMAP 1 0 1 2 3 2 0 0 2 0 2\n"
+            "EDGE_STEREO_SE3_PROJECT_XYZONLYPOSE:EXPMAP 0 1 2 3 2 0 0 2 0 2\n")
+    graph = read_graph(_file(tmp_path, "mono", text))
+    np.testing.assert_array_equal(graph.edges["EDGE_STEREO_SE3_PROJECT_XYZ:EXPMAP"].ids, [[1, 0]])
+    np.testing.assert_array_equal(
+        graph.edges["EDGE_STEREO_SE3_PROJECT_XYZONLYPOSE:EXPMAP"].information, [2 * np.eye(3)])
+    with pytest.raises(GraphError, match=r"mono\.g2o:3: .*cannot be built: g2o writes neither"):
+        build_graph(graph)
+
+
 def test_camera_without_intrinsics_gets_g2os_defaults(tmp_path: Path) -> None:
     text = ("VERTEX_CAM 0 1 2 3 0 0 0 1\nVERTEX_CAM 1 1 2 3 0 0 0 1 500 510 320 240 0.1\n")
     graph = read_graph(_file(tmp_path, "cam", text))

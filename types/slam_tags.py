@@ -49,8 +49,9 @@ tag                                  graphopt type                    notes
 ``EDGE_SE3_LOTSOF_XYZ``              ``EdgeSE3LotsOfXYZ.of(k)``       likewise
 ===================================  ===============================  =========================
 
-``EDGE_SE3_PROJECT_XYZ:EXPMAP`` lines are read but cannot be built: g2o writes no intrinsics
-for them (its ``fx fy cx cy`` are attributes of the edge object, lost in the file).
+``EDGE_SE3_PROJECT_XYZ:EXPMAP`` lines (and the ``…ONLYPOSE`` and ``STEREO…`` ones) are read but
+cannot be built: g2o writes no intrinsics for them (its ``fx fy cx cy [bf]`` and the only-pose
+edges' world point ``Xw`` are attributes of the edge object, lost in the file).
 """
 
 from __future__ import annotations
@@ -180,6 +181,15 @@ EDGE_TAGS: dict[str, EdgeTag] = {
     "EDGE_PROJECT_XYZ2UVU:EXPMAP": EdgeTag("EdgeProjectXYZ2UVU", (1, 0), params=_SBA),
     "EDGE_SE3_PROJECT_XYZ:EXPMAP": EdgeTag(
         "EdgeSE3ProjectXYZ", (1, 0), why_not="g2o writes no intrinsics (fx fy cx cy) for it"),
+    "EDGE_SE3_PROJECT_XYZONLYPOSE:EXPMAP": EdgeTag(
+        "EdgeSE3ProjectXYZOnlyPose", (0,),
+        why_not="g2o writes neither its intrinsics nor its world point Xw"),
+    "EDGE_STEREO_SE3_PROJECT_XYZ:EXPMAP": EdgeTag(
+        "EdgeStereoSE3ProjectXYZ", (1, 0),
+        why_not="g2o writes no intrinsics (fx fy cx cy bf) for it"),
+    "EDGE_STEREO_SE3_PROJECT_XYZONLYPOSE:EXPMAP": EdgeTag(
+        "EdgeStereoSE3ProjectXYZOnlyPose", (0,),
+        why_not="g2o writes neither its intrinsics nor its world point Xw"),
     "EDGE_SIM3:EXPMAP": EdgeTag("EdgeSim3", to_measurement=_sim3_in, to_values=_sim3_out),
     "EDGE_PROJECT_SIM3_XYZ:EXPMAP": EdgeTag("EdgeSim3ProjectXYZ", params=("unit camera",)),
     "EDGE_PROJECT_INVERSE_SIM3_XYZ:EXPMAP": EdgeTag("EdgeInverseSim3ProjectXYZ",

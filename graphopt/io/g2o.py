@@ -110,7 +110,7 @@ def _rpy_to_quat(rpy: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-_TAG_WIDTH = 40  # no known tag is longer
+_TAG_WIDTH = max(map(len, _TAGS))  # no known tag is longer (g2o's longest: 42 characters)
 
 
 def _tag_codes(tags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -121,6 +121,9 @@ LAYOUTS: dict[str, Layout] = {
     "EDGE_PROJECT_XYZ2UV:EXPMAP": _edge((_XYZ, _EXP), 2, 2, 1, meas="u v"),
     "EDGE_PROJECT_XYZ2UVU:EXPMAP": _edge((_XYZ, _EXP), 3, 3, 1, meas="u v u_right"),
     "EDGE_SE3_PROJECT_XYZ:EXPMAP": _edge((_XYZ, _EXP), 2, 2, meas="u v"),
+    "EDGE_SE3_PROJECT_XYZONLYPOSE:EXPMAP": _edge((_EXP,), 2, 2, meas="u v"),
+    "EDGE_STEREO_SE3_PROJECT_XYZ:EXPMAP": _edge((_XYZ, _EXP), 3, 3, meas="u v u_right"),
+    "EDGE_STEREO_SE3_PROJECT_XYZONLYPOSE:EXPMAP": _edge((_EXP,), 3, 3, meas="u v u_right"),
     # sim3
     "EDGE_SIM3:EXPMAP": _edge((_SIM3, _SIM3), 8, 7, meas="qx qy qz qw x y z s"),
     "EDGE_PROJECT_SIM3_XYZ:EXPMAP": _edge((_XYZ, _SIM3), 2, 2, meas="u v"),
