@@ -235,3 +235,11 @@ def test_classic_dialect_inverts_the_expmap_poses(tmp_path: Path) -> None:
                                atol=1e-4)
     with pytest.raises(ValueError, match="dialect"):
         read_graph(tmp_path / "classic.g2o", dialect="c++")
+
+
+def test_vertex_only_tags_round_trip_through_the_builder(tmp_path: Path) -> None:
+    text = ("VERTEX_INTRINSICS 3 500 510 320 240 0.1\nVERTEX_ODOM_DIFFERENTIAL 4 1 0.9 0.5\n"
+            "VERTEX_CAM 5 1 2 3 0 0 0 1 500 510 320 240 0.1\n")
+    graph = read_graph(_file(tmp_path, "v", text))
+    write_g2o(tmp_path / "out.g2o", graph_file(build_graph(graph)))
+    _same_graph(graph, read_graph(tmp_path / "out.g2o"))
