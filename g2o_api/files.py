@@ -143,9 +143,11 @@ def _param_ids(params: Any, offsets: dict[int, int], known: dict[int, Any]) -> l
 def _restore_vertex_lines(slam: Any, graph: GraphFile) -> None:
     """Put back the estimates of the vertices that have vertex lines (after a guess)."""
     for tag, block in graph.vertices.items():
+        if tag not in _VERTEX_TAGS:  # the guess sets the pose-graph tags' vertices only
+            continue
         ids = slam.vertex_ids[tag][: len(block.ids)]
         store = next(st for gt, st in slam.optimizer.graph.stores.items()
-                     if _VERTICES[gt.__name__][1] == tag)
+                     if _VERTICES.get(gt.__name__, ("", ""))[1] == tag)
         order = np.argsort(store.ids)
         rows = order[np.searchsorted(store.ids[order], ids)]
         values = np.asarray(block.values, float)
