@@ -1,0 +1,140 @@
+"""g2o's SLAM edges (``types/slam2d``, ``types/slam3d``, ``EdgeSE3Expmap``, ``EdgeSim3``): their
+measurements are g2o's geometry objects, converted to graphopt's arrays in one pass per batch
+(see :mod:`graphopt.g2o.edges` for the record)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .edges import BaseEdge
+from .geometry import SE2, _RigidBase
+from .sim3 import Sim3
+
+__all__ = ["SLAM_EDGES"]
+
+
+def _rigid_measurements(raws: list[Any], rows: int) -> np.ndarray:
+    out = np.zeros((len(raws), rows, 4))
+    for i, r in enumerate(raws):
+        if isinstance(r, _RigidBase):
+            out[i, :3, :3], out[i, :3, 3] = r._R, r._t
+        elif isinstance(r, Sim3):
+            out[i, :3, :3], out[i, :3, 3] = r._s * r._R, r._t
+        else:
+            out[i, :3] = np.asarray(r, dtype=float)[:3]
+    if rows == 4:
+        out[:, 3, 3] = 1.0
+    return out
+
+
+class EdgeSE2(BaseEdge):
+    """g2o's ``EdgeSE2`` (measurement ``SE2``)."""
+
+    __slots__ = ()
+    _dim = 3
+    _gname = "EdgeSE2"
+    _mshape = (3,)
+
+    @classmethod
+    def _measurements(cls, raws: list[Any]) -> np.ndarray:
+        return BaseEdge._measurements.__func__(cls, [r._v if type(r) is SE2 else r
+                                                     for r in raws])
+
+    @classmethod
+    def _from_measurement(cls, row: np.ndarray) -> Any:
+        return SE2._of(row.copy())
+
+
+class EdgeSE2Prior(EdgeSE2):
+    """g2o's ``EdgeSE2Prior`` (unary, measurement ``SE2``)."""
+
+    __slots__ = ()
+    _k = 1
+    _gname = "EdgeSE2Prior"
+    _perm = (0,)
+
+
+class EdgeSE2PointXY(BaseEdge):
+    """g2o's ``EdgeSE2PointXY``: the point in the pose's frame."""
+
+    __slots__ = ()
+    _gname = "EdgeSE2PointXY"
+
+
+class EdgeSE3(BaseEdge):
+    """g2o's ``EdgeSE3`` (measurement ``Isometry3d``)."""
+
+    __slots__ = ()
+    _dim = 6
+    _gname = "EdgeSE3"
+    _mshape = (3, 4)
+
+    @classmethod
+    def _measurements(cls, raws: list[Any]) -> np.ndarray:
+        return _rigid_measurements(raws, 3)
+
+    @classmethod
+    def _from_measurement(cls, row: np.ndarray) -> Any:
+        from .geometry import Isometry3d
+
+        return Isometry3d(row)
+
+
+class EdgeSE3Prior(EdgeSE3):
+    """g2o's ``EdgeSE3Prior`` (unary, measurement ``Isometry3d``, a ``ParameterSE3Offset``)."""
+
+    __slots__ = ()
+    _k = 1
+    _gname = "EdgeSE3Prior"
+    _perm = (0,)
+    _nparams = 1
+
+
+class EdgeSE3PointXYZ(BaseEdge):
+    """g2o's ``EdgeSE3PointXYZ`` (a ``ParameterSE3Offset``)."""
+
+    __slots__ = ()
+    _dim = 3
+    _gname = "EdgeSE3PointXYZ"
+    _mshape = (3,)
+    _nparams = 1
+
+
+class EdgeSE3Expmap(BaseEdge):
+    """g2o's ``EdgeSE3Expmap`` (measurement ``SE3Quat``)."""
+
+    __slots__ = ()
+    _dim = 6
+    _gname = "EdgeSE3Expmap"
+    _mshape = (4, 4)
+
+    @classmethod
+    def _measurements(cls, raws: list[Any]) -> np.ndarray:
+        return _rigid_measurements(raws, 4)
+
+    @classmethod
+    def _from_measurement(cls, row: np.ndarray) -> Any:
+        from .geometry import SE3Quat
+
+        return SE3Quat._of(row[:3, :3].copy(), row[:3, 3].copy())
+
+
+class EdgeSim3(EdgeSE3Expmap):
+    """g2o's ``EdgeSim3`` (measurement ``Sim3``)."""
+
+    __slots__ = ()
+    _dim = 7
+    _gname = "EdgeSim3"
+
+    @classmethod
+    def _from_measurement(cls, row: np.ndarray) -> Any:
+        sR = row[:3, :3]
+        s = float(np.cbrt(np.linalg.det(sR)))
+        return Sim3._of(sR / s, row[:3, 3].copy(), s)
+
+
+SLAM_EDGES: dict[str, type[BaseEdge]] = {c.__name__: c for c in (
+    EdgeSE2, EdgeSE2Prior, EdgeSE2PointXY, EdgeSE3, EdgeSE3Prior, EdgeSE3PointXYZ,
+    EdgeSE3Expmap, EdgeSim3)}

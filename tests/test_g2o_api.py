@@ -1,0 +1,341 @@
+"""graphopt.g2o: g2opy programs run unchanged (ported g2o examples against known truth, recorded
+numbers and, where the g2opy wheel is installed, g2opy itself), g2o's conventions, and the
+record/array behaviour of vertices and edges."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import graphopt.g2o as g2o
+from graphopt.errors import GraphError
+
+sys.path.insert(0, str(Path(__file__).parent))
+import g2o_programs as programs  # noqa: E402
+
+HAVE_G2OPY = importlib.util.find_spec("g2opy") is not None
+needs_g2opy = pytest.mark.skipif(not HAVE_G2OPY, reason="g2opy wheel not installed "
+                                 "(pip install g2opy==2.3.0)")
+
+# Recorded with g2opy 2.3.0 and graphopt.g2o on the same seeded scenes (equal to ~1e-15).
+BA = dict(n_points=150, outlier_ratio=0.05, robust=True)
+BA_CHI2 = 6432069.241121583
+PSI = dict(n_points=100)
+PSI_CHI2 = 1633.659671928101
+SE2 = dict(n=100)
+SE2_CHI2_G2OPY = 4633.874690103803  # g2opy's LM is slower on this loop: graphopt ends lower
+
+
+def test_ba_demo_reaches_g2opys_chi2_and_the_truth() -> None:
+    out = programs.ba_demo(g2o, **BA)
+    assert out["iterations"] == 10 and out["edges"] == 1535
+    assert out["chi2"] == pytest.approx(BA_CHI2, rel=1e-6)
+    assert out["rmse_before"] == pytest.approx(1.5907, abs=1e-3)
+    assert out["rmse_after"] == pytest.approx(0.6414, abs=1e-3)
+
+
+def test_ba_demo_without_outliers_recovers_the_points() -> None:
+    out = programs.ba_demo(g2o, n_points=120, iterations=8)
+    assert out["rmse_after"] < 0.3 * out["rmse_before"]  # the demo's short baseline
+
+
+def test_anchored_inverse_depth_demo() -> None:
+    out = programs.ba_anchored_inverse_depth(g2o, **PSI)
+    assert out["chi2"] == pytest.approx(PSI_CHI2, rel=1e-6)
+    assert out["rmse_after"] < 0.25 * out["rmse_before"]
+
+
+def test_se2_pose_graph_built_object_by_object() -> None:
+    out = programs.pose_graph_se2(g2o, **SE2)
+    assert out["chi2_before"] == pytest.approx(260065.06677690177, rel=1e-9)
+    assert out["chi2"] < SE2_CHI2_G2OPY
+    assert out["rmse_after"] < 0.1 < 2.0 < out["rmse_before"]
+
+
+@needs_g2opy
+@pytest.mark.parametrize("program,kwargs", [(programs.ba_demo, BA),
+                                            (programs.ba_anchored_inverse_depth, PSI)])
+def test_same_program_same_chi2_as_g2opy(program, kwargs) -> None:
+    import g2opy
+
+    ours, theirs = program(g2o, **kwargs), program(g2opy, **kwargs)
+    assert ours["chi2"] == pytest.approx(theirs["chi2"], rel=1e-4)
+    assert ours["rmse_after"] == pytest.approx(theirs["rmse_after"], rel=1e-4)
+
+
+# --- conventions --------------------------------------------------------------------------------
+
+
+def test_quaternion_coefficient_order() -> None:
+    q = g2o.Quaternion(0.9, 0.1, 0.2, 0.3)  # w first
+    assert np.allclose(q.coeffs(), [0.1, 0.2, 0.3, 0.9])  # storage order: x y z w
+    assert q.w() == 0.9 and np.allclose(q.vec(), [0.1, 0.2, 0.3])
+    assert np.allclose(g2o.Quaternion(np.array([0.1, 0.2, 0.3, 0.9])).coeffs(), q.coeffs())
+    aa = g2o.AngleAxis(0.3, [0, 0, 1])
+    assert np.allclose(g2o.Quaternion(aa).matrix(), aa.matrix())
+    assert np.allclose(g2o.Quaternion(aa.matrix()).coeffs(),
+                       [0, 0, np.sin(0.15), np.cos(0.15)])
+
+
+def test_se3quat_vectors_log_and_products() -> None:
+    R = g2o.AngleAxis(0.4, np.array([1.0, 2, 2]) / 3).matrix()
+    T = g2o.SE3Quat(R, [1, 2, 3])
+    v = T.to_vector()
+    assert np.allclose(v[:3], [1, 2, 3]) and v[6] > 0
+    assert np.allclose(g2o.SE3Quat(v).matrix(), T.matrix())
+    assert np.allclose(g2o.SE3Quat.exp(T.log()).matrix(), T.matrix())
+    assert np.allclose(g2o.SE3Quat().log(), 0)
+    assert np.allclose(g2o.SE3Quat(np.eye(3), [1, 2, 3]).log(), [0, 0, 0, 1, 2, 3])
+    p = np.array([0.5, -1.0, 2.0])
+    assert np.allclose(T * p, R @ p + [1, 2, 3])
+    assert np.allclose((T * T.inverse()).matrix(), np.eye(4))
+    assert np.allclose(T.to_minimal_vector()[3:], v[3:6])
+
+
+def test_sim3_log_is_g2os() -> None:
+    S = g2o.Sim3(np.eye(3), [1.0, 2.0, 3.0], 2.0)
+    # g2opy 2.3.0: [ω, υ, σ] = [0 0 0, ln2·(1 2 3), ln2]
+    assert np.allclose(S.log(), [0, 0, 0, *(np.log(2) * np.array([1, 2, 3])), np.log(2)])
+    R = g2o.AngleAxis(0.7, [0.0, 0.6, 0.8]).matrix()
+    S2 = g2o.Sim3(R, [0.3, -1, 2], 0.7)
+    back = g2o.Sim3(S2.log())
+    assert np.allclose(back.matrix(), S2.matrix())
+    assert np.allclose((S2 * S2.inverse()).matrix(), np.eye(4))
+    assert np.allclose(S2.map([1, 0, 0]), 0.7 * R[:, 0] + [0.3, -1, 2])
+
+
+def test_camera_parameters_maps() -> None:
+    cam = g2o.CameraParameters(500.0, (320, 240), 0.1)
+    assert np.allclose(cam.cam_map([0.1, 0.2, 1.0]), [370, 340])
+    assert np.allclose(cam.stereocam_uvu_map([0.1, 0.2, 1.0]), [370, 340, 320])
+
+
+def test_both_dialects_and_loose_inputs() -> None:
+    assert g2o.VertexSBAPointXYZ is g2o.VertexPointXYZ
+    assert g2o.LinearSolverCholmodSE3().solver == "auto"
+    assert g2o.LinearSolverDenseX().solver == "dense"
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmGaussNewton(
+        g2o.BlockSolverX(g2o.LinearSolverCSparseX())))
+    v = g2o.VertexSBAPointXYZ()
+    v.set_id(np.int64(3))
+    v.set_estimate([1, 2, 3])  # a list of ints
+    assert opt.add_vertex(v) and not opt.add_vertex(v)
+    w = g2o.VertexPointXYZ()
+    w.set_id(4)
+    w.set_estimate(np.array([[0.0], [1.0], [2.0]]))  # a column vector
+    w.set_fixed(True)
+    opt.add_vertex(w)
+    assert np.allclose(v.estimate(), [1, 2, 3]) and np.allclose(w.estimate(), [0, 1, 2])
+
+
+@pytest.mark.parametrize("name", ["EdgeGICP", "Edge_V_V_GICP", "EdgeXyzVsc", "Edge_XYZ_VSC",
+                                  "EdgeSBACam", "VertexSCam"])
+def test_unsupported_types_say_so(name: str) -> None:
+    with pytest.raises(NotImplementedError, match=name):
+        getattr(g2o, name)()
+
+
+# --- records and arrays -------------------------------------------------------------------------
+
+
+def _small_ba(n: int = 30) -> tuple[g2o.SparseOptimizer, list, np.ndarray]:
+    rng = np.random.default_rng(1)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(g2o.BlockSolverSE3(
+        g2o.LinearSolverDenseSE3())))
+    poses = [g2o.SE3Quat(np.eye(3), [0.2 * i, 0, 0]) for i in range(3)]
+    for i, p in enumerate(poses):
+        v = g2o.VertexSE3Expmap()
+        v.set_id(i)
+        v.set_estimate(p)
+        v.set_fixed(i == 0)
+        opt.add_vertex(v)
+    pts = rng.random((n, 3)) + [0, 0, 4]
+    edges = []
+    for k, X in enumerate(pts):
+        vp = g2o.VertexPointXYZ()
+        vp.set_id(10 + k)
+        vp.set_estimate(X + 0.05 * rng.standard_normal(3))
+        vp.set_marginalized(True)
+        opt.add_vertex(vp)
+        for i, p in enumerate(poses):
+            Xc = p * X
+            e = g2o.EdgeSE3ProjectXYZ()
+            e.fx = e.fy = 500.0
+            e.cx, e.cy = 320.0, 240.0
+            e.set_vertex(0, vp)
+            e.set_vertex(1, opt.vertex(i))
+            e.set_measurement(e.cam_project(Xc) + rng.standard_normal(2))
+            e.set_information(np.eye(2))
+            e.set_robust_kernel(g2o.RobustKernelHuber(np.sqrt(5.991)))
+            opt.add_edge(e)
+            edges.append(e)
+    return opt, edges, pts
+
+
+def test_edge_chi2_is_the_unrobustified_error() -> None:
+    opt, edges, _ = _small_ba()
+    opt.initialize_optimization()
+    assert opt.optimize(5) == 5
+    opt.compute_active_errors()
+    for e in edges[:7]:
+        T = e.vertex(1).estimate()
+        Xc = T * e.vertex(0).estimate()
+        r = e.measurement() - e.cam_project(Xc)
+        assert e.chi2() == pytest.approx(float(r @ r), rel=1e-9)
+        assert np.allclose(e.error(), r) and e.is_depth_positive()
+    total = sum(e.chi2() for e in edges)
+    assert opt.active_chi2() == pytest.approx(total, rel=1e-9)
+
+
+def test_levels_and_kernels_between_runs() -> None:
+    opt, edges, _ = _small_ba()
+    opt.initialize_optimization()
+    opt.optimize(3)
+    outliers = [e for e in edges if e.chi2() > 2.0]
+    for e in outliers:
+        e.set_level(1)
+    for e in edges:
+        e.set_robust_kernel(None)
+    opt.initialize_optimization(0)
+    assert len(opt.active_edges()) == len(edges) - len(outliers)
+    opt.optimize(3)
+    opt.compute_active_errors()
+    assert opt.active_chi2() == pytest.approx(opt.active_robust_chi2(), rel=1e-12)  # no kernels
+    assert opt.active_chi2() == pytest.approx(
+        sum(e.chi2() for e in edges if e.level() == 0), rel=1e-9)
+
+
+def test_set_estimate_after_initialisation_reaches_the_store() -> None:
+    opt, edges, pts = _small_ba(5)
+    opt.initialize_optimization()
+    v = opt.vertex(10)
+    v.set_estimate(pts[0])
+    assert np.allclose(v.estimate(), pts[0])
+    opt.compute_active_errors()
+    assert edges[0].chi2() == pytest.approx(float(np.sum(edges[0].error() ** 2)))
+
+
+def test_force_stop_flag() -> None:
+    opt, _, _ = _small_ba(5)
+    flag = g2o.Flag()
+    opt.set_force_stop_flag(flag)
+    opt.initialize_optimization()
+    flag.value = True
+    assert opt.optimize(10) == 0
+
+
+def test_bad_inputs_name_the_object() -> None:
+    opt = g2o.SparseOptimizer()
+    v = g2o.VertexPointXYZ()
+    v.set_id(7)
+    v.set_estimate([1.0, 2.0])
+    opt.add_vertex(v)
+    with pytest.raises(GraphError, match="vertex 7"):
+        opt.initialize_optimization()
+    opt = g2o.SparseOptimizer()
+    a, b = g2o.VertexSE2(), g2o.VertexSE2()
+    a.set_id(0)
+    b.set_id(1)
+    opt.add_vertex(a)
+    opt.add_vertex(b)
+    e = g2o.EdgeSE2()
+    e.set_vertex(0, a)
+    e.set_vertex(1, b)
+    opt.add_edge(e)
+    with pytest.raises(GraphError, match=r"EdgeSE2 on vertices \[0, 1\]"):
+        opt.initialize_optimization()
+
+
+# --- files --------------------------------------------------------------------------------------
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "posegraph"
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"data folder {DATA} is absent")
+# g2o's chi2 before optimising (g2opy 2.3.0, tests/test_slam_graph.py) and after 20 LM
+# iterations (g2opy 2.3.0 loading the same file, lowest pose fixed; graphopt.g2o agreed to 1e-9
+# on pose2example and Klaus3; pose3example is not converged after 20: graphopt 17781.8710,
+# g2opy 17781.8709).
+FILES = {"pose2example.txt": (6.852391600161392, 1.0989337127363905),
+         "Klaus3.g2o": (0.21463046734503463, 0.009118290360195822),
+         "pose3example.txt": (95359.26055173035, 17781.8708871143)}
+
+
+@needs_data
+@pytest.mark.parametrize("name", sorted(FILES))
+def test_load_optimize_save_round_trip(name: str, tmp_path: Path) -> None:
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(g2o.BlockSolverX(
+        g2o.LinearSolverEigenX())))
+    assert opt.load(str(DATA / name))
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    before, after = FILES[name]
+    assert opt.active_chi2() == pytest.approx(before, rel=1e-9)
+    opt.optimize(20)
+    opt.compute_active_errors()
+    final = opt.active_chi2()
+    assert final == pytest.approx(after, rel=1e-4 if name == "pose3example.txt" else 1e-9)
+    out = tmp_path / "out.g2o"
+    assert opt.save(str(out))
+    again = g2o.SparseOptimizer()
+    again.load(str(out))
+    again.initialize_optimization()
+    again.compute_active_errors()
+    assert again.active_chi2() == pytest.approx(final, rel=1e-6)
+    assert len(again.vertices()) == len(opt.vertices()) and len(again.edges()) == len(opt.edges())
+
+
+def test_gtsam_landmarks_load_optimize_and_save_renumbered(tmp_path: Path) -> None:
+    from test_slam_graph import _GTSAM_LANDMARKS
+
+    src = tmp_path / "gtsam.g2o"
+    src.write_text(_GTSAM_LANDMARKS)
+    opt = g2o.SparseOptimizer()
+    with pytest.warns(UserWarning, match="point j is vertex j\\+6"):
+        opt.load(str(src))
+    assert sorted(opt.vertices()) == list(range(9))
+    opt.initialize_optimization()
+    opt.optimize(10)
+    opt.compute_active_errors()
+    assert opt.active_chi2() < 1e-12
+    out = tmp_path / "out.g2o"
+    opt.save(str(out))
+    text = out.read_text()
+    assert "VERTEX_XY 7 " in text and "EDGE_SE2_XY 2 7 " in text  # landmark 1 is vertex 7
+    again = g2o.SparseOptimizer()
+    again.load(str(out))
+    assert isinstance(again.vertex(7), g2o.VertexPointXY)
+    assert np.allclose(again.vertex(7).estimate(), [2.5, 2.55])
+
+
+def test_edit_after_load_and_unsupported_save(tmp_path: Path) -> None:
+    from test_slam_graph import _GTSAM_LANDMARKS
+
+    src = tmp_path / "gtsam.g2o"
+    src.write_text(_GTSAM_LANDMARKS.replace("LANDMARK2 0 0", "LANDMARK2 0 10"))
+    opt = g2o.SparseOptimizer()
+    with pytest.warns(UserWarning, match="renumbered"):
+        opt.load(str(src))
+    v = g2o.VertexPointXY()
+    v.set_id(100)
+    v.set_estimate((1, 1))
+    opt.add_vertex(v)
+    e = g2o.EdgeSE2PointXY()
+    e.set_vertex(0, opt.vertex(0))
+    e.set_vertex(1, v)
+    e.set_measurement([1.0, 0.95])
+    opt.add_edge(e)
+    opt.initialize_optimization()
+    opt.optimize(10)
+    assert np.allclose(v.estimate(), [1.0, 1.0], atol=1e-6)
+    assert e.chi2() < 1e-12
+    w = g2o.VertexSE3Expmap()
+    w.set_id(200)
+    opt.add_vertex(w)
+    opt.save(str(tmp_path / "x.g2o"))  # g2o's other tags too (tests/test_g2o_tags.py)
+    assert "VERTEX_SE3:EXPMAP 200 0 0 0 0 0 0 1" in (tmp_path / "x.g2o").read_text()
