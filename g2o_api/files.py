@@ -103,7 +103,7 @@ def load(opt: Any, filename: str | os.PathLike[str]) -> None:
                              g.vertex_ids.copy(), banks_of, g.measurements.copy(),
                              None if g.info_is_identity else info.copy(), {}))
     opt._banks, opt._batches = banks, batches
-    opt._records_dirty, opt._core_dirty = False, True
+    opt._records_dirty, opt._core = False, None
 
 
 def _restore_vertex_lines(slam: Any, graph: GraphFile) -> None:

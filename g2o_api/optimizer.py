@@ -49,10 +49,9 @@ class SparseOptimizer:
         self._banks: dict[type, Bank] = {}
         self._batches: list[Batch] = []
         self._records_dirty = True
-        self._core_dirty = True
         self._level = 0
         self._core_params: dict[Any, Any] = {}
-        self._kernel_batches: list[Batch] = []
+        self._changed: list[Batch] = []
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -66,7 +65,9 @@ class SparseOptimizer:
             raise TypeError(f"set_algorithm: expected an OptimizationAlgorithm*, got "
                             f"{type(algorithm).__name__}")
         self._algorithm = algorithm
-        self._core_dirty = True
+        if self._core is not None:
+            self._core.set_algorithm(algorithm.config)
+            self._core.set_solver(algorithm.solver)
 
     def algorithm(self) -> OptimizationAlgorithm:
         """The algorithm."""
@@ -207,12 +208,6 @@ class SparseOptimizer:
     def _structure_changed(self) -> None:
         self._records_dirty = True
 
-    def _levels_changed(self) -> None:
-        self._core_dirty = True
-
-    def _flags_changed(self) -> None:
-        self._core_dirty = True
-
     # --- building ----------------------------------------------------------------------------
 
     @staticmethod
@@ -322,56 +317,51 @@ class SparseOptimizer:
         alg = self._algorithm
         core = CoreOptimizer(alg.config, alg.solver, verbose=self._verbose,
                              stopping=StoppingConfig.iterations_only())
-        used = np.unique(np.concatenate([b.active_ids(self._level) for b in self._batches]
-                                        + [np.zeros(0, np.int64)]))
         for gtype, bank in self._banks.items():
-            # g2o leaves out vertices without active edges: here they are held fixed.
-            fixed = bank.user_fixed | ~np.isin(bank.ids, used)
-            core.add_vertices(gtype, bank.ids, bank.estimates(), fixed, bank.marg & ~fixed)
+            core.add_vertices(gtype, bank.ids, bank.estimates(), bank.user_fixed, bank.marg)
         for gtype, bank in self._banks.items():
             bank.store = core.graph.stores[gtype]
         for b in self._batches:
-            b.add_to(core, self._level)
+            b.add_to(core)
         self._core = core
-        self._core_dirty = False
+        self._changed = []
 
-    def _kernels_changed(self, batch: Batch) -> None:
-        self._kernel_batches.append(batch)
+    def _batch_changed(self, batch: Batch) -> None:
+        self._changed.append(batch)
 
-    def _prepare(self) -> CoreOptimizer:
-        if self._kernel_batches:
-            for b in self._kernel_batches:
-                if b.kernels_dirty:
-                    b.sync_kernels()
-            self._kernel_batches = []
-        if not (self._records_dirty or self._core_dirty or self._core is None):
-            return self._core
-        # Filing creates many small containers while the program holds many records: the
-        # cyclic collector would rescan them all, several times (3x the filing time measured on
-        # 25,000 edges); nothing made here forms cycles that outlive it.
-        enabled = gc.isenabled()
-        gc.disable()
-        try:
-            return self._file_and_build()
-        finally:
-            if enabled:
-                gc.enable()
-
-    def _file_and_build(self) -> CoreOptimizer:
-        if self._records_dirty:
-            for v in self._vertices.values():
-                v._as = None
-            self._file_vertices()
-            self._file_edges()
-            self._records_dirty = False
-            self._core_dirty = True
-        if self._core_dirty or self._core is None:
-            self._build_core()
+    def _prepare(self, levels: bool = False) -> CoreOptimizer:
+        if self._records_dirty or self._core is None:
+            # Filing creates many small containers while the program holds many records: the
+            # cyclic collector would rescan them all, several times (3x the filing time measured
+            # on 25,000 edges); nothing made here forms cycles that outlive it.
+            enabled = gc.isenabled()
+            gc.disable()
+            try:
+                if self._records_dirty:
+                    for v in self._vertices.values():
+                        v._as = None
+                    self._file_vertices()
+                    self._file_edges()
+                    self._records_dirty = False
+                self._build_core()
+            finally:
+                if enabled:
+                    gc.enable()
+        if self._changed:
+            keep = []
+            for b in self._changed:
+                b.sync(levels)
+                if b.levels_dirty:
+                    keep.append(b)
+            self._changed = keep
         assert self._core is not None
         return self._core
 
     def initialize_optimization(self, level: int = 0) -> bool:
-        """Take the edges of ``level`` (and their vertices) for the next ``optimize`` calls.
+        """Take the edges of ``level`` (and their vertices) for the next ``optimize`` calls;
+        levels, kernels, estimates and flags changed since the last call are written into the
+        optimizer's arrays, and its structure is reused unless vertices or edges were added or
+        removed.
 
         Args:
             level: The edge level.
@@ -379,12 +369,8 @@ class SparseOptimizer:
         Returns:
             True.
         """
-        if int(level) != self._level:
-            self._level = int(level)
-            self._core_dirty = True
-        if not self._records_dirty and self._core is not None:
-            self._core_dirty = True  # g2o re-reads levels, flags and kernels here
-        self._prepare().initialize_optimization()
+        self._level = int(level)
+        self._prepare(levels=True).initialize_optimization(self._level)
         return True
 
     # --- optimising --------------------------------------------------------------------------

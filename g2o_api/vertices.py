@@ -143,8 +143,8 @@ class BaseVertex:
         bank = self._bank
         if bank is not None:
             bank.user_fixed[self._slot] = self._fixed
-            if self._opt is not None:
-                self._opt._flags_changed()
+            if bank.store is not None:  # graphopt rebuilds the structure at the next run
+                bank.store.set_flag("fixed", self._slot, self._fixed)
 
     def fixed(self) -> bool:
         """Whether the vertex is held constant."""
@@ -160,8 +160,8 @@ class BaseVertex:
         bank = self._bank
         if bank is not None:
             bank.marg[self._slot] = self._marg
-            if self._opt is not None:
-                self._opt._flags_changed()
+            if bank.store is not None:  # graphopt rebuilds the structure at the next run
+                bank.store.set_flag("marginalized", self._slot, self._marg)
 
     def marginalized(self) -> bool:
         """Whether the vertex is marginalised."""
