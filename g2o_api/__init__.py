@@ -13,6 +13,7 @@ from typing import Any as _Any
 
 from .edges import UNSUPPORTED as _UNSUPPORTED
 from .edges import unsupported as _unsupported
+from .edges_icp import ICP_EDGES as _ICP
 from .edges_sba import SBA_EDGES as _SBA
 from .edges_slam import SLAM_EDGES as _SLAM
 from .geometry import SE2, Isometry3d, SE3Quat
@@ -28,7 +29,7 @@ from .solvers import BlockSolver, Flag, LinearSolver, OptimizationAlgorithm, Rob
 from .vertices import VERTEX_CLASSES as _VERTICES
 from .vertices import BaseVertex
 
-_EDGES = {**_SBA, **_SLAM}
+_EDGES = {**_SBA, **_SLAM, **_ICP}
 BaseEdge = _EDGES["EdgeSE2"].__mro__[1]
 RobustKernel = RobustKernelBase
 Isometry = Isometry3d

@@ -205,6 +205,11 @@ class BaseEdge:
         return tuple(self._pids)
 
     @classmethod
+    def _core_name(cls, key: tuple[Any, ...]) -> str:
+        """graphopt's type (name in graphopt.types) for the batch of this parameter key."""
+        return cls._gname
+
+    @classmethod
     def _measurements(cls, raws: list[Any]) -> np.ndarray:
         m = len(raws)
         arr = np.array(raws, dtype=float)
@@ -226,7 +231,7 @@ class BaseEdge:
 
 #: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
 UNSUPPORTED = (
-    "EdgeGICP", "EdgeVVGicp", "Edge_V_V_GICP", "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam",
+    "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam",
     "EdgeSBAScale", "EdgeProjectP2MC", "EdgeProjectP2SC", "EdgeProjectXYZ2UVU",
     "EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ", "EdgePointXY", "EdgePointXYZ",
     "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2Offset",

@@ -269,7 +269,7 @@ class SparseOptimizer:
             b.append(e)
         batches = []
         for (cls, pkey), recs in buckets.items():
-            gtype = core_type(cls._gname)
+            gtype = core_type(cls._core_name(pkey))
             perm = cls._perm
             k = cls._k
             vids = np.fromiter((v._id for e in recs for v in e._v), dtype=np.int64,
