@@ -231,14 +231,11 @@ class BaseEdge:
 
 #: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
 UNSUPPORTED = (
-    "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam",
-    "EdgeSBAScale", "EdgeProjectP2MC", "EdgeProjectP2SC", "EdgeProjectXYZ2UVU",
-    "EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ", "EdgePointXY", "EdgePointXYZ",
-    "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2Offset",
-    "EdgeSE2PointXYBearing", "EdgeSE2PointXYCalib", "EdgeSE2PointXYOffset",
-    "EdgeSE2SensorCalib", "EdgeSE2TwoPointsXY", "EdgeSE2XYPrior", "EdgeSE3LotsOfXYZ",
-    "EdgeSE3Offset", "EdgeSE3PointXYZDepth", "EdgeSE3PointXYZDisparity", "EdgeSE3XYZPrior",
-    "EdgeXYPrior", "EdgeXYZPrior", "VertexCam", "VertexSCam", "VertexIntrinsics",
+    "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam", "EdgeSBAScale", "EdgeProjectP2MC",
+    "EdgeProjectP2SC", "EdgeProjectXYZ2UVU", "EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ",
+    "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2Offset", "EdgeSE2PointXYOffset",
+    "EdgeSE2TwoPointsXY", "EdgeSE3LotsOfXYZ", "EdgeSE3Offset", "EdgeSE3PointXYZDepth",
+    "EdgeSE3PointXYZDisparity", "VertexCam", "VertexSCam", "VertexIntrinsics",
     "VertexOdomDifferentialParams", "SBACam",
 )
 

@@ -135,6 +135,26 @@ class EdgeSim3(EdgeSE3Expmap):
         return Sim3._of(sR / s, row[:3, 3].copy(), s)
 
 
+def _simple(name: str, k: int, dim: int, base: type = BaseEdge, nparams: int = 0,
+            mshape: tuple[int, ...] | None = None) -> type:
+    """A g2o edge class whose graphopt type has g2o's name, vertex order and a vector (or
+    ``SE2``) measurement."""
+    return type(name, (base,), {
+        "__slots__": (), "__module__": __name__, "_k": k, "_dim": dim, "_gname": name,
+        "_perm": tuple(range(k)), "_mshape": mshape or (dim,), "_nparams": nparams,
+        "__doc__": f"g2o's ``{name}``."})
+
+
+#: g2o types with a vector measurement (or an ``SE2`` one, through ``EdgeSE2``) whose graphopt
+#: types keep g2o's vertex order (``types/slam2d_sensors``, ``slam3d_sensors``, ``sclam2d``).
+SIMPLE = [_simple("EdgePointXY", 2, 2), _simple("EdgeXYPrior", 1, 2),
+          _simple("EdgeSE2XYPrior", 1, 2), _simple("EdgeSE2PointXYBearing", 2, 1),
+          _simple("EdgeSE2PointXYCalib", 3, 2), _simple("EdgePointXYZ", 2, 3),
+          _simple("EdgeXYZPrior", 1, 3), _simple("EdgeSE3XYZPrior", 1, 3, nparams=1),
+          _simple("EdgeSE2SensorCalib", 3, 3, base=EdgeSE2)]
+
+
+
 SLAM_EDGES: dict[str, type[BaseEdge]] = {c.__name__: c for c in (
     EdgeSE2, EdgeSE2Prior, EdgeSE2PointXY, EdgeSE3, EdgeSE3Prior, EdgeSE3PointXYZ,
-    EdgeSE3Expmap, EdgeSim3)}
+    EdgeSE3Expmap, EdgeSim3, *SIMPLE)}

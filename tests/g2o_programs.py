@@ -284,3 +284,68 @@ def gicp_demo(g2o: Any, seed: int = 0, noise: float = 0.02, n_points: int = 1000
     optimizer.compute_active_errors()
     return {"chi2_before": chi0, "chi2": optimizer.chi2(),
             "t_after": np.asarray(optimizer.vertex(1).estimate().t).ravel(), "iterations": its}
+
+
+def sensor_types_chi2(g2o: Any, seed: int = 0) -> dict[str, float]:
+    """One edge of each of g2o's simpler slam2d/slam3d/sclam2d types on random vertices.
+
+    Returns:
+        ``{edge class: chi2}`` after ``compute_active_errors``.
+    """
+    rng = np.random.default_rng(seed)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    off = g2o.ParameterSE3Offset()
+    off.set_id(0)
+    opt.add_parameter(off)
+    verts: dict[str, list[Any]] = {}
+    vid = 0
+    for cls, make, n in (("VertexSE2", lambda: g2o.SE2(*rng.normal(0, 1, 3)), 3),
+                         ("VertexPointXY", lambda: rng.normal(0, 2, 2), 2),
+                         ("VertexPointXYZ", lambda: rng.normal(0, 2, 3), 2),
+                         ("VertexSE3", lambda: g2o.Isometry3d(
+                             np.linalg.qr(rng.normal(size=(3, 3)))[0] * [1, 1, 1],
+                             rng.normal(0, 1, (3, 1))), 1)):
+        verts[cls] = []
+        for _ in range(n):
+            v = getattr(g2o, cls)()
+            v.set_id(vid)
+            est = make()
+            if cls == "VertexSE3":  # a proper rotation
+                R = est.R if hasattr(est, "R") else est.rotation_matrix()
+                if np.linalg.det(R) < 0:
+                    est = g2o.Isometry3d(-R, rng.normal(0, 1, (3, 1)))
+            v.set_estimate(est)
+            opt.add_vertex(v)
+            verts[cls].append(v)
+            vid += 1
+    se2, xy, xyz, se3 = (verts[c] for c in ("VertexSE2", "VertexPointXY", "VertexPointXYZ",
+                                            "VertexSE3"))
+    specs = [("EdgePointXY", [xy[0], xy[1]], 2), ("EdgeXYPrior", [xy[0]], 2),
+             ("EdgeSE2XYPrior", [se2[0]], 2), ("EdgeSE2PointXYBearing", [se2[0], xy[0]], 1),
+             ("EdgeSE2PointXYCalib", [se2[0], xy[1], se2[2]], 2),
+             ("EdgePointXYZ", [xyz[0], xyz[1]], 3), ("EdgeXYZPrior", [xyz[0]], 3),
+             ("EdgeSE3XYZPrior", [se3[0]], 3), ("EdgeSE2SensorCalib", [se2[0], se2[1], se2[2]], 3)]
+    edges = {}
+    for name, vs, d in specs:
+        e = getattr(g2o, name)()
+        for i, v in enumerate(vs):
+            e.set_vertex(i, v)
+        if name == "EdgeSE2SensorCalib":
+            e.set_measurement(g2o.SE2(*rng.normal(0, 1, 3)))
+        elif d == 1:
+            e.set_measurement(float(rng.normal()))
+        else:
+            e.set_measurement(rng.normal(0, 1, d))
+        A = rng.normal(size=(d, d))
+        e.set_information(A @ A.T + d * np.identity(d))
+        if name == "EdgeSE3XYZPrior":
+            e.set_parameter_id(0, 0)
+        opt.add_edge(e)
+        edges[name] = e
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    for e in edges.values():
+        e.compute_error()
+    return {name: float(e.chi2()) for name, e in edges.items()}

@@ -88,6 +88,27 @@ def test_gicp_same_as_g2opy() -> None:
     assert np.allclose(ours["t_after"], theirs["t_after"], atol=1e-6)
 
 
+# g2opy 2.3.0: one edge of each simpler slam2d/slam3d/sclam2d type (tests/g2o_programs.py).
+SENSOR_CHI2 = {
+    "EdgePointXY": 44.56257500283492,
+    "EdgeXYPrior": 64.21956596572787,
+    "EdgeSE2XYPrior": 4.290702898914601,
+    "EdgeSE2PointXYBearing": 2.826917292994926,
+    "EdgeSE2PointXYCalib": 94.84439295566771,
+    "EdgePointXYZ": 116.85238779305149,
+    "EdgeXYZPrior": 81.83138739583102,
+    "EdgeSE3XYZPrior": 2.6647107766220204,
+    "EdgeSE2SensorCalib": 22.24215074223278,
+}
+
+
+def test_sensor_types_give_g2opys_chi2() -> None:
+    ours = programs.sensor_types_chi2(g2o)
+    assert ours.keys() == SENSOR_CHI2.keys()
+    for name, value in SENSOR_CHI2.items():
+        assert ours[name] == pytest.approx(value, rel=1e-9), name
+
+
 # --- conventions --------------------------------------------------------------------------------
 
 
