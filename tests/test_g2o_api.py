@@ -109,6 +109,15 @@ def test_sensor_types_give_g2opys_chi2() -> None:
         assert ours[name] == pytest.approx(value, rel=1e-9), name
 
 
+def test_orbslam_local_ba_with_outlier_levels() -> None:
+    # ORB-SLAM's LocalBundleAdjustment: 5 iterations, chi2 > 5.991 or depth <= 0 to level 1,
+    # kernels dropped, 10 iterations. g2opy 2.3.0 on the same scene: 553.4438957680741, 652.
+    sc = programs.scene(12, 300, 4, seed=5)
+    _, _, chi2, inliers = programs.local_ba(g2o, sc, 6)
+    assert chi2 == pytest.approx(553.4438957680741, rel=1e-9)
+    assert inliers == 652  # of 1,200 observations: g2opy keeps the same ones
+
+
 # --- conventions --------------------------------------------------------------------------------
 
 
