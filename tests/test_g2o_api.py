@@ -389,3 +389,26 @@ def test_edit_after_load_and_unsupported_save(tmp_path: Path) -> None:
     opt.add_vertex(w)
     with pytest.raises(NotImplementedError, match="VertexSE3Expmap"):
         opt.save(str(tmp_path / "x.g2o"))
+
+
+def test_remove_and_fix_between_runs() -> None:
+    opt, edges, _ = _small_ba(6)
+    opt.initialize_optimization()
+    opt.optimize(2)
+    moved = opt.vertex(1).estimate().translation()
+    opt.vertex(1).set_fixed(True)  # reaches the store: the next run leaves it alone
+    opt.initialize_optimization()
+    opt.optimize(2)
+    assert np.array_equal(opt.vertex(1).estimate().translation(), moved)
+    n_edges = len(opt.edges())
+    kept = opt.vertex(11).estimate()
+    point = opt.vertex(10)
+    assert opt.remove_vertex(point)  # and its three edges, as g2o
+    assert opt.vertex(10) is None and len(opt.edges()) == n_edges - 3
+    assert not opt.remove_edge(edges[0])  # already gone with its vertex
+    assert opt.remove_edge(edges[3])
+    opt.initialize_optimization()  # the records are filed again: estimates carried over
+    assert np.array_equal(opt.vertex(11).estimate(), kept)
+    opt.optimize(2)
+    opt.compute_active_errors()
+    assert opt.active_chi2() == pytest.approx(sum(e.chi2() for e in opt.edges()), rel=1e-9)
