@@ -116,6 +116,19 @@ class EdgeProjectXYZ2UV(BaseEdge):
     _depth = staticmethod(_depth_pose_point)
 
 
+class EdgeProjectXYZ2UVU(BaseEdge):
+    """g2o's ``EdgeProjectXYZ2UVU``: stereo ``(u, v, u_right)`` of ``(point, pose)``, a
+    ``CameraParameters`` parameter (its baseline)."""
+
+    __slots__ = ()
+    _dim = 3
+    _mshape = (3,)
+    _gname = "EdgeProjectXYZ2UVU"
+    _perm = (1, 0)
+    _nparams = 1
+    _depth = staticmethod(_depth_pose_point)
+
+
 class EdgeProjectPSI2UV(BaseEdge):
     """g2o's ``EdgeProjectPSI2UV``: vertices ``(inverse-depth point, pose, anchor pose)``, a
     ``CameraParameters`` parameter; the point vertex is a ``VertexPointXYZ`` holding
@@ -131,4 +144,4 @@ class EdgeProjectPSI2UV(BaseEdge):
 
 SBA_EDGES: dict[str, type[BaseEdge]] = {c.__name__: c for c in (
     EdgeSE3ProjectXYZ, EdgeSE3ProjectXYZOnlyPose, EdgeStereoSE3ProjectXYZ,
-    EdgeStereoSE3ProjectXYZOnlyPose, EdgeProjectXYZ2UV, EdgeProjectPSI2UV)}
+    EdgeStereoSE3ProjectXYZOnlyPose, EdgeProjectXYZ2UV, EdgeProjectXYZ2UVU, EdgeProjectPSI2UV)}

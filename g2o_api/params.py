@@ -75,11 +75,13 @@ class CameraParameters(Parameter):
         return np.array([uv[0], uv[1], uv[0] - self.baseline * self.focal_length / p[2]])
 
     def _core(self) -> Any:
-        from graphopt.types.projection import CameraParameters as Core
+        # graphopt's SBACameraParameters is a CameraParameters with the baseline: it serves
+        # the monocular and the stereo (EdgeProjectXYZ2UVU) edges alike.
+        from graphopt.types import SBACameraParameters as Core
 
-        key = (self.focal_length, *self.principle_point.tolist())
+        key = (self.focal_length, *self.principle_point.tolist(), self.baseline)
         if self._cached is None or self._cached[0] != key:
-            self._cached = (key, Core(key[0], key[0], key[1], key[2]))
+            self._cached = (key, Core.from_g2o(key[0], key[1:3], key[3]))
         return self._cached[1]
 
 

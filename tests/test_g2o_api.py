@@ -88,7 +88,8 @@ def test_gicp_same_as_g2opy() -> None:
     assert np.allclose(ours["t_after"], theirs["t_after"], atol=1e-6)
 
 
-# g2opy 2.3.0: one edge of each simpler slam2d/slam3d/sclam2d type (tests/g2o_programs.py).
+# g2opy 2.3.0: one edge of each simpler slam2d/slam3d/sclam2d type and the stereo
+# EdgeProjectXYZ2UVU (tests/g2o_programs.py).
 SENSOR_CHI2 = {
     "EdgePointXY": 44.56257500283492,
     "EdgeXYPrior": 64.21956596572787,
@@ -99,6 +100,7 @@ SENSOR_CHI2 = {
     "EdgeXYZPrior": 81.83138739583102,
     "EdgeSE3XYZPrior": 2.6647107766220204,
     "EdgeSE2SensorCalib": 22.24215074223278,
+    "EdgeProjectXYZ2UVU": 263.60194699837785,
 }
 
 
