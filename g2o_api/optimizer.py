@@ -255,7 +255,9 @@ class SparseOptimizer:
                     raws.append(v._est if v._est is not None else v._default())
                     where.append(i)
             if raws:
-                est[where] = cls._to_array(raws, [recs[i]._id for i in where])
+                conv = cls._to_array(raws, [recs[i]._id for i in where])
+                cls._finish(conv, [recs[i] for i in where])
+                est[where] = conv
             banks[gtype] = Bank(gtype, recs, est)
         self._banks = banks
 

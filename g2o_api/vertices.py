@@ -115,7 +115,9 @@ class BaseVertex:
             self._est = estimate.copy() if type(estimate) is np.ndarray else (
                 list(estimate) if isinstance(estimate, list | tuple) else self._clone(estimate))
             return
-        row = self._to_array([estimate], [self._id])[0]
+        row = self._to_array([estimate], [self._id])
+        self._finish(row, [self])
+        row = row[0]
         st = bank.store
         if st is None:
             bank.initial[self._slot] = row
@@ -213,6 +215,10 @@ class BaseVertex:
     def _default(cls) -> Any:
         """g2o's initial estimate (``setToOrigin``)."""
         return np.zeros(cls._shape)
+
+    @classmethod
+    def _finish(cls, est: np.ndarray, recs: list[BaseVertex]) -> None:
+        """Complete converted estimates with what the records hold besides (in place)."""
 
 
 def _rigid_rows(cls: type, raws: list[Any], ids: list[int], rows: int) -> np.ndarray:
@@ -318,15 +324,51 @@ class VertexSE2(BaseVertex):
 
 
 class VertexSim3Expmap(BaseVertex):
-    """g2o's ``VertexSim3Expmap`` (estimate ``Sim3``; ``_fix_scale`` as in g2o)."""
+    """g2o's ``VertexSim3Expmap`` (estimate ``Sim3``). ``_fix_scale`` (set before the first
+    ``initialize_optimization``) travels in graphopt's estimate; the two cameras' intrinsics
+    (``_focal_length1/2``, ``_principle_point1/2``) become the Sim3 projection edges'
+    parameters."""
 
-    __slots__ = ("_fix_scale",)
+    __slots__ = ("_fix_scale", "_focal_length1", "_focal_length2", "_principle_point1",
+                 "_principle_point2")
     _gname = "VertexSim3Expmap"
     _shape = (4, 4)
 
     def __init__(self) -> None:
         super().__init__()
         self._fix_scale = False
+        self._focal_length1 = np.ones(2)
+        self._focal_length2 = np.ones(2)
+        self._principle_point1 = np.zeros(2)
+        self._principle_point2 = np.zeros(2)
+
+    def cam_map1(self, p: Any) -> np.ndarray:
+        """Pixel of a point in camera 1 (``_focal_length1``, ``_principle_point1``).
+
+        Args:
+            p: ``(3,)`` camera-frame point.
+        """
+        p = np.asarray(p, dtype=float).reshape(3)
+        return p[:2] / p[2] * np.asarray(self._focal_length1) + self._principle_point1
+
+    def cam_map2(self, p: Any) -> np.ndarray:
+        """Pixel of a point in camera 2.
+
+        Args:
+            p: ``(3,)`` camera-frame point.
+        """
+        p = np.asarray(p, dtype=float).reshape(3)
+        return p[:2] / p[2] * np.asarray(self._focal_length2) + self._principle_point2
+
+    def camera(self, which: int) -> tuple[float, float, float, float]:
+        """``(fx, fy, cx, cy)`` of camera 1 or 2.
+
+        Args:
+            which: 1 or 2.
+        """
+        f = np.broadcast_to(np.asarray(getattr(self, f"_focal_length{which}"), float), (2,))
+        c = np.asarray(getattr(self, f"_principle_point{which}"), float).reshape(2)
+        return (float(f[0]), float(f[1]), float(c[0]), float(c[1]))
 
     @classmethod
     def _default(cls) -> Any:
@@ -342,6 +384,10 @@ class VertexSim3Expmap(BaseVertex):
             out[i, :3, :3], out[i, :3, 3] = r._s * r._R, r._t
         out[:, 3, 3] = 1.0
         return out
+
+    @classmethod
+    def _finish(cls, est: np.ndarray, recs: list[BaseVertex]) -> None:
+        est[:, 3, 0] = [float(r._fix_scale) for r in recs]  # type: ignore[attr-defined]
 
     @classmethod
     def _from_row(cls, row: np.ndarray) -> Sim3:

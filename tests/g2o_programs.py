@@ -512,3 +512,80 @@ def motion_only(g2o: Any, sc: dict[str, Any], n: int) -> tuple[float, float, flo
     chi2 = opt.active_chi2()
     inliers = sum(1 for e in edges if e.level() == 0)
     return t1 - t0, time.perf_counter() - t1, chi2, inliers
+
+
+def optimize_sim3(g2o: Any, seed: int = 0, n: int = 100, noise: float = 1e-3,
+                  iterations: int = 5) -> dict[str, Any]:
+    """ORB-SLAM's ``OptimizeSim3``: one ``VertexSim3Expmap`` ``S12`` (camera 2 → camera 1),
+    fixed points in both cameras' frames, ``EdgeSim3ProjectXYZ`` (point of camera 2 seen by
+    camera 1) and ``EdgeInverseSim3ProjectXYZ`` (point of camera 1 seen by camera 2); normalised
+    image coordinates (the wheel keeps the vertex's intrinsics at f = 1, c = 0); 10 % outliers;
+    ``iterations``, outliers removed, 10 more.
+
+    Returns:
+        ``chi2``, ``inliers``, ``scale`` and ``t`` of the estimate (truth 1.7, [0.3, -0.1, 0.2]).
+    """
+    rng = np.random.default_rng(seed)
+    aa = np.array([0.05, -0.1, 0.08])
+    th = np.linalg.norm(aa)
+    K = np.array([[0, -aa[2], aa[1]], [aa[2], 0, -aa[0]], [-aa[1], aa[0], 0]]) / th
+    R = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+    t, s = np.array([0.3, -0.1, 0.2]), 1.7
+    X2 = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(3, 6, n)])
+    X1 = s * X2 @ R.T + t
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    v = g2o.VertexSim3Expmap()
+    v.set_id(0)
+    start = R @ np.array([[1.0, -0.02, 0.0], [0.02, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    start = np.linalg.qr(start)[0] * np.sign(np.diag(np.linalg.qr(start)[1]))
+    v.set_estimate(g2o.Sim3(start, t + 0.05, 1.5))
+    opt.add_vertex(v)
+    edges = []
+    point_cls = getattr(g2o, "VertexPointXYZ", None) or g2o.VertexSBAPointXYZ
+    delta = np.sqrt(10.0) * 1e-3
+    for i in range(n):
+        p1, p2 = point_cls(), point_cls()
+        p1.set_id(2 * i + 1)
+        p1.set_estimate(X1[i])
+        p1.set_fixed(True)
+        p2.set_id(2 * i + 2)
+        p2.set_estimate(X2[i])
+        p2.set_fixed(True)
+        opt.add_vertex(p1)
+        opt.add_vertex(p2)
+        obs1 = X1[i, :2] / X1[i, 2] + rng.normal(0, noise, 2)
+        obs2 = X2[i, :2] / X2[i, 2] + rng.normal(0, noise, 2)
+        if rng.random() < 0.1:
+            obs1 = obs1 + rng.uniform(-0.2, 0.2, 2)
+        e12 = g2o.EdgeSim3ProjectXYZ()
+        e12.set_vertex(0, p2)
+        e12.set_vertex(1, v)
+        e12.set_measurement(obs1)
+        e12.set_information(np.identity(2) * 1e6)
+        e12.set_robust_kernel(g2o.RobustKernelHuber(delta * 1e3))
+        e21 = g2o.EdgeInverseSim3ProjectXYZ()
+        e21.set_vertex(0, p1)
+        e21.set_vertex(1, v)
+        e21.set_measurement(obs2)
+        e21.set_information(np.identity(2) * 1e6)
+        e21.set_robust_kernel(g2o.RobustKernelHuber(delta * 1e3))
+        opt.add_edge(e12)
+        opt.add_edge(e21)
+        edges.append((e12, e21))
+    opt.initialize_optimization()
+    opt.optimize(iterations)
+    inliers = 0
+    for e12, e21 in edges:
+        if e12.chi2() > 10.0 or e21.chi2() > 10.0:
+            opt.remove_edge(e12)
+            opt.remove_edge(e21)
+        else:
+            inliers += 1
+    opt.initialize_optimization()
+    opt.optimize(10)
+    opt.compute_active_errors()
+    S = opt.vertex(0).estimate()
+    return {"chi2": opt.active_chi2(), "inliers": inliers, "scale": S.scale(),
+            "t": np.asarray(S.translation()).ravel()}
