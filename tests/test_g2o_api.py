@@ -447,3 +447,47 @@ def test_remove_and_fix_between_runs() -> None:
     opt.optimize(2)
     opt.compute_active_errors()
     assert opt.active_chi2() == pytest.approx(sum(e.chi2() for e in opt.edges()), rel=1e-9)
+
+
+def test_verbose_lines_and_user_lambda(capsys: pytest.CaptureFixture[str]) -> None:
+    opt, _, _ = _small_ba(8)
+    alg = g2o.OptimizationAlgorithmLevenberg(g2o.BlockSolverSE3(g2o.LinearSolverEigenSE3()))
+    alg.set_user_lambda_init(1e-3)
+    opt.set_algorithm(alg)
+    opt.set_verbose(True)
+    opt.initialize_optimization()
+    assert opt.optimize(3) == 3
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("iteration=")]
+    assert len(lines) == 3 and "levenbergIter=" in lines[0] and "edges= 24" in lines[0]
+    assert opt.core.algorithm.config.initial_lambda == 1e-3
+
+
+def test_save_a_graph_built_object_by_object(tmp_path: Path) -> None:
+    opt = g2o.SparseOptimizer()
+    poses = [(0.0, 0.0, 0.0), (1.0, 0.1, 0.2), (2.0, 0.3, 0.1)]
+    for i, p in enumerate(poses):
+        v = g2o.VertexSE2()
+        v.set_id(i)
+        v.set_estimate(g2o.SE2(*p))
+        v.set_fixed(i == 0)
+        opt.add_vertex(v)
+    for i in range(2):
+        e = g2o.EdgeSE2()
+        e.set_vertex(0, opt.vertex(i))
+        e.set_vertex(1, opt.vertex(i + 1))
+        e.set_measurement(g2o.SE2(1.0, 0.0, 0.1))
+        e.set_information(np.diag([10.0, 10.0, 100.0]))
+        opt.add_edge(e)
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    chi2 = opt.active_chi2()
+    out = tmp_path / "built.g2o"
+    opt.save(str(out))
+    text = out.read_text()
+    assert "VERTEX_SE2 1 1 0.10000000000000001 0.20000000000000001" in text
+    assert "FIX 0" in text
+    again = g2o.SparseOptimizer()
+    again.load(str(out))
+    again.initialize_optimization()
+    again.compute_active_errors()
+    assert again.active_chi2() == pytest.approx(chi2, rel=1e-12)
