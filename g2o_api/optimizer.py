@@ -128,7 +128,11 @@ class SparseOptimizer:
         Args:
             vertex: The vertex record.
         """
-        vid = vertex._id
+        try:
+            vid = vertex._id
+        except AttributeError:
+            raise TypeError(f"add_vertex: expected a g2o vertex, got {type(vertex).__name__}"
+                            ) from None
         if vid in self._vertices or vertex._opt is not None:
             return False
         self._vertices[vid] = vertex
@@ -143,7 +147,11 @@ class SparseOptimizer:
         Args:
             edge: The edge record.
         """
-        vs = edge._v
+        try:
+            vs = edge._v
+        except AttributeError:
+            raise TypeError(f"add_edge: expected a g2o edge, got {type(edge).__name__}"
+                            ) from None
         if edge._opt is not None or None in vs or (len(vs) == 2 and vs[0] is vs[1]) or (
                 len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
             return False
@@ -270,13 +278,21 @@ class SparseOptimizer:
                 buckets[key] = b = []
             b.append(e)
         batches = []
+        known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
         for (cls, pkey), recs in buckets.items():
             gtype = core_type(cls._core_name(pkey))
             perm = cls._perm
             k = cls._k
             vids = np.fromiter((v._id for e in recs for v in e._v), dtype=np.int64,
-                               count=k * len(recs)).reshape(-1, k)[:, list(perm)]
-            banks = [recs[0]._v[g]._bank for g in perm]
+                               count=k * len(recs)).reshape(-1, k)
+            missing = ~np.isin(vids, known)
+            if missing.any():
+                i, g = (int(a[0]) for a in np.nonzero(missing))
+                raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
+                                 f"{int(vids[i, g])} (position {g}) was not added to the "
+                                 "optimizer")
+            vids = vids[:, list(perm)]
+            banks = [self._vertices[int(vids[0, p])]._bank for p in range(k)]
             meas = self._measurements(cls, recs)
             info = self._information(cls, recs)
             batches.append(Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids,

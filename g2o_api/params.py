@@ -61,8 +61,9 @@ class CameraParameters(Parameter):
         Args:
             p: ``(3,)`` point in the camera frame.
         """
-        p = vector(p, 3, "cam_map")
-        return p[:2] / p[2] * self.focal_length + self.principle_point
+        if type(p) is not np.ndarray or p.shape != (3,):
+            p = vector(p, 3, "cam_map")
+        return p[:2] * (self.focal_length / p[2]) + self.principle_point
 
     def stereocam_uvu_map(self, p: Any) -> np.ndarray:
         """``(u, v, u − f·b / z)``.

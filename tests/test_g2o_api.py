@@ -491,3 +491,34 @@ def test_save_a_graph_built_object_by_object(tmp_path: Path) -> None:
     again.initialize_optimization()
     again.compute_active_errors()
     assert again.active_chi2() == pytest.approx(chi2, rel=1e-12)
+
+
+def test_edges_to_vertices_never_added_and_wrong_objects() -> None:
+    opt = g2o.SparseOptimizer()
+    a, b = g2o.VertexSE2(), g2o.VertexSE2()
+    a.set_id(0)
+    b.set_id(5)
+    opt.add_vertex(a)  # b is never added
+    e = g2o.EdgeSE2()
+    e.set_vertex(0, a)
+    e.set_vertex(1, b)
+    e.set_measurement(g2o.SE2())
+    opt.add_edge(e)
+    with pytest.raises(GraphError, match=r"vertex 5 \(position 1\) was not added"):
+        opt.initialize_optimization()
+    with pytest.raises(TypeError, match="expected a g2o vertex"):
+        opt.add_vertex(np.zeros(3))
+    with pytest.raises(TypeError, match="expected a g2o edge"):
+        opt.add_edge("edge")
+    opt.remove_edge(e)
+    p = g2o.VertexPointXY()
+    p.set_id(6)
+    p.set_estimate([1, 2])
+    opt.add_vertex(p)
+    wrong = g2o.EdgeSE2()
+    wrong.set_vertex(0, a)
+    wrong.set_vertex(1, p)  # a point where EdgeSE2 wants a pose
+    wrong.set_measurement(g2o.SE2())
+    opt.add_edge(wrong)
+    with pytest.raises(GraphError, match="EdgeSE2"):
+        opt.initialize_optimization()
