@@ -18,7 +18,14 @@ from .edges_sba import SBA_EDGES as _SBA
 from .edges_slam import SLAM_EDGES as _SLAM
 from .geometry import SE2, Isometry3d, SE3Quat
 from .optimizer import SparseOptimizer
-from .params import CameraParameters, Parameter, ParameterSE3Offset, StereoCameraParameters
+from .params import (
+    CameraParameters,
+    Parameter,
+    ParameterCamera,
+    ParameterSE2Offset,
+    ParameterSE3Offset,
+    StereoCameraParameters,
+)
 from .rotations import AngleAxis, Quaternion
 from .sim3 import Sim3
 from .solvers import ALGORITHMS as _ALGORITHMS
@@ -43,8 +50,8 @@ globals().update(_NAMES)
 __all__ = [
     "SE2", "AngleAxis", "BaseEdge", "BaseVertex", "BlockSolver", "CameraParameters", "Flag",
     "Isometry", "Isometry3d", "LinearSolver", "OptimizationAlgorithm", "Parameter",
-    "ParameterSE3Offset", "Quaternion", "RobustKernel", "SE3Quat", "Sim3", "SparseOptimizer",
-    "StereoCameraParameters",
+    "ParameterCamera", "ParameterSE2Offset", "ParameterSE3Offset", "Quaternion", "RobustKernel",
+    "SE3Quat", "Sim3", "SparseOptimizer", "StereoCameraParameters",
 ]
 __all__ += sorted(_NAMES)
 

@@ -232,10 +232,8 @@ class BaseEdge:
 #: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
 UNSUPPORTED = (
     "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam", "EdgeSBAScale", "EdgeProjectP2MC",
-    "EdgeProjectP2SC",
-    "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2Offset", "EdgeSE2PointXYOffset",
-    "EdgeSE2TwoPointsXY", "EdgeSE3LotsOfXYZ", "EdgeSE3Offset", "EdgeSE3PointXYZDepth",
-    "EdgeSE3PointXYZDisparity", "VertexCam", "VertexSCam", "VertexIntrinsics",
+    "EdgeProjectP2SC", "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2TwoPointsXY",
+    "EdgeSE3LotsOfXYZ", "VertexCam", "VertexSCam", "VertexIntrinsics",
     "VertexOdomDifferentialParams", "SBACam",
 )
 

@@ -151,7 +151,12 @@ SIMPLE = [_simple("EdgePointXY", 2, 2), _simple("EdgeXYPrior", 1, 2),
           _simple("EdgeSE2XYPrior", 1, 2), _simple("EdgeSE2PointXYBearing", 2, 1),
           _simple("EdgeSE2PointXYCalib", 3, 2), _simple("EdgePointXYZ", 2, 3),
           _simple("EdgeXYZPrior", 1, 3), _simple("EdgeSE3XYZPrior", 1, 3, nparams=1),
-          _simple("EdgeSE2SensorCalib", 3, 3, base=EdgeSE2)]
+          _simple("EdgeSE2SensorCalib", 3, 3, base=EdgeSE2),
+          _simple("EdgeSE2Offset", 2, 3, base=EdgeSE2, nparams=2),
+          _simple("EdgeSE2PointXYOffset", 2, 2, nparams=1),
+          _simple("EdgeSE3Offset", 2, 6, base=EdgeSE3, nparams=2, mshape=(3, 4)),
+          _simple("EdgeSE3PointXYZDepth", 2, 3, nparams=1),
+          _simple("EdgeSE3PointXYZDisparity", 2, 3, nparams=1)]
 
 
 

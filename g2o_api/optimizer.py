@@ -234,11 +234,14 @@ class SparseOptimizer:
             elif cls._nparams == 0:
                 value = None
             else:
-                p = self._parameters.get(key[0])
-                if p is None:
-                    raise GraphError(f"{cls.__name__}: parameter {key[0]} was never added "
-                                     "(optimizer.add_parameter)")
-                value = p._core()
+                cores = []
+                for pid in key:
+                    p = self._parameters.get(pid)
+                    if p is None:
+                        raise GraphError(f"{cls.__name__}: parameter {pid} was never added "
+                                         "(optimizer.add_parameter)")
+                    cores.append(p._core())
+                value = cores[0] if len(cores) == 1 else tuple(cores)
             self._core_params[full] = value
         return self._core_params[full]
 
@@ -356,6 +359,7 @@ class SparseOptimizer:
             gc.disable()
             try:
                 if self._records_dirty:
+                    self._core_params = {}  # parameters may have changed since
                     for v in self._vertices.values():
                         v._as = None
                     self._file_vertices()

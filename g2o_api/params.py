@@ -10,10 +10,11 @@ import numpy as np
 
 from graphopt.types.slam3d import ParameterSE3Offset as CoreOffset
 
-from .geometry import Isometry3d, _RigidBase
+from .geometry import SE2, Isometry3d, _RigidBase
 from .rotations import vector
 
-__all__ = ["CameraParameters", "Parameter", "ParameterSE3Offset", "StereoCameraParameters"]
+__all__ = ["CameraParameters", "Parameter", "ParameterCamera", "ParameterSE2Offset",
+           "ParameterSE3Offset", "StereoCameraParameters"]
 
 
 class Parameter:
@@ -115,3 +116,65 @@ class ParameterSE3Offset(Parameter):
 
     def _core(self) -> Any:
         return CoreOffset(self._offset.matrix()[:3], max(self._id, 0))
+
+
+class ParameterSE2Offset(Parameter):
+    """g2o's ``ParameterSE2Offset``: a sensor's ``SE2`` pose on its vertex (zero by default)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._offset = SE2()
+
+    def set_offset(self, offset: Any = None) -> None:
+        """Set the offset.
+
+        Args:
+            offset: An :class:`SE2` or ``[x, y, θ]``; ``None``: zero.
+        """
+        self._offset = SE2() if offset is None else (
+            SE2(offset) if not isinstance(offset, SE2) else SE2(offset.to_vector()))
+
+    def offset(self) -> SE2:
+        """The offset."""
+        return SE2(self._offset.to_vector())
+
+    param = offset
+    set_param = set_offset
+
+    def _core(self) -> Any:
+        from graphopt.types import ParameterSE2Offset as Core
+
+        return Core(self._offset.to_vector(), max(self._id, 0))
+
+
+class ParameterCamera(ParameterSE3Offset):
+    """g2o's ``ParameterCamera``: an ``Isometry3d`` offset and pinhole intrinsics (g2o's
+    defaults ``fx = fy = 1``, ``cx = cy = 0.5``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._k = (1.0, 1.0, 0.5, 0.5)
+
+    def set_kcam(self, fx: float, fy: float, cx: float, cy: float) -> None:
+        """Set the intrinsics.
+
+        Args:
+            fx: Focal length x.
+            fy: Focal length y.
+            cx: Principal point x.
+            cy: Principal point y.
+        """
+        self._k = (float(fx), float(fy), float(cx), float(cy))
+
+    setKcam = set_kcam  # noqa: N815 - the old bindings' name
+    setOffset = ParameterSE3Offset.set_offset  # noqa: N815
+
+    def Kcam(self) -> np.ndarray:  # noqa: N802 - g2o's name
+        """The 3x3 camera matrix."""
+        fx, fy, cx, cy = self._k
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def _core(self) -> Any:
+        from graphopt.types import ParameterCamera as Core
+
+        return Core(self._offset.matrix()[:3], max(self._id, 0), *self._k)

@@ -589,3 +589,80 @@ def optimize_sim3(g2o: Any, seed: int = 0, n: int = 100, noise: float = 1e-3,
     S = opt.vertex(0).estimate()
     return {"chi2": opt.active_chi2(), "inliers": inliers, "scale": S.scale(),
             "t": np.asarray(S.translation()).ravel()}
+
+
+def offset_types_chi2(g2o: Any, seed: int = 1) -> dict[str, float]:
+    """One edge of each offset type (``EdgeSE2Offset``, ``EdgeSE2PointXYOffset``,
+    ``EdgeSE3Offset``) with non-trivial ``ParameterSE2Offset``/``ParameterSE3Offset``
+    (set through ``set_param``, the wheel's name).
+
+    Returns:
+        ``{edge class: chi2}`` after ``compute_active_errors``.
+    """
+    rng = np.random.default_rng(seed)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    for pid in (0, 1):
+        p2 = g2o.ParameterSE2Offset()
+        p2.set_id(pid)
+        p2.set_param(g2o.SE2(*rng.normal(0, 0.5, 3)))
+        opt.add_parameter(p2)
+        p3 = g2o.ParameterSE3Offset()
+        p3.set_id(10 + pid)
+        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        R = R if np.linalg.det(R) > 0 else -R
+        p3.set_param(g2o.Isometry3d(R, rng.normal(0, 0.5, (3, 1))))
+        opt.add_parameter(p3)
+    vs = []
+    for i in range(2):
+        v = g2o.VertexSE2()
+        v.set_id(i)
+        v.set_estimate(g2o.SE2(*rng.normal(0, 1, 3)))
+        opt.add_vertex(v)
+        vs.append(v)
+    pt = g2o.VertexPointXY()
+    pt.set_id(2)
+    pt.set_estimate(rng.normal(0, 2, 2))
+    opt.add_vertex(pt)
+    ps = []
+    for i in range(2):
+        v = g2o.VertexSE3()
+        v.set_id(3 + i)
+        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        v.set_estimate(g2o.Isometry3d(R if np.linalg.det(R) > 0 else -R,
+                                      rng.normal(0, 1, (3, 1))))
+        opt.add_vertex(v)
+        ps.append(v)
+    edges = {}
+    e = g2o.EdgeSE2Offset()
+    e.set_vertex(0, vs[0])
+    e.set_vertex(1, vs[1])
+    e.set_measurement(g2o.SE2(*rng.normal(0, 1, 3)))
+    e.set_information(np.diag([4.0, 9.0, 16.0]))
+    e.set_parameter_id(0, 0)
+    e.set_parameter_id(1, 1)
+    edges["EdgeSE2Offset"] = e
+    e = g2o.EdgeSE2PointXYOffset()
+    e.set_vertex(0, vs[0])
+    e.set_vertex(1, pt)
+    e.set_measurement(rng.normal(0, 1, 2))
+    e.set_information(np.diag([4.0, 9.0]))
+    e.set_parameter_id(0, 1)
+    edges["EdgeSE2PointXYOffset"] = e
+    e = g2o.EdgeSE3Offset()
+    e.set_vertex(0, ps[0])
+    e.set_vertex(1, ps[1])
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    e.set_measurement(g2o.Isometry3d(R if np.linalg.det(R) > 0 else -R, rng.normal(0, 1, (3, 1))))
+    e.set_information(np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]))
+    e.set_parameter_id(0, 10)
+    e.set_parameter_id(1, 11)
+    edges["EdgeSE3Offset"] = e
+    for e in edges.values():
+        opt.add_edge(e)
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    for e in edges.values():
+        e.compute_error()
+    return {name: float(e.chi2()) for name, e in edges.items()}

@@ -522,3 +522,55 @@ def test_edges_to_vertices_never_added_and_wrong_objects() -> None:
     opt.add_edge(wrong)
     with pytest.raises(GraphError, match="EdgeSE2"):
         opt.initialize_optimization()
+
+
+# g2opy 2.3.0 on the same inputs (tests/g2o_programs.py, offsets set with set_param).
+OFFSET_CHI2 = {"EdgeSE2Offset": 66.0316489805401, "EdgeSE2PointXYOffset": 116.533181522862,
+               "EdgeSE3Offset": 9.293592444426764}
+
+
+def test_offset_types_give_g2opys_chi2() -> None:
+    ours = programs.offset_types_chi2(g2o)
+    for name, value in OFFSET_CHI2.items():
+        assert ours[name] == pytest.approx(value, rel=1e-9), name
+
+
+@pytest.mark.parametrize("name", ["EdgeSE3PointXYZDepth", "EdgeSE3PointXYZDisparity"])
+def test_camera_parameter_edges_match_graphopts_types(name: str) -> None:
+    # The wheel cannot set a ParameterCamera (its CameraWithOffset is not exposed): compare the
+    # mapping with graphopt's own type, built with the same camera.
+    import graphopt
+    import graphopt.types as gt
+
+    R = g2o.AngleAxis(0.3, np.array([0.0, 0.6, 0.8])).matrix()
+    opt = g2o.SparseOptimizer()
+    cam = g2o.ParameterCamera()
+    cam.set_id(3)
+    cam.set_kcam(400.0, 410.0, 320.0, 240.0)
+    cam.set_offset(g2o.Isometry3d(R, [0.1, 0.0, -0.2]))
+    opt.add_parameter(cam)
+    pose, point = g2o.VertexSE3(), g2o.VertexPointXYZ()
+    pose.set_id(0)
+    pose.set_estimate(g2o.Isometry3d(R.T, [0.5, -0.3, 0.2]))
+    point.set_id(1)
+    point.set_estimate([0.4, 0.3, 5.0])
+    opt.add_vertex(pose)
+    opt.add_vertex(point)
+    e = getattr(g2o, name)()
+    e.set_vertex(0, pose)
+    e.set_vertex(1, point)
+    z = np.array([300.0, 250.0, 0.2 if "Disparity" in name else 4.5])
+    e.set_measurement(z)
+    e.set_information(np.diag([1.0, 2.0, 3.0]))
+    e.set_parameter_id(0, 3)
+    opt.add_edge(e)
+    opt.initialize_optimization()
+    core = graphopt.SparseOptimizer()
+    core.add_vertices(gt.VertexSE3, [0], [np.column_stack([R.T, [0.5, -0.3, 0.2]])])
+    core.add_vertices(gt.VertexPointXYZ, [1], [[0.4, 0.3, 5.0]])
+    params = gt.ParameterCamera(np.column_stack([R, [0.1, 0.0, -0.2]]), 3, 400.0, 410.0, 320.0,
+                                240.0)
+    es = core.add_edges(getattr(gt, name), [[0, 1]], [z], np.diag([1.0, 2.0, 3.0]),
+                        params=params)
+    assert e.chi2() == pytest.approx(float(es.chi2()[0]), rel=1e-12)
+    assert e.chi2() > 1.0
