@@ -231,9 +231,9 @@ class BaseEdge:
 
 #: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
 UNSUPPORTED = (
-    "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam", "EdgeSBAScale", "EdgeProjectP2MC",
+    "EdgeSBACam", "EdgeSBAScale", "EdgeProjectP2MC",
     "EdgeProjectP2SC", "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2TwoPointsXY",
-    "EdgeSE3LotsOfXYZ", "VertexCam", "VertexSCam", "VertexIntrinsics",
+    "EdgeSE3LotsOfXYZ", "VertexCam", "VertexIntrinsics",
     "VertexOdomDifferentialParams", "SBACam",
 )
 

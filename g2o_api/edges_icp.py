@@ -116,5 +116,23 @@ class EdgeVVGicp(BaseEdge):
                 "cov1": np.array([r.cov1 for r in recs], dtype=float)}  # type: ignore
 
 
+class EdgeXyzVsc(BaseEdge):
+    """g2o's ``Edge_XYZ_VSC`` (``EdgeXyzVsc``): stereo ``(u, v, u_right)`` of ``(point,
+    VertexSCam)``, the intrinsics ``VertexSCam``'s static ones."""
+
+    __slots__ = ()
+    _dim = 3
+    _mshape = (3,)
+    _gname = "EdgeXyzVsc"
+    _perm = (1, 0)
+    _param_type = "SCamParameters"
+
+    def _params_key(self) -> tuple[Any, ...]:
+        from .vertices import VertexSCam
+
+        return VertexSCam._cam
+
+
 ICP_EDGES: dict[str, type] = {"EdgeVVGicp": EdgeVVGicp, "Edge_V_V_GICP": EdgeVVGicp,
-                              "EdgeGICP": EdgeGICP}
+                              "EdgeGICP": EdgeGICP, "EdgeXyzVsc": EdgeXyzVsc,
+                              "Edge_XYZ_VSC": EdgeXyzVsc}

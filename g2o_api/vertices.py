@@ -284,6 +284,54 @@ class VertexSE3(BaseVertex):
         return Isometry3d._of(row[:, :3].copy(), row[:, 3].copy())
 
 
+class VertexSCam(VertexSE3):
+    """g2o's ``VertexSCam``: a stereo camera's pose in the world (an ``Isometry3d``); the
+    intrinsics are static, as in g2o (``VertexSCam.set_cam(fx, fy, cx, cy, baseline)``)."""
+
+    __slots__ = ()
+    _gname = "VertexSCam"
+    _cam = (1.0, 1.0, 0.5, 0.5, 0.1)
+
+    @staticmethod
+    def set_cam(fx: float, fy: float, cx: float, cy: float, baseline: float) -> None:
+        """Set the intrinsics of every ``VertexSCam`` (g2o's static ``setKcam``).
+
+        Args:
+            fx: Focal length x.
+            fy: Focal length y.
+            cx: Principal point x.
+            cy: Principal point y.
+            baseline: Stereo baseline.
+        """
+        VertexSCam._cam = (float(fx), float(fy), float(cx), float(cy), float(baseline))
+
+    set_kcam = set_cam
+
+    def set_all(self) -> None:
+        """g2o caches its projection matrices here; nothing to do."""
+
+    def map_point(self, p: Any) -> np.ndarray:
+        """``[u, v, u_right]`` of a world point.
+
+        Args:
+            p: ``(3,)`` world point.
+        """
+        from graphopt.types.sba_cam import stereo_projection
+
+        T = self.estimate()
+        pc = T._R.T @ (np.asarray(p, dtype=float).reshape(3) - T._t)
+        return stereo_projection(pc[None], *self._cam)[0][0]
+
+    def Kcam(self) -> np.ndarray:  # noqa: N802 - g2o's name
+        """The 3x3 camera matrix."""
+        fx, fy, cx, cy, _ = self._cam
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def baseline(self) -> float:
+        """The stereo baseline."""
+        return self._cam[4]
+
+
 class VertexPointXYZ(BaseVertex):
     """g2o's ``VertexPointXYZ`` (the old bindings' ``VertexSBAPointXYZ``): a ``(3,)`` point."""
 
@@ -400,5 +448,5 @@ VERTEX_CLASSES: dict[str, type[BaseVertex]] = {
     "VertexSE3Expmap": VertexSE3Expmap, "VertexSE3": VertexSE3,
     "VertexPointXYZ": VertexPointXYZ, "VertexSBAPointXYZ": VertexPointXYZ,
     "VertexPointXY": VertexPointXY, "VertexSE2": VertexSE2,
-    "VertexSim3Expmap": VertexSim3Expmap,
+    "VertexSim3Expmap": VertexSim3Expmap, "VertexSCam": VertexSCam,
 }

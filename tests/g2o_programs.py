@@ -666,3 +666,62 @@ def offset_types_chi2(g2o: Any, seed: int = 1) -> dict[str, float]:
     for e in edges.values():
         e.compute_error()
     return {name: float(e.chi2()) for name, e in edges.items()}
+
+
+def sba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, n_points: int = 300,
+             iterations: int = 10) -> dict[str, Any]:
+    """g2o's ``sba_demo``: stereo cameras (``VertexSCam``, static intrinsics) and points seen
+    through ``Edge_XYZ_VSC`` (``[u, v, u_right]``), disparity noise 1/16 px.
+
+    Returns:
+        ``chi2``, ``rmse_before``/``rmse_after`` of the points, ``iterations``.
+    """
+    rng = np.random.default_rng(seed)
+    optimizer = g2o.SparseOptimizer()
+    optimizer.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverSE3(g2o.LinearSolverEigenSE3())))
+    true_points = np.column_stack([rng.random(n_points) * 3 - 1.5, rng.random(n_points) - 0.5,
+                                   rng.random(n_points) + 3])
+    g2o.VertexSCam.set_cam(500.0, 500.0, 320.0, 240.0, 0.075)
+    num_pose = 5
+    for i in range(num_pose):
+        v = g2o.VertexSCam()
+        v.set_id(i)
+        v.set_estimate(g2o.Isometry3d(np.identity(3), np.array([[i * 0.04 - 1], [0.0], [0.0]])))
+        v.set_fixed(i < 2)
+        v.set_all()
+        optimizer.add_vertex(v)
+    edge_cls = getattr(g2o, "Edge_XYZ_VSC", None) or g2o.EdgeXyzVsc
+    point_cls = getattr(g2o, "VertexPointXYZ", None) or g2o.VertexSBAPointXYZ
+    point_id, inliers, sse0 = num_pose, {}, 0.0
+    for i, point in enumerate(true_points):
+        visible = []
+        for j in range(num_pose):
+            z = optimizer.vertex(j).map_point(point)
+            if 0 <= z[0] < 640 and 0 <= z[1] < 480:
+                visible.append((j, z))
+        if len(visible) < 2:
+            continue
+        vp = point_cls()
+        vp.set_id(point_id)
+        vp.set_marginalized(True)
+        vp.set_estimate(point + rng.standard_normal(3) * 0.3)
+        optimizer.add_vertex(vp)
+        for j, z in visible:
+            edge = edge_cls()
+            edge.set_vertex(0, vp)
+            edge.set_vertex(1, optimizer.vertex(j))
+            edge.set_measurement(z + rng.standard_normal(3) * noise * np.array([1, 1, 1 / 16]))
+            edge.set_information(np.identity(3))
+            edge.set_parameter_id(0, 0)
+            optimizer.add_edge(edge)
+        inliers[point_id] = i
+        sse0 += float(np.sum((vp.estimate() - true_points[i]) ** 2))
+        point_id += 1
+    optimizer.initialize_optimization()
+    its = optimizer.optimize(iterations)
+    optimizer.compute_active_errors()
+    sse1 = sum(float(np.sum((optimizer.vertex(i).estimate() - true_points[k]) ** 2))
+               for i, k in inliers.items())
+    return {"chi2": optimizer.active_chi2(), "rmse_before": np.sqrt(sse0 / len(inliers)),
+            "rmse_after": np.sqrt(sse1 / len(inliers)), "iterations": its}
