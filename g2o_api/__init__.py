@@ -27,6 +27,7 @@ from .params import (
     StereoCameraParameters,
 )
 from .rotations import AngleAxis, Quaternion
+from .sba_cam import SBA_CAM_CLASSES as _SBA_CAM
 from .sim3 import Sim3
 from .solvers import ALGORITHMS as _ALGORITHMS
 from .solvers import BLOCK_SOLVERS as _BLOCK_SOLVERS
@@ -42,8 +43,8 @@ RobustKernel = RobustKernelBase
 Isometry = Isometry3d
 
 _NAMES: dict[str, _Any] = {
-    **_VERTICES, **_EDGES, **_ALGORITHMS, **_BLOCK_SOLVERS, **_LINEAR_SOLVERS, **_KERNELS,
-    **{name: _unsupported(name) for name in _UNSUPPORTED if name not in _EDGES},
+    **_VERTICES, **_EDGES, **_SBA_CAM, **_ALGORITHMS, **_BLOCK_SOLVERS, **_LINEAR_SOLVERS,
+    **_KERNELS, **{name: _unsupported(name) for name in _UNSUPPORTED},
 }
 globals().update(_NAMES)
 

@@ -231,10 +231,8 @@ class BaseEdge:
 
 #: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
 UNSUPPORTED = (
-    "EdgeSBACam", "EdgeSBAScale", "EdgeProjectP2MC",
-    "EdgeProjectP2SC", "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2TwoPointsXY",
-    "EdgeSE3LotsOfXYZ", "VertexCam", "VertexIntrinsics",
-    "VertexOdomDifferentialParams", "SBACam",
+    "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2TwoPointsXY", "EdgeSE3LotsOfXYZ",
+    "VertexOdomDifferentialParams",
 )
 
 

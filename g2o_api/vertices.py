@@ -10,6 +10,7 @@ vertex's id.
 
 from __future__ import annotations
 
+import copy as _copy
 from importlib import import_module
 from typing import Any
 
@@ -180,9 +181,9 @@ class BaseVertex:
 
     @staticmethod
     def _clone(estimate: Any) -> Any:
+        if isinstance(estimate, _RigidBase | Sim3 | SE2):
+            return _copy.copy(estimate)  # shallow: their arrays are replaced, never written
         copy = getattr(estimate, "copy", None)
-        if isinstance(estimate, _RigidBase):
-            return type(estimate)._of(estimate._R, estimate._t)
         return copy() if callable(copy) else estimate
 
     @classmethod

@@ -725,3 +725,50 @@ def sba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, n_points: int = 300,
                for i, k in inliers.items())
     return {"chi2": optimizer.active_chi2(), "rmse_before": np.sqrt(sse0 / len(inliers)),
             "rmse_after": np.sqrt(sse1 / len(inliers)), "iterations": its}
+
+
+def sba_cam_chi2(g2o: Any, seed: int = 2) -> dict[str, float]:
+    """One edge of each of g2o's SBA camera types (``VertexCam`` holding an ``SBACam``).
+
+    Returns:
+        ``{edge class: chi2}`` after ``compute_active_errors``.
+    """
+    rng = np.random.default_rng(seed)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    cams = []
+    for i in range(2):
+        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        R = R if np.linalg.det(R) > 0 else -R
+        c = g2o.SBACam(g2o.SE3Quat(R, rng.normal(0, 0.3, 3)))
+        c.set_cam(450.0 + 10 * i, 460.0, 320.0, 240.0, 0.1)
+        v = g2o.VertexCam()
+        v.set_id(i)
+        v.set_estimate(c)
+        opt.add_vertex(v)
+        cams.append(v)
+    p = g2o.VertexPointXYZ()
+    p.set_id(2)
+    p.set_estimate(cams[0].estimate().translation() + cams[0].estimate().rotation().matrix()
+                   @ np.array([0.2, -0.1, 4.0]))
+    opt.add_vertex(p)
+    edges = {}
+    for name, vs, z in (("EdgeProjectP2MC", [p, cams[0]], np.array([330.0, 230.0])),
+                        ("EdgeProjectP2SC", [p, cams[0]], np.array([330.0, 230.0, 320.0])),
+                        ("EdgeSBAScale", [cams[0], cams[1]], 0.4),
+                        ("EdgeSBACam", [cams[0], cams[1]],
+                         g2o.SE3Quat(np.identity(3), np.array([0.1, 0.2, 0.3])))):
+        e = getattr(g2o, name)()
+        for i, v in enumerate(vs):
+            e.set_vertex(i, v)
+        e.set_measurement(z)
+        d = {"EdgeSBAScale": 1, "EdgeSBACam": 6, "EdgeProjectP2SC": 3}.get(name, 2)
+        e.set_information(np.identity(d) * 2.0)
+        opt.add_edge(e)
+        edges[name] = e
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    for e in edges.values():
+        e.compute_error()
+    return {name: float(e.chi2()) for name, e in edges.items()}
