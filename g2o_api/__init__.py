@@ -33,7 +33,14 @@ from .solvers import ALGORITHMS as _ALGORITHMS
 from .solvers import BLOCK_SOLVERS as _BLOCK_SOLVERS
 from .solvers import KERNEL_CLASSES as _KERNELS
 from .solvers import LINEAR_SOLVERS as _LINEAR_SOLVERS
-from .solvers import BlockSolver, Flag, LinearSolver, OptimizationAlgorithm, RobustKernelBase
+from .solvers import (
+    BlockSolver,
+    Flag,
+    IoFormat,
+    LinearSolver,
+    OptimizationAlgorithm,
+    RobustKernelBase,
+)
 from .vertices import VERTEX_CLASSES as _VERTICES
 from .vertices import BaseVertex
 
@@ -50,6 +57,7 @@ globals().update(_NAMES)
 
 __all__ = [
     "SE2", "AngleAxis", "BaseEdge", "BaseVertex", "BlockSolver", "CameraParameters", "Flag",
+    "IoFormat",
     "Isometry", "Isometry3d", "LinearSolver", "OptimizationAlgorithm", "Parameter",
     "ParameterCamera", "ParameterSE2Offset", "ParameterSE3Offset", "Quaternion", "RobustKernel",
     "SE3Quat", "Sim3", "SparseOptimizer", "StereoCameraParameters",

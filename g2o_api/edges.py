@@ -210,6 +210,13 @@ class BaseEdge:
         return cls._gname
 
     @classmethod
+    def _core_type(cls, key: tuple[Any, ...]) -> type:
+        """graphopt's type for the batch of this parameter key."""
+        from .vertices import core_type
+
+        return core_type(cls._core_name(key))
+
+    @classmethod
     def _measurements(cls, raws: list[Any]) -> np.ndarray:
         m = len(raws)
         arr = np.array(raws, dtype=float)
@@ -229,10 +236,20 @@ class BaseEdge:
         raise NotImplementedError("is_depth_positive: not a projection edge")
 
 
-#: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
-UNSUPPORTED = (
-    "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2TwoPointsXY", "EdgeSE3LotsOfXYZ",
-    "VertexOdomDifferentialParams",
+#: Names of the official wheel that graphopt.g2o does not provide (its machinery, simulators,
+#: helpers): constructing one raises ``NotImplementedError`` naming it.
+UNSUPPORTED: tuple[str, ...] = (
+    "AbstractOptimizationAlgorithmCreator", "Affine", "AffineCompact", "EstimatePropagator",
+    "EstimatePropagatorCost", "EstimatePropagatorCostBase", "EstimatePropagatorCostOdometry",
+    "Factory", "FactoryTypeInfo", "G2OBatchStatistics", "HyperDijkstra", "HyperGraph",
+    "HyperGraphAction", "IoFileFilter", "IoWrapper", "Isometry2d", "JacobianWorkspace",
+    "MotionMeasurement", "OdomConvert", "OptimizableGraph", "OptimizationAlgorithmProperty",
+    "OptimizationAlgorithmWithHessian", "ParameterContainer", "Projective",
+    "RegisterOptimizationAlgorithmProxy", "RobustKernelScaleDelta", "Rotation2d", "Simulator",
+    "Simulator2D", "Simulator2DConfig", "Simulator3D", "Simulator3DConfig", "SimulatorConfig",
+    "Solver", "SparseBlockMatrixX", "SparseOptimizerTerminateAction", "TransformTraits",
+    "UniformCostFunction", "VariableVectorXEdge", "VectorXVertex", "VertexIntrinsicsEstimate",
+    "World",
 )
 
 
@@ -245,8 +262,7 @@ def unsupported(name: str) -> type:
 
     def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
         raise NotImplementedError(
-            f"graphopt.g2o: {name} is not supported (graphopt has no batched type for it yet); "
-            "see docs/g2o_api.md for the supported types")
+            f"graphopt.g2o: g2o's {name} is not supported; see docs/g2o_api.md for what is")
 
     return type(name, (), {"__init__": __init__, "__module__": "graphopt.g2o",
                            "__doc__": f"g2o's {name}: not supported by graphopt."})

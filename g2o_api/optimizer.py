@@ -283,9 +283,9 @@ class SparseOptimizer:
         batches = []
         known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
         for (cls, pkey), recs in buckets.items():
-            gtype = core_type(cls._core_name(pkey))
-            perm = cls._perm
-            k = cls._k
+            gtype = cls._core_type(pkey)
+            k = len(recs[0]._v)  # the class's count, or the edges' own (EdgeSE2LotsOfXY)
+            perm = cls._perm if len(cls._perm) == k else tuple(range(k))
             vids = np.fromiter((v._id for e in recs for v in e._v), dtype=np.int64,
                                count=k * len(recs)).reshape(-1, k)
             missing = ~np.isin(vids, known)
@@ -297,7 +297,7 @@ class SparseOptimizer:
             vids = vids[:, list(perm)]
             banks = [self._vertices[int(vids[0, p])]._bank for p in range(k)]
             meas = self._measurements(cls, recs)
-            info = self._information(cls, recs)
+            info = self._information(cls, recs, gtype.dimension)
             batches.append(Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids,
                                  banks, meas, info, cls._data(recs)))
         self._batches = batches
@@ -321,11 +321,10 @@ class SparseOptimizer:
             raise
 
     @staticmethod
-    def _information(cls: type, recs: list[BaseEdge]) -> np.ndarray | None:
+    def _information(cls: type, recs: list[BaseEdge], d: int) -> np.ndarray | None:
         infos = [e._info for e in recs]
         if all(i is None for i in infos):
             return None
-        d = cls._dim
         eye = np.eye(d)
         for e, i in zip(recs, infos, strict=True):
             if i is not None and i.shape != (d, d):

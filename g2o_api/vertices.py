@@ -349,6 +349,14 @@ class VertexPointXY(BaseVertex):
     _shape = (2,)
 
 
+class VertexOdomDifferentialParams(BaseVertex):
+    """g2o's ``VertexOdomDifferentialParams``: ``[k_l, k_r, b]``."""
+
+    __slots__ = ()
+    _gname = "VertexOdomDifferentialParams"
+    _shape = (3,)
+
+
 class VertexSE2(BaseVertex):
     """g2o's ``VertexSE2`` (estimate ``SE2``)."""
 
@@ -450,4 +458,5 @@ VERTEX_CLASSES: dict[str, type[BaseVertex]] = {
     "VertexPointXYZ": VertexPointXYZ, "VertexSBAPointXYZ": VertexPointXYZ,
     "VertexPointXY": VertexPointXY, "VertexSE2": VertexSE2,
     "VertexSim3Expmap": VertexSim3Expmap, "VertexSCam": VertexSCam,
+    "VertexOdomDifferentialParams": VertexOdomDifferentialParams,
 }

@@ -772,3 +772,57 @@ def sba_cam_chi2(g2o: Any, seed: int = 2) -> dict[str, float]:
     for e in edges.values():
         e.compute_error()
     return {name: float(e.chi2()) for name, e in edges.items()}
+
+
+def variable_and_odometry_chi2(g2o: Any, seed: int = 3) -> dict[str, float]:
+    """``EdgeSE2LotsOfXY`` (3 points, ``resize``), ``EdgeSE3LotsOfXYZ`` (2 points),
+    ``EdgeSE2TwoPointsXY`` and ``EdgeSE2OdomDifferentialCalib`` (a ``VelocityMeasurement``).
+
+    Returns:
+        ``{edge class: chi2}`` after ``compute_active_errors``.
+    """
+    rng = np.random.default_rng(seed)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    vid = 0
+
+    def add(cls: str, est: Any) -> Any:
+        nonlocal vid
+        v = getattr(g2o, cls)()
+        v.set_id(vid)
+        v.set_estimate(est)
+        opt.add_vertex(v)
+        vid += 1
+        return v
+
+    poses = [add("VertexSE2", g2o.SE2(*rng.normal(0, 1, 3))) for _ in range(2)]
+    xy = [add("VertexPointXY", rng.normal(0, 2, 2)) for _ in range(3)]
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    pose3 = add("VertexSE3", g2o.Isometry3d(R if np.linalg.det(R) > 0 else -R,
+                                            rng.normal(0, 1, (3, 1))))
+    xyz = [add("VertexPointXYZ", rng.normal(0, 2, 3)) for _ in range(2)]
+    calib = add("VertexOdomDifferentialParams", np.array([1.02, 0.97, 0.5]))
+    edges = {}
+    specs = (("EdgeSE2LotsOfXY", [poses[0], *xy], 6), ("EdgeSE3LotsOfXYZ", [pose3, *xyz], 6),
+             ("EdgeSE2TwoPointsXY", [poses[1], xy[0], xy[1]], 4),
+             ("EdgeSE2OdomDifferentialCalib", [poses[0], poses[1], calib], 3))
+    for name, vs, d in specs:
+        e = getattr(g2o, name)()
+        if "Lots" in name:
+            e.resize(len(vs))
+        for i, v in enumerate(vs):
+            e.set_vertex(i, v)
+        if name == "EdgeSE2OdomDifferentialCalib":
+            e.set_measurement(g2o.VelocityMeasurement(0.8, 1.1, 0.5))
+        else:
+            e.set_measurement(rng.normal(0, 1, d))
+        A = rng.normal(size=(d, d))
+        e.set_information(A @ A.T + d * np.identity(d))
+        opt.add_edge(e)
+        edges[name] = e
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    for e in edges.values():
+        e.compute_error()
+    return {name: float(e.chi2()) for name, e in edges.items()}
