@@ -156,14 +156,6 @@ class Batch:
         self.levels_dirty = False
         self.sync(levels=False)
 
-    def active_ids(self, level: int) -> np.ndarray:
-        """Vertex ids used by the edges of ``level``.
-
-        Args:
-            level: The level.
-        """
-        return self.vids[self.levels == level].ravel()
-
     # --- evaluation --------------------------------------------------------------------------
 
     def _state(self) -> tuple[Any, ...]:
