@@ -610,3 +610,21 @@ def test_variable_count_and_odometry_edges_give_g2opys_chi2() -> None:
     ours = programs.variable_and_odometry_chi2(g2o)
     for name, value in VARIABLE_CHI2.items():
         assert ours[name] == pytest.approx(value, rel=1e-9), name
+
+
+def test_one_line_shim_module(tmp_path: Path) -> None:
+    import subprocess
+
+    (tmp_path / "g2o.py").write_text("import sys, graphopt.g2o; sys.modules[__name__] = "
+                                     "graphopt.g2o\n")
+    (tmp_path / "prog.py").write_text(
+        "import g2o\n"
+        "opt = g2o.SparseOptimizer()\n"
+        "v = g2o.VertexSBAPointXYZ(); v.set_id(0); v.set_estimate([1, 2, 3])\n"
+        "opt.add_vertex(v)\n"
+        "print(type(opt).__module__, opt.vertex(0).estimate().tolist())\n")
+    # No -P here: the program's own folder (with g2o.py) must be on the path, as usual.
+    out = subprocess.run([sys.executable, "prog.py"], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=60, start_new_session=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["graphopt.g2o.optimizer", "[1.0,", "2.0,", "3.0]"]
