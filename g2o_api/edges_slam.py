@@ -118,7 +118,8 @@ class EdgeSE3Expmap(BaseEdge):
     def _from_measurement(cls, row: np.ndarray) -> Any:
         from .geometry import SE3Quat
 
-        return SE3Quat._of(row[:3, :3].copy(), row[:3, 3].copy())
+        m = row.copy()  # one copy; the record holds views of it
+        return SE3Quat._of(m[:3, :3], m[:3, 3])
 
 
 class EdgeSim3(EdgeSE3Expmap):

@@ -262,7 +262,8 @@ class VertexSE3Expmap(BaseVertex):
 
     @classmethod
     def _from_row(cls, row: np.ndarray) -> SE3Quat:
-        return SE3Quat._of(row[:3, :3].copy(), row[:3, 3].copy())
+        m = row.copy()  # one copy; the record holds views of it
+        return SE3Quat._of(m[:3, :3], m[:3, 3])
 
 
 class VertexSE3(BaseVertex):
@@ -282,7 +283,8 @@ class VertexSE3(BaseVertex):
 
     @classmethod
     def _from_row(cls, row: np.ndarray) -> Isometry3d:
-        return Isometry3d._of(row[:, :3].copy(), row[:, 3].copy())
+        m = row.copy()
+        return Isometry3d._of(m[:, :3], m[:, 3])
 
 
 class VertexSCam(VertexSE3):
