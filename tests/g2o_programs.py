@@ -826,3 +826,77 @@ def variable_and_odometry_chi2(g2o: Any, seed: int = 3) -> dict[str, float]:
     for e in edges.values():
         e.compute_error()
     return {name: float(e.chi2()) for name, e in edges.items()}
+
+
+def slam_backend_types_chi2(g2o: Any, seed: int = 4) -> dict[str, float]:
+    """One edge of each type ORB-SLAM uses besides ``EdgeSE3ProjectXYZ``: the pose-only and
+    stereo projections, ``EdgeSE3Expmap`` and ``EdgeSim3``.
+
+    Returns:
+        ``{edge class: chi2}`` after ``compute_active_errors``.
+    """
+    rng = np.random.default_rng(seed)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+
+    def rot() -> np.ndarray:
+        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        R = R if np.linalg.det(R) > 0 else -R
+        w = np.array([[0, -0.1, 0.05], [0.1, 0, -0.02], [-0.05, 0.02, 0]])
+        return np.eye(3) + w + 0.5 * w @ w if rng.random() < 2 else R  # near the identity
+
+    poses = []
+    for i in range(2):
+        v = g2o.VertexSE3Expmap()
+        v.set_id(i)
+        v.set_estimate(g2o.SE3Quat(np.linalg.qr(rot())[0] * np.sign(np.diag(np.linalg.qr(
+            rot())[1])), rng.normal(0, 0.2, 3)))
+        opt.add_vertex(v)
+        poses.append(v)
+    sims = []
+    for i in range(2):
+        v = g2o.VertexSim3Expmap()
+        v.set_id(2 + i)
+        q = np.linalg.qr(rot())
+        v.set_estimate(g2o.Sim3(q[0] * np.sign(np.diag(q[1])), rng.normal(0, 0.2, 3),
+                                1.0 + 0.3 * i))
+        opt.add_vertex(v)
+        sims.append(v)
+    point = g2o.VertexPointXYZ()
+    point.set_id(4)
+    point.set_estimate(np.array([0.2, -0.1, 4.0]))
+    opt.add_vertex(point)
+    edges = {}
+    fx, fy, cx, cy, bf = 450.0, 455.0, 320.0, 240.0, 40.0
+    for name, vs, z in (("EdgeSE3ProjectXYZOnlyPose", [poses[0]], np.array([345.0, 228.0])),
+                        ("EdgeStereoSE3ProjectXYZOnlyPose", [poses[0]],
+                         np.array([345.0, 228.0, 335.0])),
+                        ("EdgeStereoSE3ProjectXYZ", [point, poses[1]],
+                         np.array([345.0, 228.0, 335.0])),
+                        ("EdgeSE3Expmap", [poses[0], poses[1]],
+                         g2o.SE3Quat(np.identity(3), np.array([0.1, 0.0, 0.05]))),
+                        ("EdgeSim3", [sims[0], sims[1]],
+                         g2o.Sim3(np.identity(3), np.array([0.1, 0.0, 0.05]), 1.2))):
+        e = getattr(g2o, name)()
+        if "Project" in name and not hasattr(e, "fx"):
+            continue  # the wheel's stereo pose-only edge has no intrinsics to set
+        for i, v in enumerate(vs):
+            e.set_vertex(i, v)
+        e.set_measurement(z)
+        d = {"EdgeSE3Expmap": 6, "EdgeSim3": 7}.get(name, len(z) if hasattr(z, "__len__")
+                                                     else 2)
+        e.set_information(np.identity(d) * 1.5)
+        if "Project" in name:
+            e.fx, e.fy, e.cx, e.cy = fx, fy, cx, cy
+        if "Stereo" in name:
+            e.bf = bf
+        if "OnlyPose" in name:
+            e.Xw = np.array([0.3, 0.1, 4.5])
+        opt.add_edge(e)
+        edges[name] = e
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    for e in edges.values():
+        e.compute_error()
+    return {name: float(e.chi2()) for name, e in edges.items()}
