@@ -153,6 +153,21 @@ def test_orbslam_pose_optimization() -> None:
     assert inliers == 79
 
 
+# g2opy 2.3.0 on the same inputs (its stereo pose-only edge exposes no intrinsics: none there).
+BACKEND_CHI2 = {"EdgeSE3ProjectXYZOnlyPose": 279.9426991326854,
+                "EdgeStereoSE3ProjectXYZ": 1119.1101232164244,
+                "EdgeSE3Expmap": 0.10163899318823004, "EdgeSim3": 0.014353710492890373}
+
+
+@pytest.mark.skipif(not _graphopt_has("VertexSim3Expmap"),
+                    reason="graphopt.types has no SLAM back-end types yet")
+def test_slam_backend_types_give_g2opys_chi2() -> None:
+    ours = programs.slam_backend_types_chi2(g2o)
+    for name, value in BACKEND_CHI2.items():
+        assert ours[name] == pytest.approx(value, rel=1e-9), name
+    assert ours["EdgeStereoSE3ProjectXYZOnlyPose"] > 0.0
+
+
 # --- conventions --------------------------------------------------------------------------------
 
 
