@@ -58,7 +58,8 @@ class BaseEdge:
             vertex: The vertex.
         """
         self._v[i] = vertex
-        self._structure_changed()
+        if self._batch is not None:
+            self._structure_changed()
 
     def vertex(self, i: int) -> BaseVertex | None:
         """Vertex ``i``.
@@ -88,7 +89,8 @@ class BaseEdge:
             measurement: A vector (list, tuple, array) or the type's geometry object.
         """
         self._meas = measurement.copy() if type(measurement) is np.ndarray else measurement
-        self._structure_changed()
+        if self._batch is not None:
+            self._structure_changed()
 
     def measurement(self) -> Any:
         """The measurement."""
@@ -102,8 +104,10 @@ class BaseEdge:
         Args:
             information: ``(d, d)`` (nested lists accepted).
         """
-        self._info = np.array(information, dtype=float)
-        self._structure_changed()
+        self._info = (information.copy() if type(information) is np.ndarray
+                      and information.dtype == np.float64 else np.array(information, dtype=float))
+        if self._batch is not None:
+            self._structure_changed()
 
     def information(self) -> np.ndarray:
         """The information matrix (identity when unset)."""
