@@ -16,7 +16,7 @@ from graphopt.errors import GraphError
 from .solvers import RobustKernelBase, graphopt_kernel
 from .vertices import Bank
 
-__all__ = ["Batch"]
+__all__ = ["Batch", "stack_information", "stack_measurements"]
 
 
 def kernel_key(kernel: Any) -> Any:
@@ -203,3 +203,48 @@ class Batch:
         if self.info is None:
             return np.eye(self.gtype.dimension)
         return (self.info if self.info.ndim == 2 else self.info[i]).copy()
+
+
+def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
+    """``(m, *measurement_shape)`` measurements of a batch's records; a bad one is named.
+
+    Args:
+        cls: The g2o edge class.
+        recs: Its records.
+    """
+    raws = [e._meas for e in recs]
+    try:
+        if any(r is None for r in raws):
+            raise ValueError
+        return cls._measurements(raws)
+    except (TypeError, ValueError):
+        for e in recs:
+            try:
+                if e._meas is None:
+                    raise ValueError("no measurement set")
+                cls._measurements([e._meas])
+            except (TypeError, ValueError) as exc:
+                raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
+                                 f"bad measurement ({exc})") from None
+        raise
+
+
+def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
+    """The information matrices of a batch's records: ``None`` (all identity, unset), one
+    ``(d, d)`` shared by all, or ``(m, d, d)``.
+
+    Args:
+        cls: The g2o edge class.
+        recs: Its records.
+        d: The error dimension.
+    """
+    infos = [e._info for e in recs]
+    if all(i is None for i in infos):
+        return None
+    eye = np.eye(d)
+    for e, i in zip(recs, infos, strict=True):
+        if i is not None and i.shape != (d, d):
+            raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
+                             f"information has shape {i.shape}, expected {(d, d)}")
+    arr = np.stack([eye if i is None else i for i in infos])
+    return arr[0].copy() if bool((arr == arr[0]).all()) else arr

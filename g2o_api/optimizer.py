@@ -18,15 +18,17 @@ from __future__ import annotations
 
 import gc
 import os
+import sys
 from typing import Any
 
 import numpy as np
 
+from graphopt.algorithms import LevenbergConfig
 from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
 from graphopt.stopping import StoppingConfig
 
-from .batch import Batch
+from .batch import Batch, stack_information, stack_measurements
 from .edges import BaseEdge
 from .params import Parameter
 from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
@@ -52,6 +54,7 @@ class SparseOptimizer:
         self._level = 0
         self._core_params: dict[Any, Any] = {}
         self._changed: list[Batch] = []
+        self._cum_time = 0.0
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -296,42 +299,11 @@ class SparseOptimizer:
                                  "optimizer")
             vids = vids[:, list(perm)]
             banks = [self._vertices[int(vids[0, p])]._bank for p in range(k)]
-            meas = self._measurements(cls, recs)
-            info = self._information(cls, recs, gtype.dimension)
+            meas = stack_measurements(cls, recs)
+            info = stack_information(cls, recs, gtype.dimension)
             batches.append(Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids,
                                  banks, meas, info, cls._data(recs)))
         self._batches = batches
-
-    @staticmethod
-    def _measurements(cls: type, recs: list[BaseEdge]) -> np.ndarray:
-        raws = [e._meas for e in recs]
-        try:
-            if any(r is None for r in raws):
-                raise ValueError
-            return cls._measurements(raws)
-        except (TypeError, ValueError):
-            for e in recs:
-                try:
-                    if e._meas is None:
-                        raise ValueError("no measurement set")
-                    cls._measurements([e._meas])
-                except (TypeError, ValueError) as exc:
-                    raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
-                                     f"bad measurement ({exc})") from None
-            raise
-
-    @staticmethod
-    def _information(cls: type, recs: list[BaseEdge], d: int) -> np.ndarray | None:
-        infos = [e._info for e in recs]
-        if all(i is None for i in infos):
-            return None
-        eye = np.eye(d)
-        for e, i in zip(recs, infos, strict=True):
-            if i is not None and i.shape != (d, d):
-                raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
-                                 f"information has shape {i.shape}, expected {(d, d)}")
-        arr = np.stack([eye if i is None else i for i in infos])
-        return arr[0].copy() if bool((arr == arr[0]).all()) else arr
 
     def _build_core(self) -> None:
         alg = self._algorithm
@@ -410,15 +382,31 @@ class SparseOptimizer:
         core = self._prepare()
         if self._flag is not None and bool(self._flag):
             return 0
-        core.verbose = self._verbose
+        core.verbose = False  # g2o's lines come from _print_line (λ after its update)
         core.stopping = StoppingConfig.iterations_only(max(int(iterations), 1))
-        core._callbacks["post_iteration"] = [self._check_flag] if self._flag is not None else []
+        core._callbacks["post_iteration"] = [self._after_iteration]
+        self._cum_time = 0.0
         result = core.optimize(int(iterations))
         return len(result.info)
 
-    def _check_flag(self, core: CoreOptimizer, info: Any) -> None:
+    def _after_iteration(self, core: CoreOptimizer, info: Any) -> None:
+        if self._verbose:
+            self._print_line(core, info)
         if self._flag is not None and bool(self._flag):
             core.stop()
+
+    def _print_line(self, core: CoreOptimizer, info: Any) -> None:
+        """g2o's iteration line; LM's ``lambda`` is the value after the iteration's update,
+        as g2o prints it."""
+        self._cum_time += info.seconds
+        p = core.problem
+        schur = 1 if p is not None and p.system.schur else 0
+        alg = core.algorithm
+        fields = (f"\t lambda= {alg.lam:f}\t levenbergIter= {info.trials}"
+                  if isinstance(alg.config, LevenbergConfig) else alg.line_fields(info))
+        print(f"iteration= {info.iteration}\t chi2= {info.chi2:f}\t time= {info.seconds:g}"
+              f"\t cumTime= {self._cum_time:g}\t edges= {core.active_edge_count()}"
+              f"\t schur= {schur}{fields}", file=sys.stderr)
 
     def compute_active_errors(self) -> None:
         """Evaluate the active edges at the current estimates."""

@@ -475,6 +475,9 @@ def test_verbose_lines_and_user_lambda(capsys: pytest.CaptureFixture[str]) -> No
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("iteration=")]
     assert len(lines) == 3 and "levenbergIter=" in lines[0] and "edges= 24" in lines[0]
     assert opt.core.algorithm.config.initial_lambda == 1e-3
+    # g2o prints λ after the iteration's update (g2opy's lines on the inverse-depth demo match
+    # graphopt.g2o's to the printed digits)
+    assert f"lambda= {opt.core.algorithm.lam:f}\t" in lines[-1]
 
 
 def test_save_a_graph_built_object_by_object(tmp_path: Path) -> None:
