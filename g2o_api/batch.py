@@ -13,6 +13,7 @@ from graphopt.edge import EdgeContext
 from graphopt.edge_group import EdgeGroup
 from graphopt.errors import GraphError
 
+from .edges import BaseEdge
 from .solvers import RobustKernelBase, graphopt_kernel
 from .vertices import Bank
 
@@ -190,8 +191,13 @@ class Batch:
         self._evaluate()
         assert self._cache is not None
         if self._cache[4] is None:
-            self._cache = (*self._cache[:4], self.cls._depth(self._cache[3], self.data,
-                                                             self.params))
+            x = self._cache[3]
+            if self.cls._depth is not BaseEdge._depth:  # the g2o class's own test
+                ok = self.cls._depth(x, self.data, self.params)
+            else:  # graphopt's type's (the Sim3 projections, ...)
+                ctx = EdgeContext(self.params, self.data, measured=self.measured)
+                ok = np.asarray(self.gtype.depth_positive(x, self.meas, ctx), dtype=bool)
+            self._cache = (*self._cache[:4], ok)
         return self._cache[4]
 
     def information_of(self, i: int) -> np.ndarray:

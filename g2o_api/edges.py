@@ -237,7 +237,8 @@ class BaseEdge:
 
     @staticmethod
     def _depth(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any) -> np.ndarray:
-        raise NotImplementedError("is_depth_positive: not a projection edge")
+        """``(m,)`` depth tests of a batch (this default defers to graphopt's type)."""
+        raise NotImplementedError
 
 
 #: Names of the official wheel that graphopt.g2o does not provide (its machinery, simulators,

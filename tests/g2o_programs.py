@@ -577,8 +577,11 @@ def optimize_sim3(g2o: Any, seed: int = 0, n: int = 100, noise: float = 1e-3,
     opt.initialize_optimization()
     opt.optimize(iterations)
     inliers = 0
+    def in_front(e: Any) -> bool:  # the wheel's Sim3 edges have no is_depth_positive
+        return e.is_depth_positive() if hasattr(e, "is_depth_positive") else True
+
     for e12, e21 in edges:
-        if e12.chi2() > 10.0 or e21.chi2() > 10.0:
+        if e12.chi2() > 10.0 or e21.chi2() > 10.0 or not (in_front(e12) and in_front(e21)):
             opt.remove_edge(e12)
             opt.remove_edge(e21)
         else:
