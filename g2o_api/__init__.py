@@ -13,37 +13,54 @@ from typing import Any as _Any
 
 from .edges import UNSUPPORTED as _UNSUPPORTED
 from .edges import unsupported as _unsupported
+from .edges_icp import ICP_EDGES as _ICP
 from .edges_sba import SBA_EDGES as _SBA
 from .edges_slam import SLAM_EDGES as _SLAM
 from .geometry import SE2, Isometry3d, SE3Quat
 from .optimizer import SparseOptimizer
-from .params import CameraParameters, Parameter, ParameterSE3Offset, StereoCameraParameters
+from .params import (
+    CameraParameters,
+    Parameter,
+    ParameterCamera,
+    ParameterSE2Offset,
+    ParameterSE3Offset,
+    StereoCameraParameters,
+)
 from .rotations import AngleAxis, Quaternion
+from .sba_cam import SBA_CAM_CLASSES as _SBA_CAM
 from .sim3 import Sim3
 from .solvers import ALGORITHMS as _ALGORITHMS
 from .solvers import BLOCK_SOLVERS as _BLOCK_SOLVERS
 from .solvers import KERNEL_CLASSES as _KERNELS
 from .solvers import LINEAR_SOLVERS as _LINEAR_SOLVERS
-from .solvers import BlockSolver, Flag, LinearSolver, OptimizationAlgorithm, RobustKernelBase
+from .solvers import (
+    BlockSolver,
+    Flag,
+    IoFormat,
+    LinearSolver,
+    OptimizationAlgorithm,
+    RobustKernelBase,
+)
 from .vertices import VERTEX_CLASSES as _VERTICES
 from .vertices import BaseVertex
 
-_EDGES = {**_SBA, **_SLAM}
+_EDGES = {**_SBA, **_SLAM, **_ICP}
 BaseEdge = _EDGES["EdgeSE2"].__mro__[1]
 RobustKernel = RobustKernelBase
 Isometry = Isometry3d
 
 _NAMES: dict[str, _Any] = {
-    **_VERTICES, **_EDGES, **_ALGORITHMS, **_BLOCK_SOLVERS, **_LINEAR_SOLVERS, **_KERNELS,
-    **{name: _unsupported(name) for name in _UNSUPPORTED if name not in _EDGES},
+    **_VERTICES, **_EDGES, **_SBA_CAM, **_ALGORITHMS, **_BLOCK_SOLVERS, **_LINEAR_SOLVERS,
+    **_KERNELS, **{name: _unsupported(name) for name in _UNSUPPORTED},
 }
 globals().update(_NAMES)
 
 __all__ = [
     "SE2", "AngleAxis", "BaseEdge", "BaseVertex", "BlockSolver", "CameraParameters", "Flag",
+    "IoFormat",
     "Isometry", "Isometry3d", "LinearSolver", "OptimizationAlgorithm", "Parameter",
-    "ParameterSE3Offset", "Quaternion", "RobustKernel", "SE3Quat", "Sim3", "SparseOptimizer",
-    "StereoCameraParameters",
+    "ParameterCamera", "ParameterSE2Offset", "ParameterSE3Offset", "Quaternion", "RobustKernel",
+    "SE3Quat", "Sim3", "SparseOptimizer", "StereoCameraParameters",
 ]
 __all__ += sorted(_NAMES)
 

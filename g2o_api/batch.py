@@ -10,13 +10,14 @@ from typing import Any
 import numpy as np
 
 from graphopt.edge import EdgeContext
+from graphopt.edge_group import EdgeGroup
 from graphopt.errors import GraphError
-from graphopt.storage import EdgeGroup
 
+from .edges import BaseEdge
 from .solvers import RobustKernelBase, graphopt_kernel
 from .vertices import Bank
 
-__all__ = ["Batch"]
+__all__ = ["Batch", "stack_information", "stack_measurements"]
 
 
 def kernel_key(kernel: Any) -> Any:
@@ -71,8 +72,8 @@ class Batch:
         else:
             self.kcodes = np.fromiter((self.code(k) for k in kernels), dtype=np.int64, count=m)
         self.group: EdgeGroup | None = None
-        self.kernels_dirty = False
-        self.core_pos = np.full(m, -1, dtype=np.int64)
+        self.rows = np.zeros(0, np.int64)  # the edges' indices in the group
+        self.kernels_dirty = self.levels_dirty = False
         self.measured = gtype.measurement_derived(meas) if m else None
         self._cache: tuple[Any, ...] | None = None
         for i, r in enumerate(records):
@@ -92,69 +93,69 @@ class Batch:
         return c
 
     def set_kernel(self, i: int, kernel: Any) -> None:
-        """Edge ``i``'s kernel, in the optimizer's arrays too when it is active.
+        """Edge ``i``'s kernel; it reaches the optimizer's group before the group's next use.
 
         Args:
             i: Index in the batch.
             kernel: A g2o kernel or ``None``.
         """
         self.kcodes[i] = self.code(kernel)
-        if self.core_pos[i] >= 0 and not self.kernels_dirty:
-            self.kernels_dirty = True  # reaches the optimizer's arrays before its next use
-            self.owner._kernels_changed(self)
-
-    def sync_kernels(self) -> None:
-        """Write the kernels of the active edges into the optimizer's group (one assignment
-        per distinct kernel)."""
-        self.kernels_dirty = False
-        if self.group is None:
-            return
-        sub = np.flatnonzero(self.core_pos >= 0)
-        codes = self.kcodes[sub]
-        for c in np.unique(codes).tolist():
-            self.group.set_kernel(self.core_pos[sub[codes == c]], None if c < 0 else
-                                  self.kernels[c])
+        if self.group is not None and not self.kernels_dirty:
+            self.kernels_dirty = True
+            self.owner._batch_changed(self)
 
     def set_level(self, i: int, level: int) -> None:
-        """Edge ``i``'s level (applied at the next ``initialize_optimization``).
+        """Edge ``i``'s level; it reaches the optimizer at the next ``initialize_optimization``
+        (g2o selects the active edges there).
 
         Args:
             i: Index in the batch.
-            level: The level.
+            level: The level (non-negative).
         """
+        if level < 0:
+            raise GraphError(f"{self.cls.__name__}: level must be a non-negative integer, got "
+                             f"{level}")
         self.levels[i] = level
-        self.owner._levels_changed()
+        if self.group is not None and not self.levels_dirty:
+            self.levels_dirty = True
+            self.owner._batch_changed(self)
 
-    def add_to(self, core: Any, level: int) -> None:
-        """Add the edges of ``level`` to the graphopt optimizer ``core`` (one ``add_edges``).
+    def sync(self, levels: bool) -> None:
+        """Write the kernels (and the levels) into the optimizer's group: one assignment per
+        distinct kernel, one for all levels. The structure stays.
+
+        Args:
+            levels: Also the levels (only ``initialize_optimization`` does).
+        """
+        if self.group is None:
+            return
+        if self.kernels_dirty:
+            self.kernels_dirty = False
+            for c in np.unique(self.kcodes).tolist():
+                self.group.set_kernel(self.rows[self.kcodes == c],
+                                      None if c < 0 else self.kernels[c])
+        if levels and self.levels_dirty:
+            self.levels_dirty = False
+            self.group.set_levels(self.rows, self.levels)
+
+    def add_to(self, core: Any) -> None:
+        """Add every edge to the graphopt optimizer ``core`` (one ``add_edges``), with its
+        level and kernel.
 
         Args:
             core: A :class:`graphopt.SparseOptimizer` holding the banks' stores.
-            level: The active level.
         """
-        sub = np.flatnonzero(self.levels == level)
-        self.core_pos[:] = -1
-        self.group = None
-        if not len(sub):
+        if not len(self.records):
             return
-        info = self.info if self.info is None or self.info.ndim == 2 else self.info[sub]
-        data = {k: v[sub] for k, v in self.data.items()} or None
-        key = (self.gtype, id(self.params))
-        start = core.graph.groups[key].size if key in core.graph.groups else 0
-        core.add_edges(self.gtype, self.vids[sub], self.meas[sub], info, None, self.params, data)
-        self.group = core.graph.groups[key]
-        self.core_pos[sub] = start + np.arange(len(sub))
-        codes = self.kcodes[sub]
-        for c in np.unique(codes[codes >= 0]).tolist():
-            self.group.set_kernel(self.core_pos[sub[codes == c]], self.kernels[c])
-
-    def active_ids(self, level: int) -> np.ndarray:
-        """Vertex ids used by the edges of ``level``.
-
-        Args:
-            level: The level.
-        """
-        return self.vids[self.levels == level].ravel()
+        es = core.add_edges(self.gtype, self.vids, self.meas, self.info, None, self.params,
+                            self.data or None)
+        self.group, self.rows = es.group, es._rows()
+        if self.levels.any():
+            self.group.set_levels(self.rows, self.levels)
+        if (self.kcodes >= 0).any():
+            self.kernels_dirty = True
+        self.levels_dirty = False
+        self.sync(levels=False)
 
     # --- evaluation --------------------------------------------------------------------------
 
@@ -190,8 +191,13 @@ class Batch:
         self._evaluate()
         assert self._cache is not None
         if self._cache[4] is None:
-            self._cache = (*self._cache[:4], self.cls._depth(self._cache[3], self.data,
-                                                             self.params))
+            x = self._cache[3]
+            if self.cls._depth is not BaseEdge._depth:  # the g2o class's own test
+                ok = self.cls._depth(x, self.data, self.params)
+            else:  # graphopt's type's (the Sim3 projections, ...)
+                ctx = EdgeContext(self.params, self.data, measured=self.measured)
+                ok = np.asarray(self.gtype.depth_positive(x, self.meas, ctx), dtype=bool)
+            self._cache = (*self._cache[:4], ok)
         return self._cache[4]
 
     def information_of(self, i: int) -> np.ndarray:
@@ -203,3 +209,48 @@ class Batch:
         if self.info is None:
             return np.eye(self.gtype.dimension)
         return (self.info if self.info.ndim == 2 else self.info[i]).copy()
+
+
+def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
+    """``(m, *measurement_shape)`` measurements of a batch's records; a bad one is named.
+
+    Args:
+        cls: The g2o edge class.
+        recs: Its records.
+    """
+    raws = [e._meas for e in recs]
+    try:
+        if any(r is None for r in raws):
+            raise ValueError
+        return cls._measurements(raws)
+    except (TypeError, ValueError):
+        for e in recs:
+            try:
+                if e._meas is None:
+                    raise ValueError("no measurement set")
+                cls._measurements([e._meas])
+            except (TypeError, ValueError) as exc:
+                raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
+                                 f"bad measurement ({exc})") from None
+        raise
+
+
+def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
+    """The information matrices of a batch's records: ``None`` (all identity, unset), one
+    ``(d, d)`` shared by all, or ``(m, d, d)``.
+
+    Args:
+        cls: The g2o edge class.
+        recs: Its records.
+        d: The error dimension.
+    """
+    infos = [e._info for e in recs]
+    if all(i is None for i in infos):
+        return None
+    eye = np.eye(d)
+    for e, i in zip(recs, infos, strict=True):
+        if i is not None and i.shape != (d, d):
+            raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
+                             f"information has shape {i.shape}, expected {(d, d)}")
+    arr = np.stack([eye if i is None else i for i in infos])
+    return arr[0].copy() if bool((arr == arr[0]).all()) else arr

@@ -58,7 +58,8 @@ class BaseEdge:
             vertex: The vertex.
         """
         self._v[i] = vertex
-        self._structure_changed()
+        if self._batch is not None:
+            self._structure_changed()
 
     def vertex(self, i: int) -> BaseVertex | None:
         """Vertex ``i``.
@@ -88,7 +89,8 @@ class BaseEdge:
             measurement: A vector (list, tuple, array) or the type's geometry object.
         """
         self._meas = measurement.copy() if type(measurement) is np.ndarray else measurement
-        self._structure_changed()
+        if self._batch is not None:
+            self._structure_changed()
 
     def measurement(self) -> Any:
         """The measurement."""
@@ -102,8 +104,10 @@ class BaseEdge:
         Args:
             information: ``(d, d)`` (nested lists accepted).
         """
-        self._info = np.array(information, dtype=float)
-        self._structure_changed()
+        self._info = (information.copy() if type(information) is np.ndarray
+                      and information.dtype == np.float64 else np.array(information, dtype=float))
+        if self._batch is not None:
+            self._structure_changed()
 
     def information(self) -> np.ndarray:
         """The information matrix (identity when unset)."""
@@ -205,6 +209,18 @@ class BaseEdge:
         return tuple(self._pids)
 
     @classmethod
+    def _core_name(cls, key: tuple[Any, ...]) -> str:
+        """graphopt's type (name in graphopt.types) for the batch of this parameter key."""
+        return cls._gname
+
+    @classmethod
+    def _core_type(cls, key: tuple[Any, ...]) -> type:
+        """graphopt's type for the batch of this parameter key."""
+        from .vertices import core_type
+
+        return core_type(cls._core_name(key))
+
+    @classmethod
     def _measurements(cls, raws: list[Any]) -> np.ndarray:
         m = len(raws)
         arr = np.array(raws, dtype=float)
@@ -221,20 +237,24 @@ class BaseEdge:
 
     @staticmethod
     def _depth(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any) -> np.ndarray:
-        raise NotImplementedError("is_depth_positive: not a projection edge")
+        """``(m,)`` depth tests of a batch (this default defers to graphopt's type)."""
+        raise NotImplementedError
 
 
-#: g2o types (of the official wheel or the old bindings) without a graphopt equivalent yet.
-UNSUPPORTED = (
-    "EdgeGICP", "EdgeVVGicp", "Edge_V_V_GICP", "EdgeXyzVsc", "Edge_XYZ_VSC", "EdgeSBACam",
-    "EdgeSBAScale", "EdgeProjectP2MC", "EdgeProjectP2SC", "EdgeProjectXYZ2UVU",
-    "EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ", "EdgePointXY", "EdgePointXYZ",
-    "EdgeSE2LotsOfXY", "EdgeSE2OdomDifferentialCalib", "EdgeSE2Offset",
-    "EdgeSE2PointXYBearing", "EdgeSE2PointXYCalib", "EdgeSE2PointXYOffset",
-    "EdgeSE2SensorCalib", "EdgeSE2TwoPointsXY", "EdgeSE2XYPrior", "EdgeSE3LotsOfXYZ",
-    "EdgeSE3Offset", "EdgeSE3PointXYZDepth", "EdgeSE3PointXYZDisparity", "EdgeSE3XYZPrior",
-    "EdgeXYPrior", "EdgeXYZPrior", "VertexCam", "VertexSCam", "VertexIntrinsics",
-    "VertexOdomDifferentialParams", "SBACam",
+#: Names of the official wheel that graphopt.g2o does not provide (its machinery, simulators,
+#: helpers): constructing one raises ``NotImplementedError`` naming it.
+UNSUPPORTED: tuple[str, ...] = (
+    "AbstractOptimizationAlgorithmCreator", "Affine", "AffineCompact", "EstimatePropagator",
+    "EstimatePropagatorCost", "EstimatePropagatorCostBase", "EstimatePropagatorCostOdometry",
+    "Factory", "FactoryTypeInfo", "G2OBatchStatistics", "HyperDijkstra", "HyperGraph",
+    "HyperGraphAction", "IoFileFilter", "IoWrapper", "Isometry2d", "JacobianWorkspace",
+    "MotionMeasurement", "OdomConvert", "OptimizableGraph", "OptimizationAlgorithmProperty",
+    "OptimizationAlgorithmWithHessian", "ParameterContainer", "Projective",
+    "RegisterOptimizationAlgorithmProxy", "RobustKernelScaleDelta", "Rotation2d", "Simulator",
+    "Simulator2D", "Simulator2DConfig", "Simulator3D", "Simulator3DConfig", "SimulatorConfig",
+    "Solver", "SparseBlockMatrixX", "SparseOptimizerTerminateAction", "TransformTraits",
+    "UniformCostFunction", "VariableVectorXEdge", "VectorXVertex", "VertexIntrinsicsEstimate",
+    "World",
 )
 
 
@@ -247,8 +267,7 @@ def unsupported(name: str) -> type:
 
     def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
         raise NotImplementedError(
-            f"graphopt.g2o: {name} is not supported (graphopt has no batched type for it yet); "
-            "see docs/g2o_api.md for the supported types")
+            f"graphopt.g2o: g2o's {name} is not supported; see docs/g2o_api.md for what is")
 
     return type(name, (), {"__init__": __init__, "__module__": "graphopt.g2o",
                            "__doc__": f"g2o's {name}: not supported by graphopt."})

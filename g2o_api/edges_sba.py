@@ -116,6 +116,19 @@ class EdgeProjectXYZ2UV(BaseEdge):
     _depth = staticmethod(_depth_pose_point)
 
 
+class EdgeProjectXYZ2UVU(BaseEdge):
+    """g2o's ``EdgeProjectXYZ2UVU``: stereo ``(u, v, u_right)`` of ``(point, pose)``, a
+    ``CameraParameters`` parameter (its baseline)."""
+
+    __slots__ = ()
+    _dim = 3
+    _mshape = (3,)
+    _gname = "EdgeProjectXYZ2UVU"
+    _perm = (1, 0)
+    _nparams = 1
+    _depth = staticmethod(_depth_pose_point)
+
+
 class EdgeProjectPSI2UV(BaseEdge):
     """g2o's ``EdgeProjectPSI2UV``: vertices ``(inverse-depth point, pose, anchor pose)``, a
     ``CameraParameters`` parameter; the point vertex is a ``VertexPointXYZ`` holding
@@ -129,6 +142,28 @@ class EdgeProjectPSI2UV(BaseEdge):
     _nparams = 1
 
 
+class EdgeSim3ProjectXYZ(BaseEdge):
+    """g2o's ``EdgeSim3ProjectXYZ``: vertices ``(point, sim3)``, camera 1 of the Sim3 vertex
+    (``_focal_length1``, ``_principle_point1``) as the intrinsics."""
+
+    __slots__ = ()
+    _gname = "EdgeSim3ProjectXYZ"
+    _param_type = "CameraParameters"
+    _camera = 1
+
+    def _params_key(self) -> tuple[Any, ...]:
+        return self._v[1].camera(self._camera)  # type: ignore[union-attr]
+
+
+class EdgeInverseSim3ProjectXYZ(EdgeSim3ProjectXYZ):
+    """g2o's ``EdgeInverseSim3ProjectXYZ``: camera 2 of the Sim3 vertex."""
+
+    __slots__ = ()
+    _gname = "EdgeInverseSim3ProjectXYZ"
+    _camera = 2
+
+
 SBA_EDGES: dict[str, type[BaseEdge]] = {c.__name__: c for c in (
     EdgeSE3ProjectXYZ, EdgeSE3ProjectXYZOnlyPose, EdgeStereoSE3ProjectXYZ,
-    EdgeStereoSE3ProjectXYZOnlyPose, EdgeProjectXYZ2UV, EdgeProjectPSI2UV)}
+    EdgeStereoSE3ProjectXYZOnlyPose, EdgeProjectXYZ2UV, EdgeProjectXYZ2UVU, EdgeProjectPSI2UV,
+    EdgeSim3ProjectXYZ, EdgeInverseSim3ProjectXYZ)}

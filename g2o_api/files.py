@@ -9,6 +9,7 @@ numbers that a GTSAM file shared with poses are written renumbered (the load say
 
 from __future__ import annotations
 
+import gc
 import os
 import warnings
 from typing import Any
@@ -54,6 +55,17 @@ def load(opt: Any, filename: str | os.PathLike[str]) -> None:
     """
     if opt._vertices or opt._edges:
         raise GraphError("load: graphopt.g2o loads into an empty optimizer only")
+    enabled = gc.isenabled()
+    gc.disable()  # one record per vertex and edge: see SparseOptimizer._prepare
+    try:
+        _load(opt, filename)
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
+    """:func:`load`'s work (with the collector paused)."""
     graph = read_graph(filename)
     try:
         slam = build_graph(graph, optimizer=CoreOptimizer())
@@ -66,7 +78,7 @@ def load(opt: Any, filename: str | os.PathLike[str]) -> None:
         _restore_vertex_lines(slam, graph)
     for note in slam.notes:
         if "point j is vertex" in note:
-            warnings.warn(f"{filename}: {note}; save() writes them renumbered", stacklevel=3)
+            warnings.warn(f"{filename}: {note}; save() writes them renumbered", stacklevel=4)
     core = slam.optimizer
     banks: dict[type, Bank] = {}
     for gtype, store in core.graph.stores.items():
@@ -97,28 +109,30 @@ def load(opt: Any, filename: str | os.PathLike[str]) -> None:
         cls = _api_class(g.etype.__name__, [*EDGE_CLASSES.values(), *SBA_EDGES.values()], "edges")
         pids = _param_ids(g.params, offsets, opt._parameters)
         info = g.information
+        meas = g.measurements.copy()  # the records keep row views of it
+        infos = [info] * len(meas) if info.ndim == 2 else list(info)
+        vmap, edges = opt._vertices, opt._edges
         recs = []
-        for i, row in enumerate(g.vertex_ids.tolist()):
+        for row, z, inf in zip(g.vertex_ids.tolist(), list(meas), infos, strict=True):
             e = cls()
-            e._v = [opt._vertices[row[cls._perm.index(q)]] for q in range(len(row))]
-            e._meas, e._opt = g.measurements[i], opt
-            e._info = info if info.ndim == 2 else info[i]
+            e._v = [vmap[row[cls._perm.index(q)]] for q in range(len(row))]
+            e._meas, e._info, e._opt = z, inf, opt
             if pids:
                 e._pids = list(pids)
-            opt._edges[e] = None
+            edges[e] = None
             recs.append(e)
         banks_of = [opt._vertices[v]._bank for v in g.vertex_ids[0].tolist()]
         batches.append(Batch(opt, cls, g.etype, opt._core_param(cls, tuple(pids)), recs,
-                             g.vertex_ids.copy(), banks_of, g.measurements.copy(),
+                             g.vertex_ids.copy(), banks_of, meas,
                              None if g.info_is_identity else info.copy(), {}))
     opt._banks, opt._batches = banks, batches
-    opt._records_dirty, opt._core_dirty = False, True
+    opt._records_dirty, opt._core = False, None
 
 
 def _api_class(name: str, classes: Any, what: str) -> Any:
     """The g2o class of a graphopt type (by its ``_gname``); a clear error when there is none."""
     name = _VERTICES.get(name, _EDGES.get(name, (name,)))[0]
-    found = next((c for c in classes if c._gname == name), None)
+    found = next((c for c in classes if getattr(c, "_gname", None) == name), None)
     if found is None:
         raise NotImplementedError(f"load: graphopt.g2o has no class for {name} {what} yet")
     return found

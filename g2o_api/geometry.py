@@ -93,6 +93,8 @@ class _RigidBase:
         return self._R @ vector(p, 3, "point") + self._t
 
     def __mul__(self, other: Any) -> Any:
+        if type(other) is np.ndarray and other.shape == (3,):  # the common case, first
+            return self._R @ other + self._t
         if isinstance(other, _RigidBase):
             return type(self)._of(self._R @ other._R, self._R @ other._t + self._t)
         arr = np.asarray(other, dtype=float)

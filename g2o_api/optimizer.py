@@ -18,15 +18,17 @@ from __future__ import annotations
 
 import gc
 import os
+import sys
 from typing import Any
 
 import numpy as np
 
+from graphopt.algorithms import LevenbergConfig
 from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
 from graphopt.stopping import StoppingConfig
 
-from .batch import Batch
+from .batch import Batch, stack_information, stack_measurements
 from .edges import BaseEdge
 from .params import Parameter
 from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
@@ -49,10 +51,10 @@ class SparseOptimizer:
         self._banks: dict[type, Bank] = {}
         self._batches: list[Batch] = []
         self._records_dirty = True
-        self._core_dirty = True
         self._level = 0
         self._core_params: dict[Any, Any] = {}
-        self._kernel_batches: list[Batch] = []
+        self._changed: list[Batch] = []
+        self._cum_time = 0.0
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -66,7 +68,9 @@ class SparseOptimizer:
             raise TypeError(f"set_algorithm: expected an OptimizationAlgorithm*, got "
                             f"{type(algorithm).__name__}")
         self._algorithm = algorithm
-        self._core_dirty = True
+        if self._core is not None:
+            self._core.set_algorithm(algorithm.config)
+            self._core.set_solver(algorithm.solver)
 
     def algorithm(self) -> OptimizationAlgorithm:
         """The algorithm."""
@@ -127,7 +131,11 @@ class SparseOptimizer:
         Args:
             vertex: The vertex record.
         """
-        vid = vertex._id
+        try:
+            vid = vertex._id
+        except AttributeError:
+            raise TypeError(f"add_vertex: expected a g2o vertex, got {type(vertex).__name__}"
+                            ) from None
         if vid in self._vertices or vertex._opt is not None:
             return False
         self._vertices[vid] = vertex
@@ -142,7 +150,11 @@ class SparseOptimizer:
         Args:
             edge: The edge record.
         """
-        vs = edge._v
+        try:
+            vs = edge._v
+        except AttributeError:
+            raise TypeError(f"add_edge: expected a g2o edge, got {type(edge).__name__}"
+                            ) from None
         if edge._opt is not None or None in vs or (len(vs) == 2 and vs[0] is vs[1]) or (
                 len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
             return False
@@ -207,12 +219,6 @@ class SparseOptimizer:
     def _structure_changed(self) -> None:
         self._records_dirty = True
 
-    def _levels_changed(self) -> None:
-        self._core_dirty = True
-
-    def _flags_changed(self) -> None:
-        self._core_dirty = True
-
     # --- building ----------------------------------------------------------------------------
 
     @staticmethod
@@ -231,11 +237,14 @@ class SparseOptimizer:
             elif cls._nparams == 0:
                 value = None
             else:
-                p = self._parameters.get(key[0])
-                if p is None:
-                    raise GraphError(f"{cls.__name__}: parameter {key[0]} was never added "
-                                     "(optimizer.add_parameter)")
-                value = p._core()
+                cores = []
+                for pid in key:
+                    p = self._parameters.get(pid)
+                    if p is None:
+                        raise GraphError(f"{cls.__name__}: parameter {pid} was never added "
+                                         "(optimizer.add_parameter)")
+                    cores.append(p._core())
+                value = cores[0] if len(cores) == 1 else tuple(cores)
             self._core_params[full] = value
         return self._core_params[full]
 
@@ -260,7 +269,9 @@ class SparseOptimizer:
                     raws.append(v._est if v._est is not None else v._default())
                     where.append(i)
             if raws:
-                est[where] = cls._to_array(raws, [recs[i]._id for i in where])
+                conv = cls._to_array(raws, [recs[i]._id for i in where])
+                cls._finish(conv, [recs[i] for i in where])
+                est[where] = conv
             banks[gtype] = Bank(gtype, recs, est)
         self._banks = banks
 
@@ -273,105 +284,77 @@ class SparseOptimizer:
                 buckets[key] = b = []
             b.append(e)
         batches = []
+        known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
         for (cls, pkey), recs in buckets.items():
-            gtype = core_type(cls._gname)
-            perm = cls._perm
-            k = cls._k
+            gtype = cls._core_type(pkey)
+            k = len(recs[0]._v)  # the class's count, or the edges' own (EdgeSE2LotsOfXY)
+            perm = cls._perm if len(cls._perm) == k else tuple(range(k))
             vids = np.fromiter((v._id for e in recs for v in e._v), dtype=np.int64,
-                               count=k * len(recs)).reshape(-1, k)[:, list(perm)]
-            banks = [recs[0]._v[g]._bank for g in perm]
-            meas = self._measurements(cls, recs)
-            info = self._information(cls, recs)
+                               count=k * len(recs)).reshape(-1, k)
+            missing = ~np.isin(vids, known)
+            if missing.any():
+                i, g = (int(a[0]) for a in np.nonzero(missing))
+                raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
+                                 f"{int(vids[i, g])} (position {g}) was not added to the "
+                                 "optimizer")
+            vids = vids[:, list(perm)]
+            banks = [self._vertices[int(vids[0, p])]._bank for p in range(k)]
+            meas = stack_measurements(cls, recs)
+            info = stack_information(cls, recs, gtype.dimension)
             batches.append(Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids,
                                  banks, meas, info, cls._data(recs)))
         self._batches = batches
-
-    @staticmethod
-    def _measurements(cls: type, recs: list[BaseEdge]) -> np.ndarray:
-        raws = [e._meas for e in recs]
-        try:
-            if any(r is None for r in raws):
-                raise ValueError
-            return cls._measurements(raws)
-        except (TypeError, ValueError):
-            for e in recs:
-                try:
-                    if e._meas is None:
-                        raise ValueError("no measurement set")
-                    cls._measurements([e._meas])
-                except (TypeError, ValueError) as exc:
-                    raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
-                                     f"bad measurement ({exc})") from None
-            raise
-
-    @staticmethod
-    def _information(cls: type, recs: list[BaseEdge]) -> np.ndarray | None:
-        infos = [e._info for e in recs]
-        if all(i is None for i in infos):
-            return None
-        d = cls._dim
-        eye = np.eye(d)
-        for e, i in zip(recs, infos, strict=True):
-            if i is not None and i.shape != (d, d):
-                raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
-                                 f"information has shape {i.shape}, expected {(d, d)}")
-        arr = np.stack([eye if i is None else i for i in infos])
-        return arr[0].copy() if bool((arr == arr[0]).all()) else arr
 
     def _build_core(self) -> None:
         alg = self._algorithm
         core = CoreOptimizer(alg.config, alg.solver, verbose=self._verbose,
                              stopping=StoppingConfig.iterations_only())
-        used = np.unique(np.concatenate([b.active_ids(self._level) for b in self._batches]
-                                        + [np.zeros(0, np.int64)]))
         for gtype, bank in self._banks.items():
-            # g2o leaves out vertices without active edges: here they are held fixed.
-            fixed = bank.user_fixed | ~np.isin(bank.ids, used)
-            core.add_vertices(gtype, bank.ids, bank.estimates(), fixed, bank.marg & ~fixed)
+            core.add_vertices(gtype, bank.ids, bank.estimates(), bank.user_fixed, bank.marg)
         for gtype, bank in self._banks.items():
             bank.store = core.graph.stores[gtype]
         for b in self._batches:
-            b.add_to(core, self._level)
+            b.add_to(core)
         self._core = core
-        self._core_dirty = False
+        self._changed = []
 
-    def _kernels_changed(self, batch: Batch) -> None:
-        self._kernel_batches.append(batch)
+    def _batch_changed(self, batch: Batch) -> None:
+        self._changed.append(batch)
 
-    def _prepare(self) -> CoreOptimizer:
-        if self._kernel_batches:
-            for b in self._kernel_batches:
-                if b.kernels_dirty:
-                    b.sync_kernels()
-            self._kernel_batches = []
-        if not (self._records_dirty or self._core_dirty or self._core is None):
-            return self._core
-        # Filing creates many small containers while the program holds many records: the
-        # cyclic collector would rescan them all, several times (3x the filing time measured on
-        # 25,000 edges); nothing made here forms cycles that outlive it.
-        enabled = gc.isenabled()
-        gc.disable()
-        try:
-            return self._file_and_build()
-        finally:
-            if enabled:
-                gc.enable()
-
-    def _file_and_build(self) -> CoreOptimizer:
-        if self._records_dirty:
-            for v in self._vertices.values():
-                v._as = None
-            self._file_vertices()
-            self._file_edges()
-            self._records_dirty = False
-            self._core_dirty = True
-        if self._core_dirty or self._core is None:
-            self._build_core()
+    def _prepare(self, levels: bool = False) -> CoreOptimizer:
+        if self._records_dirty or self._core is None:
+            # Filing creates many small containers while the program holds many records: the
+            # cyclic collector would rescan them all, several times (3x the filing time measured
+            # on 25,000 edges); nothing made here forms cycles that outlive it.
+            enabled = gc.isenabled()
+            gc.disable()
+            try:
+                if self._records_dirty:
+                    self._core_params = {}  # parameters may have changed since
+                    for v in self._vertices.values():
+                        v._as = None
+                    self._file_vertices()
+                    self._file_edges()
+                    self._records_dirty = False
+                self._build_core()
+            finally:
+                if enabled:
+                    gc.enable()
+        if self._changed:
+            keep = []
+            for b in self._changed:
+                b.sync(levels)
+                if b.levels_dirty:
+                    keep.append(b)
+            self._changed = keep
         assert self._core is not None
         return self._core
 
     def initialize_optimization(self, level: int = 0) -> bool:
-        """Take the edges of ``level`` (and their vertices) for the next ``optimize`` calls.
+        """Take the edges of ``level`` (and their vertices) for the next ``optimize`` calls;
+        levels, kernels, estimates and flags changed since the last call are written into the
+        optimizer's arrays, and its structure is reused unless vertices or edges were added or
+        removed.
 
         Args:
             level: The edge level.
@@ -379,12 +362,8 @@ class SparseOptimizer:
         Returns:
             True.
         """
-        if int(level) != self._level:
-            self._level = int(level)
-            self._core_dirty = True
-        if not self._records_dirty and self._core is not None:
-            self._core_dirty = True  # g2o re-reads levels, flags and kernels here
-        self._prepare().initialize_optimization()
+        self._level = int(level)
+        self._prepare(levels=True).initialize_optimization(self._level)
         return True
 
     # --- optimising --------------------------------------------------------------------------
@@ -403,15 +382,31 @@ class SparseOptimizer:
         core = self._prepare()
         if self._flag is not None and bool(self._flag):
             return 0
-        core.verbose = self._verbose
+        core.verbose = False  # g2o's lines come from _print_line (λ after its update)
         core.stopping = StoppingConfig.iterations_only(max(int(iterations), 1))
-        core._callbacks["post_iteration"] = [self._check_flag] if self._flag is not None else []
+        core._callbacks["post_iteration"] = [self._after_iteration]
+        self._cum_time = 0.0
         result = core.optimize(int(iterations))
         return len(result.info)
 
-    def _check_flag(self, core: CoreOptimizer, info: Any) -> None:
+    def _after_iteration(self, core: CoreOptimizer, info: Any) -> None:
+        if self._verbose:
+            self._print_line(core, info)
         if self._flag is not None and bool(self._flag):
             core.stop()
+
+    def _print_line(self, core: CoreOptimizer, info: Any) -> None:
+        """g2o's iteration line; LM's ``lambda`` is the value after the iteration's update,
+        as g2o prints it."""
+        self._cum_time += info.seconds
+        p = core.problem
+        schur = 1 if p is not None and p.system.schur else 0
+        alg = core.algorithm
+        fields = (f"\t lambda= {alg.lam:f}\t levenbergIter= {info.trials}"
+                  if isinstance(alg.config, LevenbergConfig) else alg.line_fields(info))
+        print(f"iteration= {info.iteration}\t chi2= {info.chi2:f}\t time= {info.seconds:g}"
+              f"\t cumTime= {self._cum_time:g}\t edges= {core.active_edge_count()}"
+              f"\t schur= {schur}{fields}", file=sys.stderr)
 
     def compute_active_errors(self) -> None:
         """Evaluate the active edges at the current estimates."""

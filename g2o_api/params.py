@@ -10,10 +10,11 @@ import numpy as np
 
 from graphopt.types.slam3d import ParameterSE3Offset as CoreOffset
 
-from .geometry import Isometry3d, _RigidBase
+from .geometry import SE2, Isometry3d, _RigidBase
 from .rotations import vector
 
-__all__ = ["CameraParameters", "Parameter", "ParameterSE3Offset", "StereoCameraParameters"]
+__all__ = ["CameraParameters", "Parameter", "ParameterCamera", "ParameterSE2Offset",
+           "ParameterSE3Offset", "StereoCameraParameters"]
 
 
 class Parameter:
@@ -61,8 +62,9 @@ class CameraParameters(Parameter):
         Args:
             p: ``(3,)`` point in the camera frame.
         """
-        p = vector(p, 3, "cam_map")
-        return p[:2] / p[2] * self.focal_length + self.principle_point
+        if type(p) is not np.ndarray or p.shape != (3,):
+            p = vector(p, 3, "cam_map")
+        return p[:2] * (self.focal_length / p[2]) + self.principle_point
 
     def stereocam_uvu_map(self, p: Any) -> np.ndarray:
         """``(u, v, u − f·b / z)``.
@@ -75,11 +77,13 @@ class CameraParameters(Parameter):
         return np.array([uv[0], uv[1], uv[0] - self.baseline * self.focal_length / p[2]])
 
     def _core(self) -> Any:
-        from graphopt.types.projection import CameraParameters as Core
+        # graphopt's SBACameraParameters is a CameraParameters with the baseline: it serves
+        # the monocular and the stereo (EdgeProjectXYZ2UVU) edges alike.
+        from graphopt.types import SBACameraParameters as Core
 
-        key = (self.focal_length, *self.principle_point.tolist())
+        key = (self.focal_length, *self.principle_point.tolist(), self.baseline)
         if self._cached is None or self._cached[0] != key:
-            self._cached = (key, Core(key[0], key[0], key[1], key[2]))
+            self._cached = (key, Core.from_g2o(key[0], key[1:3], key[3]))
         return self._cached[1]
 
 
@@ -112,3 +116,65 @@ class ParameterSE3Offset(Parameter):
 
     def _core(self) -> Any:
         return CoreOffset(self._offset.matrix()[:3], max(self._id, 0))
+
+
+class ParameterSE2Offset(Parameter):
+    """g2o's ``ParameterSE2Offset``: a sensor's ``SE2`` pose on its vertex (zero by default)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._offset = SE2()
+
+    def set_offset(self, offset: Any = None) -> None:
+        """Set the offset.
+
+        Args:
+            offset: An :class:`SE2` or ``[x, y, θ]``; ``None``: zero.
+        """
+        self._offset = SE2() if offset is None else (
+            SE2(offset) if not isinstance(offset, SE2) else SE2(offset.to_vector()))
+
+    def offset(self) -> SE2:
+        """The offset."""
+        return SE2(self._offset.to_vector())
+
+    param = offset
+    set_param = set_offset
+
+    def _core(self) -> Any:
+        from graphopt.types import ParameterSE2Offset as Core
+
+        return Core(self._offset.to_vector(), max(self._id, 0))
+
+
+class ParameterCamera(ParameterSE3Offset):
+    """g2o's ``ParameterCamera``: an ``Isometry3d`` offset and pinhole intrinsics (g2o's
+    defaults ``fx = fy = 1``, ``cx = cy = 0.5``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._k = (1.0, 1.0, 0.5, 0.5)
+
+    def set_kcam(self, fx: float, fy: float, cx: float, cy: float) -> None:
+        """Set the intrinsics.
+
+        Args:
+            fx: Focal length x.
+            fy: Focal length y.
+            cx: Principal point x.
+            cy: Principal point y.
+        """
+        self._k = (float(fx), float(fy), float(cx), float(cy))
+
+    setKcam = set_kcam  # noqa: N815 - the old bindings' name
+    setOffset = ParameterSE3Offset.set_offset  # noqa: N815
+
+    def Kcam(self) -> np.ndarray:  # noqa: N802 - g2o's name
+        """The 3x3 camera matrix."""
+        fx, fy, cx, cy = self._k
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def _core(self) -> Any:
+        from graphopt.types import ParameterCamera as Core
+
+        return Core(self._offset.matrix()[:3], max(self._id, 0), *self._k)

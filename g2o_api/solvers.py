@@ -26,7 +26,7 @@ from typing import Any
 from graphopt.algorithms import DoglegConfig, GaussNewtonConfig, LevenbergConfig
 from graphopt.robust_kernel import KERNELS, RobustKernel
 
-__all__ = ["ALGORITHMS", "BLOCK_SOLVERS", "Flag", "KERNEL_CLASSES", "LINEAR_SOLVERS",
+__all__ = ["ALGORITHMS", "BLOCK_SOLVERS", "Flag", "IoFormat", "KERNEL_CLASSES", "LINEAR_SOLVERS",
            "OptimizationAlgorithm", "RobustKernelBase", "graphopt_kernel"]
 
 
@@ -161,6 +161,14 @@ class OptimizationAlgorithmDogleg(OptimizationAlgorithm):
 ALGORITHMS = {c.__name__: c for c in (OptimizationAlgorithmLevenberg,
                                       OptimizationAlgorithmGaussNewton,
                                       OptimizationAlgorithmDogleg)}
+
+
+class IoFormat:
+    """g2o's file formats for ``load``/``save`` (only ``G2O`` is read and written)."""
+
+    G2O = 0
+    BINARY = 1
+    JSON = 2
 
 
 class Flag:

@@ -10,6 +10,7 @@ vertex's id.
 
 from __future__ import annotations
 
+import copy as _copy
 from importlib import import_module
 from typing import Any
 
@@ -115,7 +116,9 @@ class BaseVertex:
             self._est = estimate.copy() if type(estimate) is np.ndarray else (
                 list(estimate) if isinstance(estimate, list | tuple) else self._clone(estimate))
             return
-        row = self._to_array([estimate], [self._id])[0]
+        row = self._to_array([estimate], [self._id])
+        self._finish(row, [self])
+        row = row[0]
         st = bank.store
         if st is None:
             bank.initial[self._slot] = row
@@ -143,8 +146,8 @@ class BaseVertex:
         bank = self._bank
         if bank is not None:
             bank.user_fixed[self._slot] = self._fixed
-            if self._opt is not None:
-                self._opt._flags_changed()
+            if bank.store is not None:  # graphopt rebuilds the structure at the next run
+                bank.store.set_flag("fixed", self._slot, self._fixed)
 
     def fixed(self) -> bool:
         """Whether the vertex is held constant."""
@@ -160,8 +163,8 @@ class BaseVertex:
         bank = self._bank
         if bank is not None:
             bank.marg[self._slot] = self._marg
-            if self._opt is not None:
-                self._opt._flags_changed()
+            if bank.store is not None:  # graphopt rebuilds the structure at the next run
+                bank.store.set_flag("marginalized", self._slot, self._marg)
 
     def marginalized(self) -> bool:
         """Whether the vertex is marginalised."""
@@ -178,9 +181,9 @@ class BaseVertex:
 
     @staticmethod
     def _clone(estimate: Any) -> Any:
+        if isinstance(estimate, _RigidBase | Sim3 | SE2):
+            return _copy.copy(estimate)  # shallow: their arrays are replaced, never written
         copy = getattr(estimate, "copy", None)
-        if isinstance(estimate, _RigidBase):
-            return type(estimate)._of(estimate._R, estimate._t)
         return copy() if callable(copy) else estimate
 
     @classmethod
@@ -213,6 +216,10 @@ class BaseVertex:
     def _default(cls) -> Any:
         """g2o's initial estimate (``setToOrigin``)."""
         return np.zeros(cls._shape)
+
+    @classmethod
+    def _finish(cls, est: np.ndarray, recs: list[BaseVertex]) -> None:
+        """Complete converted estimates with what the records hold besides (in place)."""
 
 
 def _rigid_rows(cls: type, raws: list[Any], ids: list[int], rows: int) -> np.ndarray:
@@ -255,7 +262,8 @@ class VertexSE3Expmap(BaseVertex):
 
     @classmethod
     def _from_row(cls, row: np.ndarray) -> SE3Quat:
-        return SE3Quat._of(row[:3, :3].copy(), row[:3, 3].copy())
+        m = row.copy()  # one copy; the record holds views of it
+        return SE3Quat._of(m[:3, :3], m[:3, 3])
 
 
 class VertexSE3(BaseVertex):
@@ -275,7 +283,56 @@ class VertexSE3(BaseVertex):
 
     @classmethod
     def _from_row(cls, row: np.ndarray) -> Isometry3d:
-        return Isometry3d._of(row[:, :3].copy(), row[:, 3].copy())
+        m = row.copy()
+        return Isometry3d._of(m[:, :3], m[:, 3])
+
+
+class VertexSCam(VertexSE3):
+    """g2o's ``VertexSCam``: a stereo camera's pose in the world (an ``Isometry3d``); the
+    intrinsics are static, as in g2o (``VertexSCam.set_cam(fx, fy, cx, cy, baseline)``)."""
+
+    __slots__ = ()
+    _gname = "VertexSCam"
+    _cam = (1.0, 1.0, 0.5, 0.5, 0.1)
+
+    @staticmethod
+    def set_cam(fx: float, fy: float, cx: float, cy: float, baseline: float) -> None:
+        """Set the intrinsics of every ``VertexSCam`` (g2o's static ``setKcam``).
+
+        Args:
+            fx: Focal length x.
+            fy: Focal length y.
+            cx: Principal point x.
+            cy: Principal point y.
+            baseline: Stereo baseline.
+        """
+        VertexSCam._cam = (float(fx), float(fy), float(cx), float(cy), float(baseline))
+
+    set_kcam = set_cam
+
+    def set_all(self) -> None:
+        """g2o caches its projection matrices here; nothing to do."""
+
+    def map_point(self, p: Any) -> np.ndarray:
+        """``[u, v, u_right]`` of a world point.
+
+        Args:
+            p: ``(3,)`` world point.
+        """
+        from graphopt.types.sba_cam import stereo_projection
+
+        T = self.estimate()
+        pc = T._R.T @ (np.asarray(p, dtype=float).reshape(3) - T._t)
+        return stereo_projection(pc[None], *self._cam)[0][0]
+
+    def Kcam(self) -> np.ndarray:  # noqa: N802 - g2o's name
+        """The 3x3 camera matrix."""
+        fx, fy, cx, cy, _ = self._cam
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def baseline(self) -> float:
+        """The stereo baseline."""
+        return self._cam[4]
 
 
 class VertexPointXYZ(BaseVertex):
@@ -292,6 +349,14 @@ class VertexPointXY(BaseVertex):
     __slots__ = ()
     _gname = "VertexPointXY"
     _shape = (2,)
+
+
+class VertexOdomDifferentialParams(BaseVertex):
+    """g2o's ``VertexOdomDifferentialParams``: ``[k_l, k_r, b]``."""
+
+    __slots__ = ()
+    _gname = "VertexOdomDifferentialParams"
+    _shape = (3,)
 
 
 class VertexSE2(BaseVertex):
@@ -318,15 +383,51 @@ class VertexSE2(BaseVertex):
 
 
 class VertexSim3Expmap(BaseVertex):
-    """g2o's ``VertexSim3Expmap`` (estimate ``Sim3``; ``_fix_scale`` as in g2o)."""
+    """g2o's ``VertexSim3Expmap`` (estimate ``Sim3``). ``_fix_scale`` (set before the first
+    ``initialize_optimization``) travels in graphopt's estimate; the two cameras' intrinsics
+    (``_focal_length1/2``, ``_principle_point1/2``) become the Sim3 projection edges'
+    parameters."""
 
-    __slots__ = ("_fix_scale",)
+    __slots__ = ("_fix_scale", "_focal_length1", "_focal_length2", "_principle_point1",
+                 "_principle_point2")
     _gname = "VertexSim3Expmap"
     _shape = (4, 4)
 
     def __init__(self) -> None:
         super().__init__()
         self._fix_scale = False
+        self._focal_length1 = np.ones(2)
+        self._focal_length2 = np.ones(2)
+        self._principle_point1 = np.zeros(2)
+        self._principle_point2 = np.zeros(2)
+
+    def cam_map1(self, p: Any) -> np.ndarray:
+        """Pixel of a point in camera 1 (``_focal_length1``, ``_principle_point1``).
+
+        Args:
+            p: ``(3,)`` camera-frame point.
+        """
+        p = np.asarray(p, dtype=float).reshape(3)
+        return p[:2] / p[2] * np.asarray(self._focal_length1) + self._principle_point1
+
+    def cam_map2(self, p: Any) -> np.ndarray:
+        """Pixel of a point in camera 2.
+
+        Args:
+            p: ``(3,)`` camera-frame point.
+        """
+        p = np.asarray(p, dtype=float).reshape(3)
+        return p[:2] / p[2] * np.asarray(self._focal_length2) + self._principle_point2
+
+    def camera(self, which: int) -> tuple[float, float, float, float]:
+        """``(fx, fy, cx, cy)`` of camera 1 or 2.
+
+        Args:
+            which: 1 or 2.
+        """
+        f = np.broadcast_to(np.asarray(getattr(self, f"_focal_length{which}"), float), (2,))
+        c = np.asarray(getattr(self, f"_principle_point{which}"), float).reshape(2)
+        return (float(f[0]), float(f[1]), float(c[0]), float(c[1]))
 
     @classmethod
     def _default(cls) -> Any:
@@ -344,6 +445,10 @@ class VertexSim3Expmap(BaseVertex):
         return out
 
     @classmethod
+    def _finish(cls, est: np.ndarray, recs: list[BaseVertex]) -> None:
+        est[:, 3, 0] = [float(r._fix_scale) for r in recs]  # type: ignore[attr-defined]
+
+    @classmethod
     def _from_row(cls, row: np.ndarray) -> Sim3:
         sR = row[:3, :3]
         s = float(np.cbrt(np.linalg.det(sR)))
@@ -354,5 +459,6 @@ VERTEX_CLASSES: dict[str, type[BaseVertex]] = {
     "VertexSE3Expmap": VertexSE3Expmap, "VertexSE3": VertexSE3,
     "VertexPointXYZ": VertexPointXYZ, "VertexSBAPointXYZ": VertexPointXYZ,
     "VertexPointXY": VertexPointXY, "VertexSE2": VertexSE2,
-    "VertexSim3Expmap": VertexSim3Expmap,
+    "VertexSim3Expmap": VertexSim3Expmap, "VertexSCam": VertexSCam,
+    "VertexOdomDifferentialParams": VertexOdomDifferentialParams,
 }
