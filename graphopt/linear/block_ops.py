@@ -82,6 +82,42 @@ def batched_cholesky_inverses(
     return linv.reshape(n, d, d), inv.reshape(n, d, d)
 
 
+try:  # SciPy's block-sparse kernel (a dense product per block, in one C loop)
+    from scipy.sparse._sparsetools import bsr_matvecs as _bsr_matvecs
+except ImportError:  # pragma: no cover - private module: numpy's matmul instead
+    _bsr_matvecs = None
+
+#: ``arange(n + 1)`` and ``arange(n)`` as int32, per ``n`` (the block-diagonal pattern).
+_DIAGONAL: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def block_products(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A[i] @ B[i]`` for every ``i``: ``(n, p, q) x (n, q, k) -> (n, p, k)``.
+
+    NumPy's stacked ``matmul`` pays about 60 ns per pair of small matrices; SciPy's BSR kernel
+    on the block-diagonal matrix whose blocks are ``A`` does the same products in one C loop
+    (2,807 pairs of 3x3 by 3x6: 163 -> 64 µs; 3x9: 175 -> 93 µs).
+
+    Args:
+        A: ``(n, p, q)`` blocks.
+        B: ``(n, q, k)`` blocks.
+    """
+    n, p, q = A.shape
+    k = B.shape[2]
+    if _bsr_matvecs is None or n >= 2**31 or not n:
+        return np.matmul(A, B)
+    diag = _DIAGONAL.get(n)
+    if diag is None:
+        if len(_DIAGONAL) > 16:
+            _DIAGONAL.clear()
+        diag = _DIAGONAL[n] = (np.arange(n + 1, dtype=np.int32), np.arange(n, dtype=np.int32))
+    out = np.zeros(n * p * k)
+    _bsr_matvecs(n, n, k, p, q, diag[0], diag[1],
+                 np.ascontiguousarray(A, dtype=float).reshape(-1),
+                 np.ascontiguousarray(B, dtype=float).reshape(-1), out)
+    return out.reshape(n, p, k)
+
+
 def csr_product_into(
     n_rows: int,
     n_cols: int,
