@@ -265,8 +265,10 @@ class RunRecording:
                             world_xyz=world_xyz)
         self.blueprint = dict(blueprint or {})
         self.seconds = 0.0
-        #: The last iteration logged (the frame the run's end is shown at).
+        #: The last iteration logged (the frame the run's end is shown at), and the last step
+        #: (online runs; None otherwise).
         self.iteration = 0
+        self.step: int | None = None
         try:
             self.rec.send_blueprint(run_blueprint(**self.blueprint))
             self.rec.name_series("log10_chi2", "log10 chi2", (215, 35, 35))
@@ -276,16 +278,21 @@ class RunRecording:
             self.rec.abort()
             raise
 
-    def log_metrics(self, iteration: int, chi2: float, seconds: float | None = None) -> None:
+    def log_metrics(self, iteration: int, chi2: float, seconds: float | None = None,
+                    step: int | None = None) -> None:
         """Log the cost (``metrics/chi2`` and ``metrics/log10_chi2``) and the iteration's
-        seconds (``metrics/iteration_seconds``) at ``iteration``.
+        seconds (``metrics/iteration_seconds``) at ``iteration`` (and ``step``).
 
         Args:
             iteration: Iteration number (0 = before optimisation).
             chi2: The cost after it.
             seconds: The iteration's wall time (None at iteration 0).
+            step: The ``step`` timeline's value (online runs), or None.
         """
         self.iteration = max(self.iteration, int(iteration))
+        if step is not None:
+            self.step = int(step)
+            self.rec.set_step(step)
         self.rec.set_iteration(iteration)
         self.rec.log_cost(chi2)
         if seconds is not None:

@@ -6,7 +6,8 @@ Entities (layout of :mod:`graphopt.recording_view`): ``world/before/points`` and
 ``world/after/points`` (coloured by the error at that iteration, on the final run's scale) and
 ``world/after/cameras/{k}`` (frusta; BAL cameras look down −z) at every iteration;
 ``world/after/outliers`` (points with an observation the kernel down-weights at the end) at the
-last iteration; ``metrics/…`` and ``summary``.
+last iteration; ``metrics/…`` and ``summary``. Frames that differ by less than a person can see
+are not drawn again (:data:`STILL`), which bounds the file of a long run.
 """
 
 from __future__ import annotations
@@ -21,11 +22,16 @@ from graphopt.lie import make_transform, so3_exp
 from graphopt.recording_view import BEFORE, OUTLIER, ErrorScale, outlier_mask, summary_markdown
 from graphopt.types.bal import EdgeBALProjection, reprojection_errors
 
-__all__ = ["MAX_POINTS", "BALRecording", "cameras_to_poses", "point_rms", "recording_markdown"]
+__all__ = ["MAX_POINTS", "STILL", "BALRecording", "cameras_to_poses", "point_rms",
+           "recording_markdown"]
 
 #: At most this many points are recorded (an evenly spaced subset beyond): the viewer cannot show
 #: more as separate dots, and the file grows with every iteration.
 MAX_POINTS = 100_000
+#: An iteration whose points all moved less than this fraction of the scene's scale (and whose
+#: errors changed by less than 1 %) is not drawn again: the viewer shows the last frame drawn
+#: (its cost and time are still logged). The last iteration is always drawn.
+STILL = 1e-4
 #: Observations projected per pass (bounds the temporary arrays).
 CHUNK = 1 << 20
 
@@ -78,6 +84,7 @@ class BALRecording(RunRecording):
         np.maximum.at(ext, problem.camera_index, np.abs(problem.observations))
         self.resolution = np.maximum(2.0 * ext, 2.0)
         self.plane = 0.05 * scene_scale
+        self.scene_scale = scene_scale
         n = problem.num_points
         self.shown = (np.arange(n) if n <= MAX_POINTS
                       else np.unique(np.linspace(0, n - 1, MAX_POINTS).astype(np.intp)))
@@ -85,6 +92,9 @@ class BALRecording(RunRecording):
         self.errors: list[tuple[int, np.ndarray]] = []
         self.scale: ErrorScale | None = None
         self.outliers = 0
+        #: The last frame logged (shown points, errors) and a skipped one not yet logged.
+        self.last: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros(0))
+        self.pending: tuple[int, np.ndarray, np.ndarray] | None = None
 
     def log_start(self, cams: np.ndarray, pts: np.ndarray, cost: float) -> None:
         """Log the start: once in grey (``world/before``), and as iteration 0.
@@ -117,13 +127,32 @@ class BALRecording(RunRecording):
         self.log_metrics(iteration, cost, seconds)
         # Non-finite points would be dropped and misalign the colours logged at the end.
         shown = np.nan_to_num(pts[self.shown], nan=0.0, posinf=0.0, neginf=0.0)
-        self.rec.log_points(shown, None, entity="world/after/points", radius=-1.5)
         self.rec.log_cameras(
             cameras_to_poses(cams), focal=np.abs(cams[:, 6]), resolution=self.resolution,
             principal_point=self.resolution / 2.0, image_plane_distance=self.plane,
             entity="world/after/cameras", trajectory=False)
         err = point_rms(self.problem, cams, pts)[self.shown].astype(np.float32)
-        self.errors.append((int(iteration), err))
+        if iteration and self._invisible(shown, err):
+            self.pending = (int(iteration), shown, err)  # logged by finish() if it is the last
+            return
+        self._log_frame(int(iteration), shown, err)
+
+    def _invisible(self, shown: np.ndarray, err: np.ndarray) -> bool:
+        """Whether a frame differs from the last one logged by less than a person can see:
+        every point moved less than :data:`STILL` of the scene's scale and no error changed
+        by 1 %."""
+        moved = float(np.abs(shown - self.last[0]).max(initial=0.0))
+        with np.errstate(all="ignore"):
+            change = np.abs(err - self.last[1]) / np.maximum(self.last[1], 1e-6)
+        return moved < STILL * self.scene_scale and float(np.nanmax(change, initial=0.0)) < 0.01
+
+    def _log_frame(self, iteration: int, shown: np.ndarray, err: np.ndarray) -> None:
+        """Log a frame's points and keep its errors for the colours."""
+        self.rec.set_iteration(iteration)
+        self.rec.log_points(shown, None, entity="world/after/points", radius=-1.5)
+        self.errors.append((iteration, err))
+        self.last = (shown, err)
+        self.pending = None
 
     def finish(self, opt: Any, pts: np.ndarray) -> None:
         """Colour every logged iteration on the final errors' scale and log the outliers.
@@ -132,6 +161,8 @@ class BALRecording(RunRecording):
             opt: The optimizer after the run (its edges' robust kernels and errors).
             pts: ``(n, 3)`` final points.
         """
+        if self.pending is not None:  # the end is always shown exactly
+            self._log_frame(*self.pending)
         self.scale = ErrorScale.from_final(self.errors[-1][1], "per-point RMS reprojection "
                                            "error", "px")
         for iteration, err in self.errors:

@@ -319,9 +319,9 @@ def recording_markdown(prog: str, s: dict[str, Any], rec: DirectBARecording,
     """
     rows = [
         ("input", f"`{s['input']}`"),
-        ("size", f"{s['poses']} images, {s['points']} points ({s['parametrization']}), "
-                 f"{s['edges']} patch edges ({s['patch']}x{s['patch']}), active "
-                 f"{s['active_edges']} → {s['active_edges_final']}"),
+        ("size", f"{s['poses']} images, {s['points']} points ({s['parametrization']})"),
+        ("edges", f"{s['edges']} patches {s['patch']}x{s['patch']}; active "
+                  f"{s['active_edges']} → {s['active_edges_final']}"),
         ("algorithm", s["algorithm"]),
         ("linear solver", solver_text),
         ("robust kernel", s["robust_kernel"] or "none"),

@@ -291,9 +291,12 @@ class SlamRecording(RunRecording):
         path: Destination ``.rrd`` file.
         prog: The app's name (rerun application id).
         view: The graph's view.
+        timeline: The time panel's timeline: ``"step"`` for an online run (pass ``step`` to
+            :meth:`log_state`; each step's iterations may restart at 0).
     """
 
-    def __init__(self, path: str, prog: str, view: GraphView) -> None:
+    def __init__(self, path: str, prog: str, view: GraphView, timeline: str = "iteration"
+                 ) -> None:
         poses = view.poses()
         eye = None
         if view.dimension == 2 and len(poses):  # a planar graph: look straight down on it
@@ -302,7 +305,8 @@ class SlamRecording(RunRecording):
             span = float(max((hi - lo)[:2].max(), 1e-9))
             eye = ((c[0], c[1], 1.1 * span), (c[0], c[1], 0.0), (0.0, 1.0, 0.0))
         super().__init__(path, prog, camera_xyz="RDF",
-                         blueprint={"world_name": "poses and edges", "eye": eye})
+                         blueprint={"world_name": "poses and edges", "eye": eye,
+                                    "timeline": timeline})
         self.view = view
         opt = view.optimizer
         marks = [np.sort(opt.ids_of(VERTEX_TYPES[t])) for t, _ in view.parts
@@ -324,8 +328,9 @@ class SlamRecording(RunRecording):
         b = np.concatenate([y for _, y in pp]) if pp else np.zeros(0, np.intp)
         self.odometry = np.abs(a - b) == 1
         self.pairs = np.column_stack([a, b])
-        #: Per logged iteration, (pose-pose chi2, landmark mean chi2), coloured at the end.
-        self.errors: list[tuple[int, np.ndarray, np.ndarray]] = []
+        #: Per logged iteration, (step, iteration, pose-pose chi2, landmark mean chi2), coloured
+        #: at the end.
+        self.errors: list[tuple[int | None, int, np.ndarray, np.ndarray]] = []
         self.scale: ErrorScale | None = None
         self.outliers = 0
 
@@ -343,19 +348,24 @@ class SlamRecording(RunRecording):
             return edges, total / count
 
     def log_state(self, iteration: int, chi2: float, *, seconds: float | None = None,
-                  truth: np.ndarray | None = None) -> None:
+                  truth: np.ndarray | None = None, step: int | None = None) -> None:
         """Log the current estimates (at the optimizer's last evaluation) and chi2.
+
+        Online runs call it with ``step`` (the ``step`` timeline) for every iteration of every
+        step; the graph's size must not change within one recording's steps (its edges are
+        laid out once, in :meth:`__init__`).
 
         Args:
             iteration: Iteration number (0 = before optimisation).
             chi2: chi2 at this iteration.
             seconds: The iteration's wall time (None at iteration 0).
             truth: True pose positions to log (once, at the start).
+            step: The step (online runs), or None.
         """
         rec, view = self.rec, self.view
-        self.log_metrics(iteration, chi2, seconds)
+        self.log_metrics(iteration, chi2, seconds, step)
         poses, marks = view.poses(), view.landmarks()
-        if iteration == 0:
+        if not self.errors:  # the first state: the start
             rec.log_trajectory(poses, entity="world/before/trajectory", color=BEFORE,
                                radius=-0.75, static=True)
             if len(marks):
@@ -374,7 +384,7 @@ class SlamRecording(RunRecording):
         if len(marks):
             rec.log_points(np.nan_to_num(marks), entity="world/after/landmarks", radius=-2.0)
         edges, landmarks = self._chi2()
-        self.errors.append((int(iteration), edges.astype(np.float32),
+        self.errors.append((step, int(iteration), edges.astype(np.float32),
                             landmarks.astype(np.float32)))
 
     def finish(self) -> None:
@@ -384,7 +394,9 @@ class SlamRecording(RunRecording):
         every = [final_edges] + [g.last_chi2 for g, _, _, mark in self.groups if mark]
         self.scale = ErrorScale.from_final(np.concatenate(every), "chi2 e'Ωe of each edge "
                                            "(landmarks: the mean of their edges)")
-        for iteration, edges, landmarks in self.errors:
+        for step, iteration, edges, landmarks in self.errors:
+            if step is not None:
+                self.rec.set_step(step)
             self.rec.set_iteration(iteration)
             colors = self.scale.colors(edges)
             self.rec.log_colors(colors[self.odometry], entity="world/after/trajectory",
@@ -395,6 +407,8 @@ class SlamRecording(RunRecording):
             if len(landmarks):
                 self.rec.log_colors(self.scale.colors(landmarks), entity="world/after/landmarks")
         self.errors = []
+        if self.step is not None:
+            self.rec.set_step(self.step)
         self.rec.set_iteration(self.iteration)
         poses, marks = self.view.poses(), self.view.landmarks()
         starts, ends = [], []
