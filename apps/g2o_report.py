@@ -392,8 +392,9 @@ class SlamRecording(RunRecording):
         (the optimizer's last evaluation must be at the final estimate)."""
         final_edges, _ = self._chi2()
         every = [final_edges] + [g.last_chi2 for g, _, _, mark in self.groups if mark]
-        self.scale = ErrorScale.from_final(np.concatenate(every), "chi2 e'Ωe of each edge "
-                                           "(landmarks: the mean of their edges)")
+        self.scale = ErrorScale.from_final(
+            np.concatenate(every), "chi2 e'Ωe of each edge"
+            + (" (landmarks: the mean of their edges)" if len(self.landmark_ids) else ""))
         for step, iteration, edges, landmarks in self.errors:
             if step is not None:
                 self.rec.set_step(step)

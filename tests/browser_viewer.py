@@ -44,6 +44,12 @@ VIEWPORT = {"width": 1600, "height": 1000}
 TIMEOUT = 90.0
 
 
+#: Top-level entities of a blueprint (the file holds it beside the recording; the viewer's copy
+#: of the recording does not).
+BLUEPRINT_ROOTS = {"view", "container", "viewport", "blueprint_panel", "selection_panel",
+                   "time_panel", "top_panel"}
+
+
 class ViewerError(AssertionError):
     """The viewer did not open the recording (an assertion: tests fail with it)."""
 
@@ -170,7 +176,7 @@ def _views(rbl_bytes: bytes) -> list[tuple[str, str, str]]:
         out = subprocess.run([str(rerun_exe()), "rrd", "print", "-vvv", str(path)],
                              capture_output=True, text=True, timeout=60)
     # The ViewBlueprint rows: ... ┆ [3D] ┆ [name] ┆ [origin] │
-    row = r"┆ \[([A-Za-z]\w*)\]\s+┆ \[([^\]]*)\]\s+┆ \[([^\]]*)\]\s+│"
+    row = r"┆ \[(\w*[A-Za-z]\w*)\]\s+┆ \[([^\]]*)\]\s+┆ \[([^\]]*)\]\s+│"
     return sorted(set(re.findall(row, out.stdout)))
 
 
@@ -190,7 +196,7 @@ def _offline_noise(text: str, url: str) -> bool:
     return text.startswith("Failed to load resource") and host not in ("127.0.0.1", "localhost")
 
 
-def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float = 4.0,
+def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float = 3.0,
                    timeout: float = TIMEOUT) -> ViewerResult:
     """Serve ``rrd`` with rerun's web viewer, open it in ``browser`` and take a screenshot.
 
@@ -225,14 +231,21 @@ def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float =
             t1 = time.monotonic()
             deadline, size, last = time.monotonic() + timeout, 0, -1
             # Loaded: the viewer's own copy of the recording (save_recording raises while it
-            # has none) stopped growing and holds about what the file does (the viewer
-            # re-encodes it: not byte for byte).
-            expected = 0.5 * rrd.stat().st_size
+            # has none) stopped growing and holds every entity of the file (it re-encodes the
+            # data: not byte for byte). An unreadable file has no entities: never loaded.
+            expected = {e for e in _entities(rrd.read_bytes())
+                        if e.split("/")[1] not in BLUEPRINT_ROOTS}
             while True:
                 size = page.evaluate("(() => { try { return window._handle.save_recording()"
                                      ".length } catch (e) { return 0 } })()")
-                if size >= expected and size == last:
-                    break
+                if size and size == last and expected:
+                    recording = _bytes(page, "save_recording")
+                    if expected <= set(_entities(recording)):
+                        break
+                failed = [line for line in log.read_text(errors="replace").splitlines()
+                          if "Failed to import" in line]
+                if failed:  # the server could not read the file: nothing will come
+                    raise ViewerError(f"rerun could not load {rrd}: {failed[0][-300:]}")
                 if time.monotonic() > deadline or page.evaluate("window._handle.has_panicked()"):
                     raise ViewerError(
                         f"the viewer did not load {rrd} within {timeout:g} s; console errors: "
@@ -241,7 +254,6 @@ def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float =
                 if os.environ.get("GRAPHOPT_BROWSER_DEBUG"):
                     print(f"  {time.monotonic() - t1:.1f} s: {size} bytes", file=sys.stderr)
                 time.sleep(0.5)
-            recording = _bytes(page, "save_recording")
             blueprint = _bytes(page, "save_blueprint")
             if os.environ.get("GRAPHOPT_BROWSER_DEBUG"):
                 print(f"{rrd.name}: viewer started in {t1 - t0:.1f} s, recording loaded after "
