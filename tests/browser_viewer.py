@@ -37,8 +37,10 @@ CHROMIUM = os.environ.get("GRAPHOPT_CHROMIUM", "/usr/bin/chromium")
 #: WebGL 2 without a GPU: ANGLE on SwiftShader.
 CHROMIUM_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
                  "--no-sandbox", "--disable-dev-shm-usage"]
-#: The browser window (CSS pixels); the blueprint's regions below are fractions of it.
-VIEWPORT = {"width": 1600, "height": 1000}
+#: The browser window (CSS pixels) of the test, and of the docs' screenshots (larger: the text
+#: is legible; the software rasteriser takes longer). Regions are fractions of it.
+VIEWPORT = {"width": 1100, "height": 700}
+DOCS_VIEWPORT = {"width": 1600, "height": 1000}
 #: Seconds to wait for the server, the viewer's start and the recording (a shared machine with
 #: a software rasteriser is slow: generous).
 TIMEOUT = 90.0
@@ -197,7 +199,8 @@ def _offline_noise(text: str, url: str) -> bool:
 
 
 def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float = 3.0,
-                   timeout: float = TIMEOUT) -> ViewerResult:
+                   timeout: float = TIMEOUT, viewport: dict[str, int] | None = None
+                   ) -> ViewerResult:
     """Serve ``rrd`` with rerun's web viewer, open it in ``browser`` and take a screenshot.
 
     Args:
@@ -206,6 +209,7 @@ def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float =
         screenshot: Where to write the PNG.
         settle: Seconds to let the viewer draw once the recording is loaded.
         timeout: Seconds to wait for the viewer and the recording.
+        viewport: The window's size in CSS pixels (:data:`VIEWPORT` if None).
 
     Raises:
         ViewerError: The server or the viewer did not start, or the viewer has no recording
@@ -214,7 +218,7 @@ def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float =
     import cv2
 
     log = screenshot.with_suffix(".server.log")
-    page = browser.new_page(viewport=VIEWPORT)
+    page = browser.new_page(viewport=viewport or VIEWPORT)
     errors: list[str] = []
     page.on("console", lambda m: errors.append(m.text) if m.type == "error"
             and not _offline_noise(m.text, m.location.get("url", "")) else None)
@@ -239,8 +243,8 @@ def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float =
                 size = page.evaluate("(() => { try { return window._handle.save_recording()"
                                      ".length } catch (e) { return 0 } })()")
                 if size and size == last and expected:
-                    recording = _bytes(page, "save_recording")
-                    if expected <= set(_entities(recording)):
+                    listed = _entities(_bytes(page, "save_recording"))
+                    if expected <= set(listed):
                         break
                 failed = [line for line in log.read_text(errors="replace").splitlines()
                           if "Failed to import" in line]
@@ -263,7 +267,7 @@ def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float =
         finally:
             page.close()  # before the server stops: its stream's end is no viewer error
     image = cv2.imread(str(screenshot))[:, :, ::-1]
-    return ViewerResult(_entities(recording), _views(blueprint), errors, screenshot,
+    return ViewerResult(listed, _views(blueprint), errors, screenshot,
                         np.ascontiguousarray(image))
 
 

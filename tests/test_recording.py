@@ -277,3 +277,14 @@ def test_bal_never_suggests_lm_to_an_lm_run(monkeypatch: pytest.MonkeyPatch,
     assert "warning:" in err and "--algorithm lm" not in err
     assert bal.main(["--algorithm", "gn"]) == 0
     assert "use --algorithm lm or dogleg" in capsys.readouterr().err
+
+
+def test_the_browser_check_sees_a_blank_view_as_blank() -> None:
+    from browser_viewer import ViewerResult
+
+    image = np.full((100, 200, 3), 240, np.uint8)  # the viewer's light grey background
+    image[40:60, :] = (90, 90, 90)  # grid lines and text are grey too
+    res = ViewerResult([], [], [], Path("x.png"), image)
+    assert res.colourful_fraction((0.0, 0.0, 1.0, 1.0)) == 0.0
+    image[10:20, 100:110] = (215, 35, 35)  # 100 red pixels of the error colours
+    assert res.colourful_fraction((0.5, 0.0, 1.0, 1.0)) == pytest.approx(100 / 10_000)
