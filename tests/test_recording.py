@@ -235,7 +235,7 @@ def test_dubrovnik_recording_of_100_iterations_stays_under_50_mb(tmp_path: Path)
         assert len(rec.shown) == p.num_points  # every point
         sizes.append(path.stat().st_size)
     per_iteration = (sizes[1] - sizes[0]) / 10
-    assert per_iteration > 16 * p.num_points  # positions and colours of every point
+    assert per_iteration > 12 * p.num_points  # at least the positions of every point
     assert sizes[0] + 100 * per_iteration < 50e6, f"{sizes}"
 
 
