@@ -18,7 +18,7 @@ import numpy as np
 
 from graphopt.apps._cli import RunRecording
 from graphopt.io.bal import BALProblem
-from graphopt.lie import make_transform, so3_exp
+from graphopt.lie import make_transform, so3_exp, transform_inverse
 from graphopt.recording_view import BEFORE, OUTLIER, ErrorScale, outlier_mask, summary_markdown
 from graphopt.types.bal import EdgeBALProjection, reprojection_errors
 
@@ -106,9 +106,7 @@ class BALRecording(RunRecording):
         """
         self.rec.log_points(pts[self.shown], BEFORE, entity="world/before/points", radius=-1.0,
                             static=True)
-        centers = BALProblem(cams, pts, self.problem.camera_index[:0],
-                             self.problem.point_index[:0],
-                             self.problem.observations[:0]).camera_centers()
+        centers = transform_inverse(cameras_to_poses(cams))[:, :3, 3]
         self.rec.log_points(centers, BEFORE, entity="world/before/cameras", radius=-3.0,
                             static=True)
         self.log_state(0, cams, pts, cost)
