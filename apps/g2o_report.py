@@ -307,12 +307,26 @@ class SlamRecording(RunRecording):
         super().__init__(path, prog, camera_xyz="RDF",
                          blueprint={"world_name": "poses and edges", "eye": eye,
                                     "timeline": timeline})
+        #: Per logged iteration, (step, iteration, pose-pose chi2, landmark mean chi2, the
+        #: odometry mask of the pose-pose edges), coloured at the end.
+        self.errors: list[tuple[int | None, int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.scale: ErrorScale | None = None
+        self.outliers = 0
+        self.relayout(view)
+
+    def relayout(self, view: GraphView) -> None:
+        """Lay out the graph's edges again (an online run's graph grew since the last step).
+
+        Args:
+            view: The view of the graph as it is now (:func:`graph_view`).
+        """
         self.view = view
         opt = view.optimizer
         marks = [np.sort(opt.ids_of(VERTEX_TYPES[t])) for t, _ in view.parts
                  if t in _POINT_TAGS]
         self.landmark_ids = np.concatenate(marks) if marks else np.zeros(0, np.int64)
-        # Structure once: per group of pose-pose or pose-landmark edges, the rows it joins.
+        # Structure once per layout: per group of pose-pose or pose-landmark edges, the rows it
+        # joins.
         self.groups: list[tuple[Any, np.ndarray, np.ndarray, bool]] = []
         for g in opt.edge_groups():
             name = g.etype.__name__
@@ -328,11 +342,6 @@ class SlamRecording(RunRecording):
         b = np.concatenate([y for _, y in pp]) if pp else np.zeros(0, np.intp)
         self.odometry = np.abs(a - b) == 1
         self.pairs = np.column_stack([a, b])
-        #: Per logged iteration, (step, iteration, pose-pose chi2, landmark mean chi2), coloured
-        #: at the end.
-        self.errors: list[tuple[int | None, int, np.ndarray, np.ndarray]] = []
-        self.scale: ErrorScale | None = None
-        self.outliers = 0
 
     def _chi2(self) -> tuple[np.ndarray, np.ndarray]:
         """Per pose-pose edge chi2 and per landmark mean chi2 at the last evaluation."""
@@ -352,8 +361,7 @@ class SlamRecording(RunRecording):
         """Log the current estimates (at the optimizer's last evaluation) and chi2.
 
         Online runs call it with ``step`` (the ``step`` timeline) for every iteration of every
-        step; the graph's size must not change within one recording's steps (its edges are
-        laid out once, in :meth:`__init__`).
+        step, and :meth:`relayout` first when the graph grew.
 
         Args:
             iteration: Iteration number (0 = before optimisation).
@@ -385,7 +393,7 @@ class SlamRecording(RunRecording):
             rec.log_points(np.nan_to_num(marks), entity="world/after/landmarks", radius=-2.0)
         edges, landmarks = self._chi2()
         self.errors.append((step, int(iteration), edges.astype(np.float32),
-                            landmarks.astype(np.float32)))
+                            landmarks.astype(np.float32), self.odometry))
 
     def finish(self) -> None:
         """Colour every logged iteration on the final chi2's scale and log the outliers
@@ -395,15 +403,15 @@ class SlamRecording(RunRecording):
         self.scale = ErrorScale.from_final(
             np.concatenate(every), "chi2 e'Ωe of each edge"
             + (" (landmarks: the mean of their edges)" if len(self.landmark_ids) else ""))
-        for step, iteration, edges, landmarks in self.errors:
+        for step, iteration, edges, landmarks, odometry in self.errors:
             if step is not None:
                 self.rec.set_step(step)
             self.rec.set_iteration(iteration)
             colors = self.scale.colors(edges)
-            self.rec.log_colors(colors[self.odometry], entity="world/after/trajectory",
+            self.rec.log_colors(colors[odometry], entity="world/after/trajectory",
                                 kind="lines")
-            if (~self.odometry).any():
-                self.rec.log_colors(colors[~self.odometry], entity="world/after/loop_closures",
+            if (~odometry).any():
+                self.rec.log_colors(colors[~odometry], entity="world/after/loop_closures",
                                     kind="lines")
             if len(landmarks):
                 self.rec.log_colors(self.scale.colors(landmarks), entity="world/after/landmarks")

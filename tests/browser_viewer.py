@@ -3,10 +3,11 @@ in headless Chromium (Debian's ``chromium``, WebGL 2 through SwiftShader), drive
 
 :func:`open_in_viewer` returns what the viewer shows: the entities of the recording it loaded
 (read back from the viewer itself, ``WebHandle.save_recording()``, decoded by ``rerun rrd
-print``), its blueprint's view names, the console errors and a screenshot; it raises
-:class:`ViewerError` when the viewer does not load the recording. The server runs in its own
-session (process group): the ``rerun`` command is a wrapper that spawns the server as a child,
-so the whole group is ended, always.
+print``; the recording counts as loaded once that copy holds every row of the file), its
+blueprint's views, the console errors and a screenshot; it raises :class:`ViewerError` when the
+viewer does not load the recording. The server runs in its own session (process group): the
+``rerun`` command is a wrapper that spawns the server as a child, so the whole group is ended,
+always.
 
 Used by ``tests/test_recording_browser.py`` and ``scripts/screenshots.sh``.
 """
@@ -157,17 +158,17 @@ class ViewerResult:
         return float((chroma > 60).mean())
 
 
-def _entities(rrd_bytes: bytes) -> list[str]:
-    """Entity paths in an ``.rrd`` (``rerun rrd print``)."""
+def _rows(rrd_bytes: bytes) -> dict[str, int]:
+    """Entity path → rows, over all chunks of an ``.rrd`` (``rerun rrd print``)."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "viewer.rrd"
         path.write_bytes(rrd_bytes)
         out = subprocess.run([str(rerun_exe()), "rrd", "print", str(path)],
                              capture_output=True, text=True, timeout=60)
-    if os.environ.get("GRAPHOPT_BROWSER_DEBUG"):
-        print(f"rrd print of the viewer's {len(rrd_bytes)} bytes: {out.stderr[-800:]}",
-              file=sys.stderr)
-    return sorted(set(re.findall(r" - (/\S*) - data columns", out.stdout)))
+    rows: dict[str, int] = {}
+    for n, entity in re.findall(r"with (\d+) rows .* - (/\S*) - data columns", out.stdout):
+        rows[entity] = rows.get(entity, 0) + int(n)
+    return rows
 
 
 def _views(rbl_bytes: bytes) -> list[tuple[str, str, str]]:
@@ -235,16 +236,17 @@ def open_in_viewer(browser: Any, rrd: Path, screenshot: Path, *, settle: float =
             t1 = time.monotonic()
             deadline, size, last = time.monotonic() + timeout, 0, -1
             # Loaded: the viewer's own copy of the recording (save_recording raises while it
-            # has none) stopped growing and holds every entity of the file (it re-encodes the
-            # data: not byte for byte). An unreadable file has no entities: never loaded.
-            expected = {e for e in _entities(rrd.read_bytes())
+            # has none) stopped growing and holds every row of every entity of the file (it
+            # re-encodes the data: not byte for byte). An unreadable file has none: never.
+            expected = {e: n for e, n in _rows(rrd.read_bytes()).items()
                         if e.split("/")[1] not in BLUEPRINT_ROOTS}
             while True:
                 size = page.evaluate("(() => { try { return window._handle.save_recording()"
                                      ".length } catch (e) { return 0 } })()")
                 if size and size == last and expected:
-                    listed = _entities(_bytes(page, "save_recording"))
-                    if expected <= set(listed):
+                    held = _rows(_bytes(page, "save_recording"))
+                    if all(held.get(e, 0) >= n for e, n in expected.items()):
+                        listed = sorted(held)
                         break
                 failed = [line for line in log.read_text(errors="replace").splitlines()
                           if "Failed to import" in line]

@@ -288,3 +288,32 @@ def test_the_browser_check_sees_a_blank_view_as_blank() -> None:
     assert res.colourful_fraction((0.0, 0.0, 1.0, 1.0)) == 0.0
     image[10:20, 100:110] = (215, 35, 35)  # 100 red pixels of the error colours
     assert res.colourful_fraction((0.5, 0.0, 1.0, 1.0)) == pytest.approx(100 / 10_000)
+
+
+def test_slam_recording_of_an_online_run_uses_the_step_timeline(tmp_path: Path) -> None:
+    from graphopt import SparseOptimizer
+    from graphopt.apps.g2o_report import SlamRecording, graph_view
+    from graphopt.apps.slam_scene import manhattan_world
+    from graphopt.types.slam_graph import build_graph
+
+    graph, _ = manhattan_world(40, 0)
+    slam = build_graph(graph, SparseOptimizer(algorithm="lm"))
+    opt = slam.optimizer
+    rrd = tmp_path / "online.rrd"
+    rec = SlamRecording(str(rrd), "graphopt-g2o", graph_view(slam), timeline="step")
+    for step in range(2):
+        rec.relayout(graph_view(slam))  # an online run does this when the graph grew
+        opt.compute_active_errors()
+        rec.log_state(0, opt.active_robust_chi2(), step=step)
+        for it in range(1, 3):
+            res = opt.optimize(1)
+            rec.log_state(it, res.final_chi2, seconds=res.seconds, step=step)
+    opt.compute_active_errors()
+    rec.finish()
+    rec.close()
+    rows = _entities(rrd, "LineStrips3D:strips")
+    assert rows["/world/after/trajectory"] == 6  # 2 steps x 3 states
+    assert _entities(rrd, "LineStrips3D:colors")["/world/after/trajectory"] == 6
+    text = _print(rrd, "-vvv")
+    assert "index_name: step" in text
+    assert "[step]" in text  # the time panel's timeline
