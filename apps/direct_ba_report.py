@@ -16,6 +16,7 @@ from graphopt.recording_view import (
     BEFORE,
     MANY_OUTLIERS,
     OUTLIER,
+    TRUTH,
     ErrorScale,
     outlier_mask,
     summary_markdown,
@@ -263,7 +264,7 @@ class DirectBARecording(RunRecording):
                            entity="world/before/cameras", radius=-3.0, static=True)
             if p.data.true_poses is not None:
                 rec.log_trajectory(transform_inverse(p.data.true_poses)[:, :3, 3],
-                                   entity="world/truth/trajectory", color=(150, 150, 150),
+                                   entity="world/truth/trajectory", color=TRUTH,
                                    radius=-0.75, static=True)
         rec.log_cameras(poses, entity="world/after/cameras", trajectory=False, **self.cam)
         rec.log_points(points, entity="world/after/points", radius=-1.5)

@@ -19,7 +19,14 @@ import numpy as np
 
 from graphopt.apps._cli import RunRecording, write_png_image
 from graphopt.optimizer import SparseOptimizer
-from graphopt.recording_view import BEFORE, OUTLIER, ErrorScale, outlier_mask, summary_markdown
+from graphopt.recording_view import (
+    BEFORE,
+    OUTLIER,
+    TRUTH,
+    ErrorScale,
+    outlier_mask,
+    summary_markdown,
+)
 from graphopt.types.slam_graph import VERTEX_TYPES, SlamGraph
 
 __all__ = ["GraphView", "SlamRecording", "graph_view", "recording_markdown", "write_png"]
@@ -380,7 +387,7 @@ class SlamRecording(RunRecording):
                 rec.log_points(marks, BEFORE, entity="world/before/landmarks", radius=-1.5,
                                static=True)
             if truth is not None:
-                rec.log_trajectory(truth, entity="world/truth/trajectory", color=_RGB_TRUTH,
+                rec.log_trajectory(truth, entity="world/truth/trajectory", color=TRUTH,
                                    radius=-0.75, static=True)
         poses = np.nan_to_num(poses)  # segments must stay aligned with their colours
         odo, closing = self.pairs[self.odometry], self.pairs[~self.odometry]
@@ -474,9 +481,7 @@ def recording_markdown(prog: str, s: dict[str, Any], rec: SlamRecording,
         + (", `landmarks`" if len(rec.landmark_ids) else "")
         + (f", `outliers` ({rec.outliers} edges the kernel down-weights at the end: ρ' < 1 "
            "beyond its width) in magenta" if rec.outliers else "")
-        + ("; `world/truth` the true trajectory" if g is not None else "")
+        + ("; `world/truth` the true trajectory (green)" if g is not None else "")
         + ". Scrub the `iteration` timeline to replay the run.")
     return summary_markdown(prog, rows, notes)
 
-
-_RGB_TRUTH = (150, 150, 150)

@@ -27,6 +27,7 @@ __all__ = [
     "MANY_OUTLIERS",
     "BEFORE",
     "OUTLIER",
+    "TRUTH",
     "ErrorScale",
     "error_colors",
     "outlier_mask",
@@ -38,6 +39,9 @@ __all__ = [
 BEFORE = (120, 120, 120)
 #: Colour of an estimate drawn without error colours (e.g. a trajectory line).
 AFTER = (20, 100, 190)
+#: Colour of the ground truth (``world/truth``, generated scenes): a muted green, apart from the
+#: start's grey.
+TRUTH = (110, 175, 110)
 #: Colour of the robust-kernel outliers (``world/after/outliers``).
 OUTLIER = (230, 0, 230)
 #: When more than this share of the edges are outliers (a kernel narrower than the noise), the
