@@ -15,6 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from graphopt.autodiff import tape
 from graphopt.autodiff.jet import Jet, JetError
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
@@ -159,11 +160,16 @@ class _Position:
         return d
 
     def block(self, sl: slice) -> tuple[Jet, Any]:
-        """The block's ``x ⊞ δ`` jet and derived values."""
+        """The block's ``x ⊞ δ`` jet and derived values (axis 0: the block's edges)."""
         if self.vector:
-            return Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
-        index = sl if self.inverse is None else self.inverse[sl]
-        return _gather(self.jet, index, self.x[sl]), _gather(self.derived, index)
+            j, d = Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
+        else:
+            index = sl if self.inverse is None else self.inverse[sl]
+            j, d = _gather(self.jet, index, self.x[sl]), _gather(self.derived, index)
+        j.rows = (0, sl.stop - sl.start)
+        if type(d) is Jet:
+            d.rows = j.rows
+        return j, d
 
 
 def autodiff_linearize(
@@ -208,9 +214,10 @@ def autodiff_linearize(
         sub = ctx.subset(sl) if ctx is not None and m > BLOCK_EDGES else ctx
         if sub is not None and (want or getattr(sub, "derived", None) is not None):
             sub = replace(sub, derived=tuple(b[1] for b in blocks) if want else None)
-        ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
-        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
         mb = sl.stop - sl.start
+        with tape.recording():
+            ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
+        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
         if tuple(np.shape(eb)) != (mb, dim):
             raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(eb)}, "
                              f"expected {(mb, dim)}")
@@ -222,6 +229,12 @@ def autodiff_linearize(
             e[sl] = eb
             continue
         e[sl] = eb.value
+        J = tape.backward(eb, n) if eb._tape is not None else None
+        tape.clear()
+        if J is not None:  # reverse accumulation: J (rows, n, mb)
+            for i, d in enumerate(dims):
+                jac[i][sl] = np.moveaxis(J[:, offsets[i]: offsets[i] + d], 2, 0)
+            continue
         t, lo = eb.tangent, eb.lo
         for i, d in enumerate(dims):
             a, b = max(offsets[i], lo), min(offsets[i] + d, lo + len(t))

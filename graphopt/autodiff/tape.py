@@ -1,0 +1,426 @@
+"""Reverse accumulation of jets: a batched tape for the per-edge tail of an error.
+
+Forward jets carry ``k`` derivative rows through every operation: after ``P = R X + t`` a BAL
+error's quantities depend on 12 directions, so each product costs three passes over ``12 m``
+values, for an error of 2 rows. While :func:`recording` is on (around one evaluation of an
+error), the elementwise ufuncs, basic indexing, ``stack``/``concatenate`` and writes into
+containers (``np.empty_like(x)``, ``like=x``) on jets only compute values and record the
+operation (m-batched: the Python cost is per operation, not per edge). :func:`backward` then
+propagates the ``r`` output rows' adjoints ``(r, m, …)`` back to the *leaves* — the jets whose
+tangents are known (the vertices' ``x ⊞ δ``, their derived values, results of operations
+without a recorded rule) — and contracts each leaf's adjoint with its tangent, per edge.
+
+Anything else that reads a recorded jet's ``tangent`` forms it forward (the operation is
+replayed with the forward rules), so every rule of the forward mode still applies. Writing
+into a jet that is not a fresh container (``a += b``, ``out=a``) first forms every recorded
+tangent and switches recording off for the rest of the evaluation: recorded operations keep
+references to their operands' values, which must not change.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+
+from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic
+
+__all__ = ["ENABLED", "backward", "recording"]
+
+#: Record for reverse accumulation (``False``: forward jets throughout, e.g. to compare).
+ENABLED = True
+
+
+class _Node:
+    """One recorded operation: ``parents`` receive adjoints from ``back(g)``, a list of
+    ``(parent, contribution, key)`` (``key``: the parent's index the contribution is for, or
+    ``None`` for all of it, broadcasting undone); ``replay()`` recomputes the result forward."""
+
+    __slots__ = ("parents", "back", "replay", "seq", "writes", "like", "root", "chain")
+
+    def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
+                 replay: Callable[[], Any] | None) -> None:
+        self.parents, self.back, self.replay = parents, back, replay
+        self.writes: list[tuple[tuple[Any, ...], Any]] | None = None  # a container's writes
+        self.like: Jet | None = None
+        self.root: Jet | None = None  # a view of a container: the container and the keys
+        self.chain: tuple[Any, ...] = ()
+        self.seq = 0
+
+
+class _State:
+    seq = 0
+    pending: list[Jet] = []
+
+
+def _record(value: np.ndarray, n: int, node: _Node) -> Jet:
+    j = Jet(value, None, 0, n)
+    _State.seq += 1
+    node.seq = _State.seq
+    j._tape = node
+    _State.pending.append(j)
+    return j
+
+
+@contextmanager
+def recording() -> Iterator[None]:
+    """Record jet operations (for :func:`backward`) inside the block."""
+    Tape.active = ENABLED
+    _State.pending = []
+    try:
+        yield
+    finally:
+        Tape.active = False
+
+
+def clear() -> None:
+    """Forget the recorded operations (after :func:`backward`)."""
+    _State.pending = []
+
+
+def _pending_container(a: Any) -> Jet | None:
+    """The container a recorded container (or a view of one) writes into, if still recorded."""
+    if type(a) is not Jet or a._tape is None:
+        return None
+    node = a._tape
+    if node.writes is not None:
+        return a
+    if node.root is not None and node.root._tape is not None:
+        return node.root
+    return None
+
+
+def _operand(a: Any) -> Any:
+    """An operand of a recorded operation: a recorded container is read, so formed now."""
+    if _pending_container(a) is not None:
+        a.tangent  # noqa: B018 - forms it (later writes then stop recording)
+    return a
+
+
+# --- forming tangents forward --------------------------------------------------------------
+
+def _ancestors(j: Jet) -> list[Jet]:
+    seen: dict[int, Jet] = {}
+    stack = [j]
+    while stack:
+        a = stack.pop()
+        if type(a) is not Jet or a._tape is None or id(a) in seen:
+            continue
+        seen[id(a)] = a
+        node = a._tape
+        stack.extend(node.parents)
+        if node.writes is not None:
+            stack.extend(w[1] for w in node.writes if type(w[1]) is Jet)
+            stack.append(node.like)
+        if node.root is not None:
+            stack.append(node.root)
+    return sorted(seen.values(), key=lambda a: a._tape.seq)
+
+
+def materialise(j: Jet) -> None:
+    """Form ``j``'s tangent (and its recorded ancestors') with the forward rules."""
+    was = Tape.active
+    Tape.active = False
+    try:
+        for a in _ancestors(j):
+            if a._tape is not None:
+                _replay(a)
+    finally:
+        Tape.active = was
+
+
+def _replay(a: Jet) -> None:
+    node = a._tape
+    if node.writes is not None:  # a container: zeros over like's directions, then the writes
+        like = node.like
+        a._tangent = np.zeros((len(like.tangent),) + a.value.shape)
+        a._lo = like.lo
+        a._tape = None
+        for chain, src in node.writes:
+            t = a
+            for k in chain[:-1]:
+                t = t[k]
+            t[chain[-1]] = src
+        return
+    if node.root is not None:  # a view of a container
+        res = node.root
+        res.tangent  # noqa: B018
+        for k in node.chain:
+            res = res[k]
+    else:
+        res = node.replay()
+    a._tape = None
+    if type(res) is Jet:
+        a._tangent, a._lo, a.rows = res.tangent, res.lo, res.rows
+        a._base, a._key = res._base, res._key
+    else:
+        a._tangent, a._lo = np.zeros((1,) + a.value.shape), 0
+
+
+def flush() -> None:
+    """Form every recorded tangent and stop recording (a jet is about to be written into)."""
+    for a in list(_State.pending):
+        if a._tape is not None and a._tape.root is None:
+            materialise(a)
+    Tape.active = False
+
+
+# --- recorded operations ---------------------------------------------------------------------
+
+def _key(key: Any, ndim: int) -> tuple[Any, ...] | None:
+    """A basic index as a tuple, or ``None`` for anything else."""
+    k = key if isinstance(key, tuple) else (key,)
+    if any(type(x) is Jet or isinstance(x, np.ndarray | list) for x in k):
+        return None
+    k = _expand_key(k, ndim)
+    return k if _is_basic(k) else None
+
+
+def getitem(j: Jet, key: Any) -> Jet | None:
+    """``j[key]`` recorded (a basic index of a recorded jet, or a view of a container), or
+    ``None`` for the forward rule."""
+    k = _key(key, j.value.ndim)
+    if k is None:
+        return None
+    root = _pending_container(j)
+    if root is not None:
+        node = _Node((), None, None)
+        node.root = root
+        node.chain = j._tape.chain + (k,)
+        v = Jet(j.value[k], None, 0, j.n)
+        v._tape = node
+        return v
+    if j._tape is None or not Tape.active:
+        return None
+    sl = (slice(None),) + k
+    return _record(j.value[k], j.n, _Node((j,), lambda g: [(j, g, sl)], lambda: j[key]))
+
+
+def setitem(j: Jet, key: Any, item: Any) -> bool:
+    """Record ``j[key] = item`` into a fresh container; else form all tangents, stop recording
+    and return ``False`` (the forward rule writes)."""
+    item = _operand(item)  # (reading a container forms it: then it is written forward)
+    root = _pending_container(j)
+    k = _key(key, j.value.ndim)
+    if root is None or k is None:
+        flush()
+        return False
+    j.value[k] = item.value if type(item) is Jet else item
+    root._tape.writes.append((j._tape.chain + (k,), item))
+    _State.seq += 1
+    root._tape.seq = _State.seq  # after its sources, for the reverse order
+    return True
+
+
+def container(value: np.ndarray, like: Jet) -> Jet:
+    """A recorded container: zero derivatives until written."""
+    node = _Node((), None, None)
+    node.writes, node.like = [], like
+    return _record(value, like.n, node)
+
+
+def _unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``g (r, *s)`` summed to ``(r, *shape)`` (undoes NumPy broadcasting of an operand)."""
+    if g.shape[1:] == shape:
+        return g
+    extra = g.ndim - 1 - len(shape)
+    if extra:
+        g = g.sum(axis=tuple(range(1, 1 + extra)))
+    axes = tuple(i + 1 for i, d in enumerate(shape) if d == 1 and g.shape[i + 1] != 1)
+    if axes:
+        g = g.sum(axis=axes, keepdims=True)
+    return g.reshape((g.shape[0],) + shape)
+
+
+def _unary_back(rule: Callable[..., Any], v: np.ndarray, y: np.ndarray) -> Callable[..., Any]:
+    def back(a: Jet) -> Callable[[np.ndarray], list[Any]]:
+        def f(g: np.ndarray) -> list[Any]:
+            with np.errstate(all="ignore"):
+                return [(a, g * rule(v, y), None)]
+        return f
+    return back
+
+
+def ufunc(uf: np.ufunc, inputs: tuple[Any, ...], rules: dict[Any, Any],
+          replay: Callable[[], Any]) -> Jet | None:
+    """A recorded elementwise ufunc (``rules``: the unary derivative rules), or ``None``."""
+    if len(inputs) == 1:
+        a = _operand(inputs[0])
+        v = a.value
+        if v.dtype.kind != "f":
+            return None
+        if uf is np.negative:
+            y = uf(v)
+            return _record(y, a.n, _Node((a,), lambda g: [(a, -g, None)], replay))
+        rule = rules.get(uf)
+        if rule is None or (uf is np.sqrt and not np.all(v)):
+            return None
+        y = uf(v)
+        return _record(y, a.n, _Node((a,), _unary_back(rule, v, y)(a), replay))
+    if len(inputs) != 2 or uf not in _BINARY:
+        return None
+    a, b = (_operand(x) for x in inputs)
+    ja, jb = type(a) is Jet, type(b) is Jet
+    va = a.value if ja else np.asarray(a)
+    vb = b.value if jb else np.asarray(b)
+    if (ja and va.dtype.kind != "f") or (jb and vb.dtype.kind != "f"):
+        return None
+    if uf in (np.power, np.float_power) and (jb or np.ndim(vb) != 0):
+        return None
+    y = uf(va, vb)
+    if y.dtype.kind != "f":
+        return None
+    sa, sb = np.shape(va), np.shape(vb)
+
+    def back(g: np.ndarray) -> list[Any]:
+        out = []
+        with np.errstate(all="ignore"):
+            if ja:
+                out.append((a, _unbroadcast(_BINARY[uf](g, va, vb, y, 0), sa), None))
+            if jb:
+                out.append((b, _unbroadcast(_BINARY[uf](g, va, vb, y, 1), sb), None))
+        return out
+
+    parents = tuple(x for x in (a, b) if type(x) is Jet)
+    return _record(y, max(p.n for p in parents), _Node(parents, back, replay))
+
+
+def _power(g: np.ndarray, va: Any, vb: Any, y: Any, i: int) -> np.ndarray:
+    if vb == 2:
+        return g * (2.0 * va)
+    return g if vb == 1 else g * (vb * va ** (vb - 1.0))
+
+
+_BINARY: dict[Any, Callable[..., np.ndarray]] = {
+    np.add: lambda g, va, vb, y, i: g,
+    np.subtract: lambda g, va, vb, y, i: g if i == 0 else -g,
+    np.multiply: lambda g, va, vb, y, i: g * (vb if i == 0 else va),
+    np.divide: lambda g, va, vb, y, i: g / vb if i == 0 else -(g * y) / vb,
+    np.power: _power,
+    np.float_power: _power,
+}
+
+
+def concatenate(arrays: list[Any], axis: int, stack: bool, replay: Callable[[], Any]) -> Any:
+    """A recorded ``np.concatenate`` (``stack``: ``np.stack``) of jets and arrays."""
+    arrays = [_operand(a) for a in arrays]
+    values = [a.value if type(a) is Jet else np.asarray(a) for a in arrays]
+    y = np.stack(values, axis=axis) if stack else np.concatenate(values, axis=axis)
+    ax = axis % y.ndim + 1
+    spans, start = [], 0
+    for v in values:
+        w = 1 if stack else v.shape[ax - 1]
+        spans.append(start if stack else slice(start, start + w))
+        start += w
+
+    def back(g: np.ndarray) -> list[Any]:
+        pre = (slice(None),) * ax
+        return [(a, g[pre + (s,)], None) for a, s in zip(arrays, spans, strict=True)
+                if type(a) is Jet]
+
+    jets = tuple(a for a in arrays if type(a) is Jet)
+    return _record(y, max(j.n for j in jets), _Node(jets, back, replay))
+
+
+# --- reverse accumulation --------------------------------------------------------------------
+
+def backward(out: Jet, n: int) -> np.ndarray | None:
+    """Jacobian rows of a recorded ``(m, r)`` result: ``J (r, n, m)``, or ``None`` when a leaf's
+    rows are not known edges (the caller forms the tangent forward instead)."""
+    if out.value.ndim != 2 or out._tape.root is not None:
+        return None
+    m, r = out.value.shape
+    nodes = _ancestors(out)
+    leaves = {id(p): p for a in nodes for p in _inputs(a) if p._tape is None}
+    if any(p.rows is None or p.value.ndim == 0 for p in leaves.values()):
+        return None
+    g0 = np.zeros((r, m, r))
+    for i in range(r):
+        g0[i, :, i] = 1.0
+    adj: dict[int, list[Any]] = {id(out): [out, g0, True]}
+    for a in reversed(nodes):
+        ent = adj.pop(id(a), None)
+        if ent is None:
+            continue
+        node = a._tape
+        if node.writes is not None:
+            contrib = _container_back(node, ent[1] if ent[2] else ent[1].copy())
+        else:
+            contrib = node.back(ent[1])
+        for p, c, key in contrib:
+            _accumulate(adj, p, c, key, r)
+    J = np.zeros((r, n, m))
+    for ent in adj.values():
+        _contract(J, ent[0], ent[1])
+    return J
+
+
+def _inputs(a: Jet) -> list[Jet]:
+    node = a._tape
+    ps = list(node.parents)
+    if node.writes is not None:
+        ps += [w[1] for w in node.writes if type(w[1]) is Jet]
+    return ps
+
+
+def _container_back(node: _Node, g: np.ndarray) -> list[Any]:
+    out = []
+    for chain, src in reversed(node.writes):  # type: ignore[arg-type]
+        view = g
+        for k in chain:
+            view = view[(slice(None),) + k]
+        if type(src) is Jet:
+            out.append((src, _unbroadcast(view, src.value.shape).copy(), None))
+        view[...] = 0.0  # overwritten: earlier contents do not reach the result
+    return out
+
+
+def _accumulate(adj: dict[int, list[Any]], p: Jet, c: np.ndarray, key: Any, r: int) -> None:
+    ent = adj.get(id(p))
+    if key is None:
+        if ent is None:
+            adj[id(p)] = [p, c, False]
+        elif ent[2]:
+            ent[1] += c
+        else:
+            ent[1], ent[2] = ent[1] + c, True
+        return
+    if ent is None:
+        z = np.zeros((r,) + p.value.shape)
+        z[key] = c
+        adj[id(p)] = [p, z, True]
+        return
+    if not ent[2]:
+        ent[1], ent[2] = ent[1].copy(), True
+    ent[1][key] += c
+
+
+def _contract(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
+    """``J[:, dirs, rows] += Σ_entries g · t`` for one leaf (per edge: its rows)."""
+    t, lo = leaf._tangent, leaf._lo
+    a, b = leaf.rows  # type: ignore[misc]
+    r, m = g.shape[:2]
+    if leaf.columns is not None and leaf.value.ndim == 2:
+        for c, (clo, chi) in enumerate(leaf.columns):
+            gc = g[:, :, c]
+            if leaf.seed:
+                J[:, clo, a:b] += gc
+            else:
+                J[:, clo:chi, a:b] += gc[:, None, :] * t[clo - lo: chi - lo, :, c]
+        return
+    k = len(t)
+    if leaf.value.ndim == 1:
+        if k == 1 and t.strides == (0, 0) and t[0, 0] == 1.0:
+            J[:, lo, a:b] += g
+        else:
+            J[:, lo:lo + k, a:b] += g[:, None, :] * t
+        return
+    J[:, lo:lo + k, a:b] += np.einsum("rms,kms->rkm", g.reshape(r, m, -1),
+                                      t.reshape(k, m, -1))
+
+
+HOOKS["materialise"] = materialise
+HOOKS["getitem"] = getitem
+HOOKS["setitem"] = setitem
