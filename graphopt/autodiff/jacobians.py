@@ -79,11 +79,16 @@ def _columns(j: Jet) -> None:
     if j.value.ndim != 2 or j.seed:
         return
     nz = np.any(j.tangent != 0.0, axis=1)  # (k, d)
-    cols = []
+    cols: list[Any] = []
     for c in range(j.value.shape[1]):
         rows = np.flatnonzero(nz[:, c])
-        cols.append((j.lo + int(rows[0]), j.lo + int(rows[-1]) + 1) if len(rows)
-                    else (j.lo, j.lo + 1))
+        if not len(rows):
+            cols.append((j.lo, j.lo + 1))
+            continue
+        lo, hi = int(rows[0]), int(rows[-1]) + 1
+        # A column with one direction of derivative 1 everywhere (t of x + δ): "unit".
+        unit = hi - lo == 1 and bool(np.all(j.tangent[lo, :, c] == 1.0))
+        cols.append((j.lo + lo, j.lo + hi, unit))
     j.columns = cols
 
 
@@ -91,7 +96,9 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) 
     """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values)."""
     if type(j) is not Jet:
         return None if j is None else j[index]
-    t = j.tangent[:, index] if isinstance(index, slice) else np.take(j.tangent, index, axis=1)
+    if not isinstance(index, slice):  # the tangent is gathered when (and as far as) used
+        return tape.gathered(j.value[index] if value is None else value, j, index)
+    t = j.tangent[:, index]
     out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
     out.columns = j.columns
     return out

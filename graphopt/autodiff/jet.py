@@ -350,7 +350,7 @@ class Jet(ArrayMethods, NDArrayOperatorsMixin):
             return None
         lo, hi = min(x[0] for x in cols[a:b]), max(x[1] for x in cols[a:b])
         m = len(self.value)
-        if self.seed:
+        if self.seed or (one and len(cols[a]) > 2 and cols[a][2]):  # unit: derivative 1
             k = hi - lo
             t = (np.broadcast_to(np.ones(1), (1, m)) if one else
                  np.broadcast_to(np.eye(k)[:, None, :], (k, m, k)))

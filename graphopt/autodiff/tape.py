@@ -38,7 +38,8 @@ class _Node:
     ``(parent, contribution, key)`` (``key``: the parent's index the contribution is for, or
     ``None`` for all of it, broadcasting undone); ``replay()`` recomputes the result forward."""
 
-    __slots__ = ("parents", "back", "replay", "seq", "writes", "like", "root", "chain")
+    __slots__ = ("parents", "back", "replay", "seq", "writes", "like", "root", "chain",
+                 "source", "index")
 
     def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
                  replay: Callable[[], Any] | None) -> None:
@@ -47,6 +48,8 @@ class _Node:
         self.like: Jet | None = None
         self.root: Jet | None = None  # a view of a container: the container and the keys
         self.chain: tuple[Any, ...] = ()
+        self.source: np.ndarray | None = None  # gathered rows: tangent[:, index] of source
+        self.index: np.ndarray | None = None
         self.seq = 0
 
 
@@ -93,10 +96,54 @@ def _pending_container(a: Any) -> Jet | None:
 
 
 def _operand(a: Any) -> Any:
-    """An operand of a recorded operation: a recorded container is read, so formed now."""
-    if _pending_container(a) is not None:
+    """An operand of a recorded operation: a recorded container is read, so formed now (as
+    are gathered rows: a leaf)."""
+    if type(a) is Jet and a._tape is not None and (
+            a._tape.source is not None or _pending_container(a) is not None):
         a.tangent  # noqa: B018 - forms it (later writes then stop recording)
     return a
+
+
+# --- gathered rows ----------------------------------------------------------------------------
+
+def gathered(value: np.ndarray, source: Jet, index: np.ndarray) -> Jet:
+    """Rows ``index`` of a per-vertex jet ``source`` as a per-edge jet whose tangent is gathered
+    only when used: ``x[:, j]`` gathers column ``j``'s own directions (none for a column whose
+    derivative is one direction with value 1, as ``t`` of ``x + δ``)."""
+    return _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+
+
+def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: int,
+              columns: Any) -> Jet:
+    j = Jet(value, None, lo, n)
+    node = _Node((), None, None)
+    node.source, node.index = t, index
+    node.replay = lambda: Jet(value, np.take(t, index, axis=1), lo, n)
+    j._tape, j.columns = node, columns
+    return j
+
+
+def _gathered_item(j: Jet, key: Any) -> Jet | None:
+    node = j._tape
+    k = key if isinstance(key, tuple) else (key,)
+    if len(k) == 1 and isinstance(k[0], slice) and k[0].step in (None, 1):
+        a, b, _ = k[0].indices(len(j.value))
+        out = _gathered(j.value[a:b], node.source, node.index[a:b], j._lo, j.n, j.columns)
+        out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
+        return out
+    if (j.columns is None or j.value.ndim != 2 or len(k) != 2 or k[0] != slice(None)
+            or not isinstance(k[1], int | np.integer)):
+        return None
+    c = int(k[1]) % j.value.shape[1]
+    lo, hi = j.columns[c][:2]
+    m = len(j.value)
+    if len(j.columns[c]) > 2 and j.columns[c][2]:
+        t = np.broadcast_to(np.ones(1), (1, m))
+    else:
+        t = np.take(node.source[lo - j._lo: hi - j._lo, :, c], node.index, axis=1)
+    out = Jet(j.value[:, c], t, lo, j.n)
+    out.rows = j.rows
+    return out
 
 
 # --- forming tangents forward --------------------------------------------------------------
@@ -153,7 +200,8 @@ def _replay(a: Jet) -> None:
         res = node.replay()
     a._tape = None
     if type(res) is Jet:
-        a._tangent, a._lo, a.rows = res.tangent, res.lo, res.rows
+        a._tangent, a._lo = res.tangent, res.lo
+        a.rows = a.rows if res.rows is None else res.rows
         a._base, a._key = res._base, res._key
     else:
         a._tangent, a._lo = np.zeros((1,) + a.value.shape), 0
@@ -181,6 +229,8 @@ def _key(key: Any, ndim: int) -> tuple[Any, ...] | None:
 def getitem(j: Jet, key: Any) -> Jet | None:
     """``j[key]`` recorded (a basic index of a recorded jet, or a view of a container), or
     ``None`` for the forward rule."""
+    if j._tape is not None and j._tape.source is not None:
+        return _gathered_item(j, key)
     k = _key(key, j.value.ndim)
     if k is None:
         return None
@@ -403,10 +453,13 @@ def _contract(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
     a, b = leaf.rows  # type: ignore[misc]
     r, m = g.shape[:2]
     if leaf.columns is not None and leaf.value.ndim == 2:
-        for c, (clo, chi) in enumerate(leaf.columns):
+        for c, col in enumerate(leaf.columns):
+            clo, chi = col[:2]
             gc = g[:, :, c]
-            if leaf.seed:
+            if leaf.seed or (len(col) > 2 and col[2]):  # derivative 1 on one direction
                 J[:, clo, a:b] += gc
+            elif chi - clo == 1:
+                J[:, clo, a:b] += gc * t[clo - lo, :, c]
             else:
                 J[:, clo:chi, a:b] += gc[:, None, :] * t[clo - lo: chi - lo, :, c]
         return
