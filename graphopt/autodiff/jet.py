@@ -187,6 +187,19 @@ def _is_basic(key: tuple[Any, ...]) -> bool:
     return all(k is None or isinstance(k, slice | int | np.integer) for k in key)
 
 
+def _operator(uf: np.ufunc, reflected: bool = False) -> Callable[[Any, Any], Any]:
+    """An arithmetic operator: recorded directly while recording (the ufunc protocol costs
+    more than the arithmetic on a block of edges), else through the ufunc."""
+    def op(self: Jet, other: Any) -> Any:
+        a, b = (other, self) if reflected else (self, other)
+        if Tape.active:
+            out = HOOKS["binary"](uf, a, b)
+            if out is not None:
+                return out
+        return uf(a, b)
+    return op
+
+
 class Jet(ArrayMethods, NDArrayOperatorsMixin):
     """Values ``(m, …)`` with derivatives ``(k, m, …)`` w.r.t. tangent directions ``lo…lo+k−1``
     of ``n``.
@@ -299,6 +312,11 @@ class Jet(ArrayMethods, NDArrayOperatorsMixin):
         return bool(self.value)
 
     # --- NumPy protocols (rules in ufuncs.py and functions.py) --------------------------------
+
+    __add__, __radd__ = _operator(np.add), _operator(np.add, True)
+    __sub__, __rsub__ = _operator(np.subtract), _operator(np.subtract, True)
+    __mul__, __rmul__ = _operator(np.multiply), _operator(np.multiply, True)
+    __truediv__, __rtruediv__ = _operator(np.divide), _operator(np.divide, True)
 
     def __array_ufunc__(self, ufunc: np.ufunc, method: str, *inputs: Any, **kwargs: Any) -> Any:
         return HOOKS["ufunc"](ufunc, method, inputs, kwargs)

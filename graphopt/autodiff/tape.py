@@ -36,21 +36,25 @@ ENABLED = True
 class _Node:
     """One recorded operation: ``parents`` receive adjoints from ``back(g)``, a list of
     ``(parent, contribution, key)`` (``key``: the parent's index the contribution is for, or
-    ``None`` for all of it, broadcasting undone); ``replay()`` recomputes the result forward."""
+    ``None`` for all of it, broadcasting undone); ``replay()`` recomputes the result forward.
 
-    __slots__ = ("parents", "back", "replay", "seq", "writes", "like", "root", "chain",
-                 "source", "index")
+    The other kinds (``special``): a container (``writes``, ``like``), a view of one
+    (``root``, ``chain``), gathered rows (``source``, ``index``)."""
+
+    special = False
+    writes: list[tuple[tuple[Any, ...], Any]] | None = None
+    like: Jet | None = None
+    root: Jet | None = None
+    chain: tuple[Any, ...] = ()
+    source: np.ndarray | None = None
+    index: np.ndarray | None = None
 
     def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
-                 replay: Callable[[], Any] | None) -> None:
+                 replay: Callable[[], Any] | None, special: bool = False) -> None:
         self.parents, self.back, self.replay = parents, back, replay
-        self.writes: list[tuple[tuple[Any, ...], Any]] | None = None  # a container's writes
-        self.like: Jet | None = None
-        self.root: Jet | None = None  # a view of a container: the container and the keys
-        self.chain: tuple[Any, ...] = ()
-        self.source: np.ndarray | None = None  # gathered rows: tangent[:, index] of source
-        self.index: np.ndarray | None = None
         self.seq = 0
+        if special:
+            self.special = True
 
 
 class _State:
@@ -98,8 +102,7 @@ def _pending_container(a: Any) -> Jet | None:
 def _operand(a: Any) -> Any:
     """An operand of a recorded operation: a recorded container is read, so formed now (as
     are gathered rows: a leaf)."""
-    if type(a) is Jet and a._tape is not None and (
-            a._tape.source is not None or _pending_container(a) is not None):
+    if type(a) is Jet and a._tape is not None and a._tape.special:
         a.tangent  # noqa: B018 - forms it (later writes then stop recording)
     return a
 
@@ -116,7 +119,7 @@ def gathered(value: np.ndarray, source: Jet, index: np.ndarray) -> Jet:
 def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: int,
               columns: Any) -> Jet:
     j = Jet(value, None, lo, n)
-    node = _Node((), None, None)
+    node = _Node((), None, None, True)
     node.source, node.index = t, index
     node.replay = lambda: Jet(value, np.take(t, index, axis=1), lo, n)
     j._tape, j.columns = node, columns
@@ -239,7 +242,7 @@ def getitem(j: Jet, key: Any) -> Jet | None:
         return None
     root = _pending_container(j)
     if root is not None:
-        node = _Node((), None, None)
+        node = _Node((), None, None, True)
         node.root = root
         node.chain = j._tape.chain + (k,)
         v = Jet(j.value[k], None, 0, j.n)
@@ -269,7 +272,7 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
 
 def container(value: np.ndarray, like: Jet) -> Jet:
     """A recorded container: zero derivatives until written."""
-    node = _Node((), None, None)
+    node = _Node((), None, None, True)
     node.writes, node.like = [], like
     return _record(value, like.n, node)
 
@@ -287,57 +290,77 @@ def _unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return g.reshape((g.shape[0],) + shape)
 
 
-def _unary_back(rule: Callable[..., Any], v: np.ndarray, y: np.ndarray) -> Callable[..., Any]:
-    def back(a: Jet) -> Callable[[np.ndarray], list[Any]]:
-        def f(g: np.ndarray) -> list[Any]:
-            with np.errstate(all="ignore"):
-                return [(a, g * rule(v, y), None)]
-        return f
-    return back
-
-
 def ufunc(uf: np.ufunc, inputs: tuple[Any, ...], rules: dict[Any, Any],
           replay: Callable[[], Any]) -> Jet | None:
     """A recorded elementwise ufunc (``rules``: the unary derivative rules), or ``None``."""
-    if len(inputs) == 1:
-        a = _operand(inputs[0])
-        v = a.value
-        if v.dtype.kind != "f":
-            return None
-        if uf is np.negative:
-            y = uf(v)
-            return _record(y, a.n, _Node((a,), lambda g: [(a, -g, None)], replay))
-        rule = rules.get(uf)
-        if rule is None or (uf is np.sqrt and not np.all(v)):
-            return None
-        y = uf(v)
-        return _record(y, a.n, _Node((a,), _unary_back(rule, v, y)(a), replay))
-    if len(inputs) != 2 or uf not in _BINARY:
+    if len(inputs) == 2:
+        return binary(uf, inputs[0], inputs[1], replay)
+    if len(inputs) != 1:
         return None
-    a, b = (_operand(x) for x in inputs)
+    a = _operand(inputs[0])
+    v = a.value
+    if v.dtype.kind != "f":
+        return None
+    if uf is np.negative:
+        return _record(uf(v), a.n, _Node((a,), lambda g: [(a, -g, None)], replay))
+    rule = rules.get(uf)
+    if rule is None or (uf is np.sqrt and not np.all(v)):
+        return None
+    y = uf(v)
+    return _record(y, a.n, _Node((a,), lambda g: [(a, g * rule(v, y), None)], replay))
+
+
+_SCALARS = (float, int, np.float64)
+
+
+def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> Jet | None:
+    """A recorded ``uf(a, b)`` for ``+ − × ÷`` and a constant power, or ``None``."""
+    fn = _BINARY.get(uf)
+    if fn is None:
+        return None
     ja, jb = type(a) is Jet, type(b) is Jet
-    va = a.value if ja else np.asarray(a)
-    vb = b.value if jb else np.asarray(b)
-    if (ja and va.dtype.kind != "f") or (jb and vb.dtype.kind != "f"):
+    if ja:
+        if a._tape is not None and a._tape.special:
+            _operand(a)
+        va = a.value
+        if va.dtype.kind != "f":
+            return None
+    elif type(a) in _SCALARS:
+        va = a
+    elif type(a) is np.ndarray:
+        va = a
+    else:
         return None
-    if uf in (np.power, np.float_power) and (jb or np.ndim(vb) != 0):
+    if jb:
+        if b._tape is not None and b._tape.special:
+            _operand(b)
+        vb = b.value
+        if vb.dtype.kind != "f":
+            return None
+    elif type(b) in _SCALARS:
+        vb = b
+    elif type(b) is np.ndarray:
+        vb = b
+    else:
+        return None
+    if fn is _power and (jb or np.ndim(vb) != 0):
         return None
     y = uf(va, vb)
     if y.dtype.kind != "f":
         return None
-    sa, sb = np.shape(va), np.shape(vb)
+    if replay is None:
+        replay = lambda: uf(a, b)  # noqa: E731 - the forward rule, recording off
 
     def back(g: np.ndarray) -> list[Any]:
         out = []
-        with np.errstate(all="ignore"):
-            if ja:
-                out.append((a, _unbroadcast(_BINARY[uf](g, va, vb, y, 0), sa), None))
-            if jb:
-                out.append((b, _unbroadcast(_BINARY[uf](g, va, vb, y, 1), sb), None))
+        if ja:
+            out.append((a, _unbroadcast(fn(g, va, vb, y, 0), va.shape), None))
+        if jb:
+            out.append((b, _unbroadcast(fn(g, va, vb, y, 1), vb.shape), None))
         return out
 
-    parents = tuple(x for x in (a, b) if type(x) is Jet)
-    return _record(y, max(p.n for p in parents), _Node(parents, back, replay))
+    n = a.n if ja else b.n
+    return _record(y, n, _Node((a, b) if ja and jb else ((a,) if ja else (b,)), back, replay))
 
 
 def _power(g: np.ndarray, va: Any, vb: Any, y: Any, i: int) -> np.ndarray:
@@ -393,6 +416,15 @@ def backward(out: Jet, n: int) -> np.ndarray | None:
     for i in range(r):
         g0[i, :, i] = 1.0
     adj: dict[int, list[Any]] = {id(out): [out, g0, True]}
+    with np.errstate(all="ignore"):
+        _propagate(nodes, adj, r)
+    J = np.zeros((r, n, m))
+    for ent in adj.values():
+        _contract(J, ent[0], ent[1])
+    return J
+
+
+def _propagate(nodes: list[Jet], adj: dict[int, list[Any]], r: int) -> None:
     for a in reversed(nodes):
         ent = adj.pop(id(a), None)
         if ent is None:
@@ -404,10 +436,6 @@ def backward(out: Jet, n: int) -> np.ndarray | None:
             contrib = node.back(ent[1])
         for p, c, key in contrib:
             _accumulate(adj, p, c, key, r)
-    J = np.zeros((r, n, m))
-    for ent in adj.values():
-        _contract(J, ent[0], ent[1])
-    return J
 
 
 def _inputs(a: Jet) -> list[Jet]:
@@ -488,3 +516,4 @@ def _contract(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
 HOOKS["materialise"] = materialise
 HOOKS["getitem"] = getitem
 HOOKS["setitem"] = setitem
+HOOKS["binary"] = binary
