@@ -185,6 +185,10 @@ def _reduction(fn: Any) -> Callable[..., Any]:
         if kw.get("where", True) is not True:
             raise JetError(f"{_fname(fn)}(..., where=...)")
         kw.pop("where", None)
+        if Tape.active and type(a) is Jet and out is None and not kw and axis is not None:
+            rec = tape.reduce(fn, a, axis, keepdims, lambda: impl(a, axis, keepdims=keepdims))
+            if rec is not None:
+                return rec
         r = _linear(fn, a, {"axis": axis}, keepdims=keepdims, **kw)
         return r if out is None else write_out(r, out, _fname(fn))
     return impl

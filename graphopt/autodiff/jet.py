@@ -96,7 +96,10 @@ def combine(shape: tuple[int, ...], n: int, terms: list[tuple[int, np.ndarray, b
         return None
     if len(terms) == 1:
         lo, t, fresh = terms[0]
-        return full(t, shape), lo
+        out = full(t, shape)
+        if not fresh and out.flags.writeable:  # p + 1 is a new array: writing p must not
+            out = out.copy()                   # change its derivatives
+        return out, lo
     lo = min(t[0] for t in terms)
     hi = max(t[0] + t[1].shape[0] for t in terms)
     same = all(t[0] == lo and t[1].shape[0] == hi - lo for t in terms)

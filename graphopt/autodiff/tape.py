@@ -400,6 +400,24 @@ def concatenate(arrays: list[Any], axis: int, stack: bool, replay: Callable[[], 
     return _record(y, max(j.n for j in jets), _Node(jets, back, replay))
 
 
+def reduce(fn: Any, a: Jet, axis: Any, keepdims: bool, replay: Callable[[], Any]) -> Any:
+    """A recorded ``np.sum``/``np.mean`` over axes other than the edges' (axis 0)."""
+    a = _operand(a)
+    nd = a.value.ndim
+    axes = tuple(x % nd for x in (axis if isinstance(axis, tuple) else (axis,)))
+    if 0 in axes or a.value.dtype.kind != "f":
+        return None
+    y = fn(a.value, axis=axes, keepdims=keepdims)
+    scale = 1.0 if fn is np.sum else 1.0 / np.prod([a.value.shape[x] for x in axes])
+
+    def back(g: np.ndarray) -> list[Any]:
+        gk = g if keepdims else np.expand_dims(g, tuple(x + 1 for x in axes))
+        c = np.broadcast_to(gk if scale == 1.0 else gk * scale, (g.shape[0],) + a.value.shape)
+        return [(a, c, None)]
+
+    return _record(np.asarray(y), a.n, _Node((a,), back, replay))
+
+
 # --- reverse accumulation --------------------------------------------------------------------
 
 def backward(out: Jet, n: int) -> np.ndarray | None:
