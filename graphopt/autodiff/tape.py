@@ -146,8 +146,12 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         return out
     a, b, _ = k[0].indices(len(j.value))
     rest = k[1:]
-    out = _gathered(j.value[k], node.source[(slice(None), slice(None)) + rest],
-                    node.index[a:b], j._lo, j.n, None if rest else j.columns)
+    src, lo = node.source[(slice(None), slice(None)) + rest], j._lo
+    if rest:  # only the directions these entries depend on (a rotation block: ω's, not υ's)
+        nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1))
+        first, last = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
+        src, lo = src[first:last], lo + first
+    out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns)
     out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
     return out
 
@@ -377,6 +381,28 @@ _BINARY: dict[Any, Callable[..., np.ndarray]] = {
     np.power: _power,
     np.float_power: _power,
 }
+
+
+def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
+    """A recorded ``a @ b`` of stacks of matrices (``mm``: the product), or ``None``."""
+    a, b = _operand(a), _operand(b)
+    va = a.value if type(a) is Jet else a
+    vb = b.value if type(b) is Jet else b
+    if not (isinstance(va, np.ndarray) and isinstance(vb, np.ndarray)) or min(
+            va.ndim, vb.ndim) < 2 or va.dtype.kind != "f" or vb.dtype.kind != "f":
+        return None
+    y = mm(va, vb)
+
+    def back(g: np.ndarray) -> list[Any]:
+        out = []
+        if type(a) is Jet:
+            out.append((a, _unbroadcast(mm(g, np.swapaxes(vb, -1, -2)), va.shape), None))
+        if type(b) is Jet:
+            out.append((b, _unbroadcast(mm(np.swapaxes(va, -1, -2), g), vb.shape), None))
+        return out
+
+    parents = tuple(x for x in (a, b) if type(x) is Jet)
+    return _record(y, parents[0].n, _Node(parents, back, replay))
 
 
 def concatenate(arrays: list[Any], axis: int, stack: bool, replay: Callable[[], Any]) -> Any:

@@ -138,8 +138,10 @@ def _reduce(ufunc: np.ufunc, method: str, inputs: tuple[Any, ...]) -> Any:
 
 
 def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
-    if Tape.active and ufunc not in _VALUE_ONLY and ufunc is not np.matmul:
-        lazy = tape.ufunc(ufunc, inputs, _UNARY, lambda: _call(ufunc, inputs))
+    if Tape.active and ufunc not in _VALUE_ONLY:
+        replay = lambda: _call(ufunc, inputs)  # noqa: E731 - the forward rule
+        lazy = (tape.matmul(inputs[0], inputs[1], _mm, replay) if ufunc is np.matmul
+                else tape.ufunc(ufunc, inputs, _UNARY, replay))
         if lazy is not None:
             return lazy
     out = _forward(ufunc, inputs)
