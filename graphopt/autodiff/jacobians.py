@@ -129,6 +129,11 @@ def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inv
 
 
+#: Per-vertex jets of the last groupings, by vertex type and values (a group linearised in
+#: chunks sees the same cameras in each).
+_VERTEX_JETS: dict[tuple[Any, ...], tuple[Jet, Any, bool]] = {}
+
+
 class _Position:
     """One vertex position's ``x ⊞ δ`` (and derived values) as jets, per block of edges.
 
@@ -148,6 +153,10 @@ class _Position:
             first, inv = _unique_rows(vtype, x)
             if len(first) < len(x):
                 self.inverse = inv
+                key = (vtype, lo, n, derived, x[first].tobytes())
+                if key in _VERTEX_JETS:  # the same vertices (another chunk of the group)
+                    self.jet, self.derived, self.derived_ok = _VERTEX_JETS[key]
+                    return
                 self.jet = seeded(vtype, x[first], lo, n)
             else:
                 self.jet = seeded(vtype, x, lo, n)
@@ -155,6 +164,10 @@ class _Position:
         if derived:
             self.derived = self._derived(self.jet if self.jet is not None
                                          else Jet.seeded(x, lo, n))
+        if self.inverse is not None:  # only read afterwards (gathers copy), so reusable
+            if len(_VERTEX_JETS) >= 4:
+                _VERTEX_JETS.pop(next(iter(_VERTEX_JETS)))
+            _VERTEX_JETS[key] = (self.jet, self.derived, self.derived_ok)
 
     def _derived(self, j: Jet) -> Any:
         try:
@@ -215,6 +228,7 @@ def autodiff_linearize(
     e = np.empty((m, dim))
     jac = [np.zeros((m, dim, d)) for d in dims]
     active: np.ndarray | None = None
+    buffer: np.ndarray | None = None
     for s in range(0, max(m, 1), BLOCK_EDGES):
         sl = slice(s, min(s + BLOCK_EDGES, m))
         blocks = [p.block(sl) for p in pos]
@@ -236,11 +250,14 @@ def autodiff_linearize(
             e[sl] = eb
             continue
         e[sl] = eb.value
-        J = tape.backward(eb, n) if eb._tape is not None else None
+        if eb._tape is not None and buffer is None:
+            buffer = np.empty(dim * n * min(m, BLOCK_EDGES))
+        J = tape.backward(eb, n, buffer) if eb._tape is not None else None
         tape.clear()
-        if J is not None:  # reverse accumulation: J (rows, n, mb)
+        if J is not None:  # reverse accumulation: J (rows, n, mb), per row (a faster copy)
             for i, d in enumerate(dims):
-                jac[i][sl] = np.moveaxis(J[:, offsets[i]: offsets[i] + d], 2, 0)
+                for row in range(dim):
+                    jac[i][sl, row, :] = J[row, offsets[i]: offsets[i] + d].T
             continue
         t, lo = eb.tangent, eb.lo
         for i, d in enumerate(dims):

@@ -446,9 +446,15 @@ def reduce(fn: Any, a: Jet, axis: Any, keepdims: bool, replay: Callable[[], Any]
 
 # --- reverse accumulation --------------------------------------------------------------------
 
-def backward(out: Jet, n: int) -> np.ndarray | None:
+def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray | None:
     """Jacobian rows of a recorded ``(m, r)`` result: ``J (r, n, m)``, or ``None`` when a leaf's
-    rows are not known edges (the caller forms the tangent forward instead)."""
+    rows are not known edges (the caller forms the tangent forward instead).
+
+    Args:
+        out: The result.
+        n: Total directions.
+        buffer: Optional ``(≥ r·n·m,)`` float64 scratch for ``J`` (reused between blocks).
+    """
     if out.value.ndim != 2 or out._tape.root is not None:
         return None
     m, r = out.value.shape
@@ -462,7 +468,11 @@ def backward(out: Jet, n: int) -> np.ndarray | None:
     adj: dict[int, list[Any]] = {id(out): [out, g0, True]}
     with np.errstate(all="ignore"):
         _propagate(nodes, adj, r)
-    J = np.zeros((r, n, m))
+    if buffer is not None and buffer.size >= r * n * m:
+        J = buffer[: r * n * m].reshape(r, n, m)
+        J.fill(0.0)
+    else:
+        J = np.zeros((r, n, m))
     for ent in adj.values():
         _contract(J, ent[0], ent[1])
     return J
@@ -536,7 +546,9 @@ def _contract(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
             elif chi - clo == 1:
                 J[:, clo, a:b] += gc * t[clo - lo, :, c]
             else:
-                J[:, clo:chi, a:b] += gc[:, None, :] * t[clo - lo: chi - lo, :, c]
+                tc = t[clo - lo: chi - lo, :, c]
+                for i in range(r):
+                    J[i, clo:chi, a:b] += tc * gc[i]
         return
     k = len(t)
     if leaf.value.ndim == 1:
