@@ -117,3 +117,24 @@ def test_gathered_rows_of_a_manifold_vertex() -> None:
         tape.ENABLED = True
     for r, f in zip(rev, fwd, strict=True):
         np.testing.assert_allclose(r, f, rtol=1e-12, atol=1e-12 * np.abs(f).max())
+
+
+def _reused_buffer(a: Any, b: Any, z: Any) -> Any:
+    buf = z[:, 0] * 2.0
+    p = a[:, 0] * buf  # recorded with buf's current values
+    e = np.zeros((len(z), 2), like=a)
+    e[:, 1] = buf
+    buf[:] = 5.0  # reused afterwards: the derivatives must not see it
+    e[:, 0] = p / buf + b[:, 1]
+    return e
+
+
+def test_plain_arrays_reused_after_an_operation() -> None:
+    m = 6
+    x = [RNG.uniform(0.5, 1.5, (m, 3)), RNG.uniform(0.5, 1.5, (m, 3))]
+    z = RNG.normal(size=(m, 2))
+    etype = _edge(_reused_buffer, 2, (VertexP3, VertexP3))
+    rev = edge_jacobians(etype, x, z)
+    num = edge_jacobians(etype, x, z, method="numeric")
+    for r, n in zip(rev, num, strict=True):
+        np.testing.assert_allclose(r, n, rtol=1e-6, atol=1e-6)

@@ -267,6 +267,8 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
     if root is None or k is None:
         flush()
         return False
+    if type(item) is not Jet:  # a constant: kept as it is now (for a forward replay)
+        item = np.array(item, copy=True)
     j.value[k] = item.value if type(item) is Jet else item
     root._tape.writes.append((j._tape.chain + (k,), item))
     _State.seq += 1
@@ -349,6 +351,12 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
         return None
     if fn is _power and (jb or np.ndim(vb) != 0):
         return None
+    # The reverse pass reads a plain factor later: a copy, in case the caller reuses the array.
+    if not ja and type(va) is np.ndarray and uf is np.multiply and va.flags.writeable:
+        va = va.copy()
+    if (not jb and type(vb) is np.ndarray and (uf is np.multiply or uf is np.divide)
+            and vb.flags.writeable):
+        vb = vb.copy()
     y = uf(va, vb)
     if y.dtype.kind != "f":
         return None
@@ -386,8 +394,8 @@ _BINARY: dict[Any, Callable[..., np.ndarray]] = {
 def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
     """A recorded ``a @ b`` of stacks of matrices (``mm``: the product), or ``None``."""
     a, b = _operand(a), _operand(b)
-    va = a.value if type(a) is Jet else a
-    vb = b.value if type(b) is Jet else b
+    va = a.value if type(a) is Jet else np.array(a, copy=True)  # plain: as it is now
+    vb = b.value if type(b) is Jet else np.array(b, copy=True)
     if not (isinstance(va, np.ndarray) and isinstance(vb, np.ndarray)) or min(
             va.ndim, vb.ndim) < 2 or va.dtype.kind != "f" or vb.dtype.kind != "f":
         return None
