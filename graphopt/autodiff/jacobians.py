@@ -129,9 +129,20 @@ def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inv
 
 
-#: Per-vertex jets of the last groupings, by vertex type and values (a group linearised in
-#: chunks sees the same cameras in each).
-_VERTEX_JETS: dict[tuple[Any, ...], tuple[Jet, Any, bool]] = {}
+#: The last per-vertex jets by vertex type and position: ``(row bytes → row, jet, derived,
+#: derived usable)``. A group linearised in chunks sees the same cameras in each.
+_VERTEX_JETS: dict[tuple[Any, ...], tuple[dict[bytes, int], Jet, Any, bool]] = {}
+
+
+def _cached_rows(key: tuple[Any, ...], xu: np.ndarray) -> np.ndarray | None:
+    """Rows of the cached per-vertex jets holding exactly the vertices ``xu`` (all of them
+    cached: the jets are reused), else ``None``."""
+    entry = _VERTEX_JETS.get(key)
+    if entry is None or len(xu) > len(entry[0]):
+        return None
+    where = entry[0]
+    rows = [where.get(r.tobytes(), -1) for r in xu.reshape(len(xu), -1)]
+    return None if min(rows, default=-1) < 0 else np.asarray(rows)
 
 
 class _Position:
@@ -153,9 +164,11 @@ class _Position:
             first, inv = _unique_rows(vtype, x)
             if len(first) < len(x):
                 self.inverse = inv
-                key = (vtype, lo, n, derived, x[first].tobytes())
-                if key in _VERTEX_JETS:  # the same vertices (another chunk of the group)
-                    self.jet, self.derived, self.derived_ok = _VERTEX_JETS[key]
+                key = (vtype, lo, n, derived)
+                rows = _cached_rows(key, x[first])
+                if rows is not None:  # vertices seen by another chunk of the group
+                    self.inverse = rows[inv]
+                    self.jet, self.derived, self.derived_ok = _VERTEX_JETS[key][1:]
                     return
                 self.jet = seeded(vtype, x[first], lo, n)
             else:
@@ -167,7 +180,9 @@ class _Position:
         if self.inverse is not None:  # only read afterwards (gathers copy), so reusable
             if len(_VERTEX_JETS) >= 4:
                 _VERTEX_JETS.pop(next(iter(_VERTEX_JETS)))
-            _VERTEX_JETS[key] = (self.jet, self.derived, self.derived_ok)
+            xs = x[first].reshape(len(first), -1)
+            where = {r.tobytes(): i for i, r in enumerate(xs)} if len(xs) <= 4096 else {}
+            _VERTEX_JETS[key] = (where, self.jet, self.derived, self.derived_ok)
 
     def _derived(self, j: Jet) -> Any:
         try:
