@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff import tape
+import graphopt.autodiff.tape as tape
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, full, parts
 from graphopt.autodiff.ufuncs import write_out
 

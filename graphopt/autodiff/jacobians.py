@@ -15,8 +15,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from graphopt.autodiff import tape
+import graphopt.autodiff.tape as tape
 from graphopt.autodiff.jet import Jet, JetError
+from graphopt.autodiff.reverse import backward
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
 
@@ -267,7 +268,7 @@ def autodiff_linearize(
         e[sl] = eb.value
         if eb._tape is not None and buffer is None:
             buffer = np.empty(dim * n * min(m, BLOCK_EDGES))
-        J = tape.backward(eb, n, buffer) if eb._tape is not None else None
+        J = backward(eb, n, buffer) if eb._tape is not None else None
         tape.clear()
         if J is not None:  # reverse accumulation: J (rows, n, mb), per row (a faster copy)
             for i, d in enumerate(dims):

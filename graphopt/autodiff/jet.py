@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.lib.mixins import NDArrayOperatorsMixin
 
+from graphopt.autodiff.errors import JetError
 from graphopt.autodiff.methods import ArrayMethods
-from graphopt.errors import GraphError
 
 __all__ = ["HOOKS", "Jet", "JetError", "is_jet", "parts"]
 
@@ -41,15 +41,6 @@ class Tape:
     (:mod:`graphopt.autodiff.tape`) instead of carrying their tangents forward."""
 
     active = False
-
-
-class JetError(GraphError):
-    """A NumPy operation that graphopt's jets cannot differentiate (named in the message)."""
-
-    def __init__(self, function: str, why: str = "") -> None:
-        self.function = function
-        super().__init__(f"automatic differentiation does not support {function}"
-                         + (f": {why}" if why else ""))
 
 
 def is_jet(a: object) -> bool:

@@ -7,13 +7,9 @@ from typing import Any
 
 import numpy as np
 
+from graphopt.autodiff.errors import JetError
+
 __all__ = ["ArrayMethods"]
-
-
-def _error(function: str, why: str) -> Exception:
-    from graphopt.autodiff.jet import JetError  # the jet module imports this one
-
-    return JetError(function, why)
 
 
 class ArrayMethods:
@@ -59,7 +55,7 @@ class ArrayMethods:
     def astype(self, dtype: Any, copy: bool = True) -> Any:
         """Floating dtypes keep the derivatives; others are refused (they would drop them)."""
         if np.dtype(dtype).kind != "f":
-            raise _error(f"astype({np.dtype(dtype).name})", "an integer or boolean copy of a "
+            raise JetError(f"astype({np.dtype(dtype).name})", "an integer or boolean copy of a "
                            "jet has no derivative; use its .value explicitly")
         return self.copy() if copy else self
 

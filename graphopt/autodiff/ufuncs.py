@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff import tape
+import graphopt.autodiff.tape as tape
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, combine, expand, make, parts
 
 __all__ = ["apply_ufunc", "write_out"]
