@@ -74,13 +74,14 @@ def _record(value: np.ndarray, n: int, node: _Node) -> Jet:
 
 @contextmanager
 def recording() -> Iterator[None]:
-    """Record jet operations (for :func:`backward`) inside the block."""
+    """Record jet operations (for :func:`graphopt.autodiff.reverse.backward`) inside the block."""
     Tape.active = ENABLED
     _State.pending = []
     try:
         yield
     finally:
         Tape.active = False
+        _State.pending = []  # (only a write during recording needs them all)
 
 
 def clear() -> None:
