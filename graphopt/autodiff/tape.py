@@ -128,19 +128,37 @@ def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: i
     return j
 
 
+_ALL = slice(None)
+_ONES: dict[int, np.ndarray] = {}
+
+
+def ones(m: int) -> np.ndarray:
+    """``(1, m)`` ones, read-only (the derivative of a unit column), one array per ``m``."""
+    t = _ONES.get(m)
+    if t is None:
+        if len(_ONES) > 16:
+            _ONES.clear()
+        t = _ONES[m] = np.broadcast_to(np.ones(1), (1, m))
+    return t
+
+
 def _gathered_item(j: Jet, key: Any) -> Jet | None:
     """``j[key]`` of gathered rows, gathered as narrowly as the index allows."""
     node = j._tape
-    k = _key(key, j.value.ndim)
+    if (type(key) is tuple and len(key) == 2 and type(key[1]) is int and key[0] == _ALL
+            and j.columns is not None and j.value.ndim == 2):
+        k: tuple[Any, ...] | None = key  # x[:, c], the common case: no normalisation
+    else:
+        k = _key(key, j.value.ndim)
     if k is None or not k or not isinstance(k[0], slice) or k[0].step not in (None, 1):
         return None
     if (j.columns is not None and j.value.ndim == 2 and len(k) == 2
-            and k[0] == slice(None) and isinstance(k[1], int | np.integer)):
+            and k[0] == _ALL and isinstance(k[1], int | np.integer)):
         c = int(k[1]) % j.value.shape[1]
         lo, hi = j.columns[c][:2]
         m = len(j.value)
         if len(j.columns[c]) > 2 and j.columns[c][2]:
-            t = np.broadcast_to(np.ones(1), (1, m))
+            t = ones(m)
         else:
             t = np.take(node.source[lo - j._lo: hi - j._lo, :, c], node.index, axis=1)
         out = Jet(j.value[:, c], t, lo, j.n)
