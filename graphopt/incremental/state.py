@@ -1,0 +1,199 @@
+"""The incremental optimizer's bookkeeping: linearisation points, unknowns and edge batches.
+
+Per vertex store: the linearisation point ``θ`` of every slot and the index of its first
+unknown in the system (``-1``: fixed, or not yet taken in). Per edge group: how many edges are
+taken in, and the slots of their vertices (appended per update, joined lazily). A
+:class:`Batch` is a run of edges of one group with everything needed to linearise them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from graphopt.graph import Graph
+from graphopt.incremental.whitened import Whitened, edge_chi2, whiten
+from graphopt.storage import EdgeGroup, VertexStore
+
+
+@dataclass
+class Batch:
+    """Edges ``start:stop`` of one group.
+
+    Args:
+        group: The edge group.
+        vids: ``(m, k)`` vertex ids.
+        measurements: ``(m, *measurement_shape)``.
+        info: ``(m, e, e)``.
+        kernel_index: ``(m,)``.
+        data: Per-edge data.
+        stores: Per position, the store index.
+        slots: Per position, ``(m,)`` slots.
+    """
+
+    group: EdgeGroup
+    vids: np.ndarray
+    measurements: np.ndarray
+    info: np.ndarray
+    kernel_index: np.ndarray
+    data: dict[str, np.ndarray]
+    stores: list[int]
+    slots: list[np.ndarray]
+
+
+@dataclass
+class State:
+    """Linearisation points and unknowns per store, edges taken in per group.
+
+    Args:
+        graph: The optimizer's graph.
+    """
+
+    graph: Graph
+    stores: list[VertexStore] = field(default_factory=list)
+    theta: list[np.ndarray] = field(default_factory=list)
+    offsets: list[np.ndarray] = field(default_factory=list)
+    known_edges: dict[int, int] = field(default_factory=dict)
+    taken: dict[int, list[Batch]] = field(default_factory=dict)
+    flags: list[int] = field(default_factory=list)
+
+    def store_index(self, st: VertexStore) -> int:
+        """Index of a store (registered on first sight)."""
+        for i, s in enumerate(self.stores):
+            if s is st:
+                return i
+        self.stores.append(st)
+        self.theta.append(np.zeros((0, *st.vtype.estimate_shape)))
+        self.offsets.append(np.zeros(0, np.int64))
+        self.flags.append(st.flags_version)
+        return len(self.stores) - 1
+
+    def flags_changed(self) -> bool:
+        """Whether a fixed/marginalised flag changed since the stores were taken in."""
+        return any(s.flags_version != f for s, f in zip(self.stores, self.flags, strict=True))
+
+    def new_vertices(self) -> list[tuple[int, int, int]]:
+        """``(store index, first new slot, end)`` of every store with vertices not taken in."""
+        out = []
+        for st in list(self.graph.stores.values()):
+            si = self.store_index(st)
+            if len(st) > len(self.theta[si]):
+                out.append((si, len(self.theta[si]), len(st)))
+        return out
+
+    def new_batches(self) -> list[Batch]:
+        """Every group's edges not taken in, as batches (slots resolved by id)."""
+        out = []
+        ids = self.graph.ids
+        for g in list(self.graph.groups.values()):
+            start = self.known_edges.get(id(g), 0)
+            if g.size <= start:
+                continue
+            vids, meas, info, kern, data = g.tail(start)
+            stores, slots = [], []
+            for a in range(g.k):
+                col = vids[:, a].tolist()
+                hits = [ids[v] for v in col]
+                stores.append(self.store_index(hits[0][0]))
+                slots.append(np.fromiter((h[1] for h in hits), np.int64, len(hits)))
+            out.append(Batch(g, vids, meas, info, kern, data, stores, slots))
+        return out
+
+    def take_edges(self, batches: list[Batch]) -> None:
+        """Record the batches' edges as taken in (kept as chunks, joined when all are read)."""
+        for b in batches:
+            key = id(b.group)
+            self.known_edges[key] = self.known_edges.get(key, 0) + len(b.vids)
+            self.taken.setdefault(key, []).append(b)
+
+    def all_edges(self) -> list[Batch]:
+        """Every edge taken in, one batch per group."""
+        out = []
+        for key, chunks in self.taken.items():
+            if len(chunks) > 1:
+                f = chunks[0]
+                data = {k: np.concatenate([c.data[k] for c in chunks]) for k in f.data}
+                joined = Batch(f.group, *(np.concatenate([getattr(c, a) for c in chunks])
+                                          for a in ("vids", "measurements", "info",
+                                                    "kernel_index")),
+                               data, f.stores,
+                               [np.concatenate([c.slots[a] for c in chunks])
+                                for a in range(len(f.slots))])
+                self.taken[key] = [joined]
+            out.append(self.taken[key][0])
+        return out
+
+    def cols(self, b: Batch) -> list[np.ndarray]:
+        """Per position, the first unknown of each edge's vertex (``-1``: fixed)."""
+        return [self.offsets[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
+
+    def whiten(self, b: Batch) -> Whitened:
+        """The batch linearised at the linearisation points."""
+        g = b.group
+        x = [self.theta[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
+        return whiten(g.etype, g.params, x, b.measurements, b.info, self.cols(b),
+                      b.kernel_index, g.kernels, b.data)
+
+    def chi2(self, b: Batch) -> np.ndarray:
+        """``e'Ωe`` per edge at the current estimates."""
+        g = b.group
+        x = [self.stores[si].estimates[s] for si, s in zip(b.stores, b.slots, strict=True)]
+        return edge_chi2(g.etype, g.params, x, b.measurements, b.info, b.data)
+
+    def apply(self, delta: np.ndarray) -> float:
+        """Estimates ``θ ⊞ Δ`` of every vertex with unknowns; returns ``max |Δ|``.
+
+        Args:
+            delta: The step from the linearisation points, by unknown.
+        """
+        worst = 0.0
+        for st, th, off in zip(self.stores, self.theta, self.offsets, strict=True):
+            free = np.flatnonzero(off >= 0)
+            if not len(free):
+                continue
+            d = st.vtype.dimension
+            step = delta[off[free][:, None] + np.arange(d)]
+            worst = max(worst, float(np.abs(step).max()))
+            est = st.estimates.copy()
+            est[free] = st.vtype.oplus(th[free].copy(), step)
+            st.estimates = est
+        return worst
+
+    def relinearize_all(self) -> None:
+        """``θ ←`` the current estimates."""
+        self.theta = [st.estimates[: len(th)].copy() for st, th in
+                      zip(self.stores, self.theta, strict=True)]
+
+    def extend(self, si: int, start: int, stop: int, first: int) -> int:
+        """Take in the store's slots ``start:stop``: ``θ`` from their estimates, unknowns from
+        ``first`` on for the free ones; returns the number of unknowns taken."""
+        st = self.stores[si]
+        est = st.estimates[start:stop]
+        free = ~st.fixed[start:stop]
+        d = st.vtype.dimension
+        off = np.full(stop - start, -1, np.int64)
+        off[free] = first + d * np.arange(int(free.sum()))
+        self.theta[si] = np.concatenate([self.theta[si], est])
+        self.offsets[si] = np.concatenate([self.offsets[si], off])
+        return d * int(free.sum())
+
+    def unconstrained(self, new: list[tuple[int, int, int]], batches: list[Batch]
+                      ) -> tuple[VertexStore, int] | None:
+        """A new free vertex that no new edge names (its store and id), or ``None``."""
+        seen = set()
+        for b in batches:
+            seen.update(b.vids.ravel().tolist())
+        for si, lo, hi in new:
+            st = self.stores[si]
+            for vid, fixed in zip(st.ids[lo:hi].tolist(), st.fixed[lo:hi].tolist(),
+                                  strict=True):
+                if not fixed and vid not in seen:
+                    return st, int(vid)
+        return None
+
+
+def any_params(b: Batch) -> Any:
+    """The batch's group parameters (for messages)."""
+    return b.group.params
