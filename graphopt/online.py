@@ -121,6 +121,7 @@ class IncrementalOptimizer:
         self._pending_unknowns = 0
         self._g = np.zeros(0)
         self._delta = np.zeros(0)
+        self._removals = 0
         self.reports: list[UpdateReport] = []
 
     # --- public ------------------------------------------------------------------------------
@@ -137,6 +138,8 @@ class IncrementalOptimizer:
                 taken in.
         """
         t0 = time.perf_counter()
+        if self._factor is not None and self._state.removals() != self._removals:
+            self._state, self._factor = State(self.optimizer.graph), None  # start afresh
         st = self._state
         new = st.new_vertices()
         batches = st.new_batches()
@@ -153,6 +156,7 @@ class IncrementalOptimizer:
         if reason:
             self._take_in(new, batches, 0)
             self._rebuild(report, reason)
+            self._removals = st.removals()
         elif new or batches:
             self._take_in(new, batches, self._factor.used + self._pending_unknowns)
             self._pending_unknowns += need

@@ -15,7 +15,8 @@ import numpy as np
 
 from graphopt.graph import Graph
 from graphopt.incremental.whitened import Whitened, edge_chi2, whiten
-from graphopt.storage import EdgeGroup, VertexStore
+from graphopt.edge_group import EdgeGroup
+from graphopt.storage import VertexStore
 
 
 @dataclass
@@ -73,6 +74,11 @@ class State:
     def flags_changed(self) -> bool:
         """Whether a fixed/marginalised flag changed since the stores were taken in."""
         return any(s.flags_version != f for s, f in zip(self.stores, self.flags, strict=True))
+
+    def removals(self) -> int:
+        """Vertex and edge removals so far (a change invalidates every index taken in)."""
+        return (sum(s.removals for s in self.graph.stores.values())
+                + sum(g.removals for g in self.graph.groups.values()))
 
     def new_vertices(self) -> list[tuple[int, int, int]]:
         """``(store index, first new slot, end)`` of every store with vertices not taken in."""
