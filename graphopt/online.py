@@ -59,6 +59,10 @@ class IncrementalConfig:
             taken in without a solve.
         check_chi2: Also check the chi2 of every incremental solve (a full evaluation), not
             only of batch steps; a rise falls back to a damped batch step.
+        max_batch_iterations: Gauss–Newton iterations of a batch step at most: it stops once
+            no vertex moves by more than ``relinearize_threshold`` and the chi2 fell by at most
+            ``batch_tolerance`` (relative).
+        batch_tolerance: See ``max_batch_iterations``.
         max_damped_iterations: Damped iterations of a fallback.
     """
 
@@ -67,6 +71,8 @@ class IncrementalConfig:
     relinearize_threshold: float = 0.1
     solve_threshold: float = 1e-9
     check_chi2: bool = False
+    max_batch_iterations: int = 5
+    batch_tolerance: float = 1e-4
     max_damped_iterations: int = 10
 
 
@@ -223,7 +229,7 @@ class IncrementalOptimizer:
             return
         old = self._delta
         self._delta = delta
-        worst = self._state.apply(delta)
+        worst = self._state.apply(delta, old)
         report.solved, report.factor = True, "updated"
         if worst > cfg.relinearize_threshold:
             self._rebuild(report, "relinearize")
@@ -234,36 +240,40 @@ class IncrementalOptimizer:
 
     def _rebuild(self, report: UpdateReport, reason: str) -> None:
         """A batch step: relinearise everything at the current estimate, reorder,
-        refactorise, solve, check the chi2 (damped steps if it went up)."""
+        refactorise, solve, check the chi2 (damped steps if it went up); again while the step
+        exceeds the relinearisation threshold (at most ``max_batch_iterations`` times)."""
         st = self._state
-        st.relinearize_all()
-        self._pending, self._pending_unknowns = [], 0
-        batches = st.all_edges()
-        self._renumber(batches)
-        st.flags = [s.flags_version for s in st.stores]
         report.factor, report.reason, report.solved = "rebuilt", reason, True
-        report.relinearized = sum(int((o >= 0).sum()) for o in st.offsets)
-        n = sum(int((o >= 0).sum()) * s.vtype.dimension for s, o in
-                zip(st.stores, st.offsets, strict=True))
-        dmax = max((s.vtype.dimension for s in st.stores), default=1)
-        blocks = sum(int((o >= 0).sum()) for o in st.offsets)
-        reserve = dmax * max(self.config.reserve, int(self.config.reserve_fraction * blocks))
-        wb = [st.whiten(b) for b in batches]
-        before = float(sum(w.chi2.sum() for w in wb))
-        H = hessian(wb, n)
-        g = np.zeros(n + reserve)
-        gradient_into(g, wb)
-        self._g = g
-        try:
-            self._factor = GrowingFactor(H, reserve)
-            self._delta = -self._factor.solve(g)
-            st.apply(self._delta)
-            if self.chi2() <= before:
+        self._pending, self._pending_unknowns = [], 0
+        for _ in range(self.config.max_batch_iterations):
+            st.relinearize_all()
+            batches = st.all_edges()
+            self._renumber(batches)
+            st.flags = [s.flags_version for s in st.stores]
+            report.relinearized = sum(int((o >= 0).sum()) for o in st.offsets)
+            dims = [s.vtype.dimension for s in st.stores]
+            n = sum(int((o >= 0).sum()) * d for d, o in zip(dims, st.offsets, strict=True))
+            reserve = max(dims, default=1) * max(
+                self.config.reserve, int(self.config.reserve_fraction * report.relinearized))
+            wb = [st.whiten(b) for b in batches]
+            before = float(sum(w.chi2.sum() for w in wb))
+            H = hessian(wb, n)
+            self._g = np.zeros(n + reserve)
+            gradient_into(self._g, wb)
+            try:
+                self._factor = GrowingFactor(H, reserve)
+                self._delta = -self._factor.solve(self._g)
+                worst = st.apply(self._delta)
+                after = self.chi2()
+                if after > before:
+                    raise NotPositiveDefiniteError("chi2 went up")
+            except NotPositiveDefiniteError:
+                report.fallback = True
+                self._damped(H, self._g, before, reserve)
                 return
-        except NotPositiveDefiniteError:
-            pass
-        report.fallback = True
-        self._damped(H, g, before, reserve)
+            if (worst <= self.config.relinearize_threshold
+                    and before - after <= self.config.batch_tolerance * after):
+                return
 
     def _damped(self, H: sp.csc_matrix, g: np.ndarray, chi2: float, reserve: int) -> None:
         """Levenberg–Marquardt from the linearisation points until chi2 goes down; the factor

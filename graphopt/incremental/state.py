@@ -148,11 +148,13 @@ class State:
         x = [self.stores[si].estimates[s] for si, s in zip(b.stores, b.slots, strict=True)]
         return edge_chi2(g.etype, g.params, x, b.measurements, b.info, b.data)
 
-    def apply(self, delta: np.ndarray) -> float:
+    def apply(self, delta: np.ndarray, old: np.ndarray | None = None) -> float:
         """Estimates ``θ ⊞ Δ`` of every vertex with unknowns; returns ``max |Δ|``.
 
         Args:
             delta: The step from the linearisation points, by unknown.
+            old: The step the estimates hold now (same length), if known: only vertices whose
+                step changed are written.
         """
         worst = 0.0
         for st, th, off in zip(self.stores, self.theta, self.offsets, strict=True):
@@ -160,9 +162,15 @@ class State:
             if not len(free):
                 continue
             d = st.vtype.dimension
-            step = delta[off[free][:, None] + np.arange(d)]
+            cols = off[free][:, None] + np.arange(d)
+            step = delta[cols]
             worst = max(worst, float(np.abs(step).max()))
-            est = st.estimates.copy()
+            if old is not None and len(old) == len(delta):
+                moved = (step != old[cols]).any(axis=1)
+                free, step = free[moved], step[moved]
+                if not len(free):
+                    continue
+            est = st.estimates
             est[free] = st.vtype.oplus(th[free].copy(), step)
             st.estimates = est
         return worst

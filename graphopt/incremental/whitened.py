@@ -49,6 +49,22 @@ def sqrt_information(info: np.ndarray) -> np.ndarray:
     """
     if len(info) > 1 and bool((info == info[0]).all()):
         return np.broadcast_to(sqrt_information(info[:1]), info.shape)
+    if len(info) == 1:
+        key = info.tobytes()
+        hit = _SQRT_CACHE.get(key)
+        if hit is None:
+            hit = _SQRT_CACHE[key] = _sqrt(info)
+            if len(_SQRT_CACHE) > 64:
+                _SQRT_CACHE.pop(next(iter(_SQRT_CACHE)))
+        return hit
+    return _sqrt(info)
+
+
+#: ``U`` of recently seen single information matrices (most graphs share a few).
+_SQRT_CACHE: dict[bytes, np.ndarray] = {}
+
+
+def _sqrt(info: np.ndarray) -> np.ndarray:
     try:
         return np.swapaxes(np.linalg.cholesky(info), 1, 2)
     except np.linalg.LinAlgError:
@@ -128,9 +144,11 @@ def edge_chi2(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray],
 
 def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
     """``C`` ``(n, Σ m·e)`` with ``CCᵀ = Σ AᵀA`` over the batches: one column per whitened
-    row, holding the row's entries at its vertices' unknowns (sorted; a fixed vertex's
-    entries left out). Built directly in CSC form: a COO detour costs more than the CHOLMOD
-    update it feeds on a small step.
+    row, holding the row's entries at its vertices' unknowns (a fixed vertex's left out).
+
+    Built as the transpose of the whitened Jacobian in CSR form, rows in the blocks' order
+    (CHOLMOD's update takes unsorted columns): a COO detour, or sorting, costs more than the
+    CHOLMOD update it feeds on a small step.
 
     Args:
         batches: Whitened rows.
@@ -139,27 +157,27 @@ def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
     data, index, counts = [], [], []
     for wb in batches:
         m, e = wb.residual.shape
-        rows = np.concatenate([c[:, None] + np.arange(A.shape[2]) for c, A in
-                               zip(wb.cols, wb.blocks, strict=True)], axis=1)  # (m, D)
-        vals = np.concatenate(wb.blocks, axis=2)  # (m, e, D)
-        valid = np.concatenate([np.broadcast_to((c >= 0)[:, None], (m, A.shape[2])) for c, A
-                                in zip(wb.cols, wb.blocks, strict=True)], axis=1)
-        rows = np.where(valid, rows, n)  # fixed entries sort last, then are dropped
-        order = np.argsort(rows, axis=1, kind="stable")
-        rows = np.take_along_axis(rows, order, 1)
-        vals = np.take_along_axis(vals, order[:, None, :], 2)
-        keep = rows < n
-        per = keep.sum(axis=1)
-        index.append(np.repeat(rows[:, None, :], e, axis=1)[np.broadcast_to(
-            keep[:, None, :], vals.shape)])
-        data.append(vals[np.broadcast_to(keep[:, None, :], vals.shape)])
-        counts.append(np.repeat(per, e))
-    cnt = np.concatenate(counts) if counts else np.zeros(0, np.int64)
+        parts = [(c, A) for c, A in zip(wb.cols, wb.blocks, strict=True)]
+        if any(bool((c < 0).any()) for c, _ in parts):  # fixed vertices: per-edge counts
+            idx = np.concatenate([np.where((c >= 0)[:, None], c[:, None] + np.arange(
+                A.shape[2]), -1) for c, A in parts], axis=1)
+            keep = np.broadcast_to((idx >= 0)[:, None, :], (m, e, idx.shape[1]))
+            vals = np.concatenate([A for _, A in parts], axis=2)
+            data.append(vals[keep])
+            index.append(np.broadcast_to(idx[:, None, :], keep.shape)[keep])
+            counts.append(np.repeat((idx >= 0).sum(axis=1), e))
+            continue
+        idx = np.concatenate([c[:, None] + np.arange(A.shape[2]) for c, A in parts], axis=1)
+        data.append(np.concatenate([A for _, A in parts], axis=2).ravel())
+        index.append(np.broadcast_to(idx[:, None, :], (m, e, idx.shape[1])).ravel())
+        counts.append(np.full(m * e, idx.shape[1]))
+    cnt = np.concatenate(counts) if len(counts) > 1 else counts[0] if counts else np.zeros(0, int)
     indptr = np.zeros(len(cnt) + 1, np.int64)
     np.cumsum(cnt, out=indptr[1:])
-    return sp.csc_matrix((np.concatenate(data) if data else np.zeros(0),
-                          np.concatenate(index) if index else np.zeros(0, np.int64), indptr),
-                         shape=(n, len(cnt)))
+    A = sp.csr_matrix((np.concatenate(data) if data else np.zeros(0),
+                       np.concatenate(index) if index else np.zeros(0, np.int64), indptr),
+                      shape=(len(cnt), n))
+    return A.T
 
 
 def gradient_into(g: np.ndarray, batches: Sequence[Whitened]) -> None:
