@@ -198,7 +198,7 @@ def gtsam_run(schedule: ReplaySchedule, relinearize_skip: int) -> dict[str, Any]
 
 def graphopt_run(schedule: ReplaySchedule) -> dict[str, Any]:
     """Replay with graphopt's :class:`~graphopt.online.IncrementalOptimizer` (defaults)."""
-    out = replay(schedule, IncrementalConfig(relinearize_threshold=0.5))
+    out = replay(schedule)
     return {"steps": out.steps, "poses": out.poses, "landmarks": out.landmarks,
             "reports": out.incremental.reports}
 

@@ -53,8 +53,13 @@ class IncrementalConfig:
             (at least; see ``reserve_fraction``): a batch step (reordering) runs when they
             are used up.
         reserve_fraction: The reserve as a share of the vertices in use, when larger.
-        relinearize_threshold: A batch step relinearises everything once a vertex's step
-            from its linearisation point exceeds this (largest tangent component).
+        recent: The newest vertices of each type that a batch step orders last (new edges
+            mostly reach them).
+        relinearize_threshold: Once a vertex's step from its linearisation point exceeds this
+            (largest tangent component), the linear model is checked against the true chi2
+            (a full evaluation); a batch step relinearises everything if they differ by more
+            than ``model_tolerance`` (relative).
+        model_tolerance: See ``relinearize_threshold``.
         solve_threshold: New edges whose chi2 at the current estimate is at most this are
             taken in without a solve.
         check_chi2: Also check the chi2 of every incremental solve (a full evaluation), not
@@ -67,8 +72,10 @@ class IncrementalConfig:
     """
 
     reserve: int = 100
+    recent: int = 64
     reserve_fraction: float = 0.0
     relinearize_threshold: float = 0.1
+    model_tolerance: float = 1e-3
     solve_threshold: float = 1e-9
     check_chi2: bool = False
     max_batch_iterations: int = 5
@@ -128,6 +135,7 @@ class IncrementalOptimizer:
         self._g = np.zeros(0)
         self._delta = np.zeros(0)
         self._removals = 0
+        self._checked = 0.0
         self.reports: list[UpdateReport] = []
 
     # --- public ------------------------------------------------------------------------------
@@ -213,6 +221,7 @@ class IncrementalOptimizer:
             return
         assert self._factor is not None
         wb = [self._state.whiten(b) for b in self._pending]
+        self._state.keep_linear(self._pending, wb, fresh=False)
         gradient_into(self._g, wb)
         self._factor.update(update_columns(wb, self._factor.size))
         self._factor.take(self._pending_unknowns)
@@ -231,8 +240,13 @@ class IncrementalOptimizer:
         self._delta = delta
         worst = self._state.apply(delta, old)
         report.solved, report.factor = True, "updated"
-        if worst > cfg.relinearize_threshold:
-            self._rebuild(report, "relinearize")
+        if worst > cfg.relinearize_threshold and worst > self._checked * 1.5:
+            # A vertex left its linearisation point: relinearise if the linear model no
+            # longer predicts the chi2 (checked again only once the steps grew by half).
+            true, model = self._state.model_check(delta)
+            self._checked = worst
+            if abs(true - model) > cfg.model_tolerance * max(true, 1.0):
+                self._rebuild(report, "relinearize")
         elif before is not None and self.chi2() > before:
             self._delta = old
             self._state.apply(old)
@@ -256,6 +270,8 @@ class IncrementalOptimizer:
             reserve = max(dims, default=1) * max(
                 self.config.reserve, int(self.config.reserve_fraction * report.relinearized))
             wb = [st.whiten(b) for b in batches]
+            st.keep_linear(batches, wb, fresh=True)
+            self._checked = 0.0
             before = float(sum(w.chi2.sum() for w in wb))
             H = hessian(wb, n)
             self._g = np.zeros(n + reserve)
@@ -337,10 +353,22 @@ class IncrementalOptimizer:
                     ok = (blk[a] >= 0) & (blk[c] >= 0)
                     rows.append(blk[a][ok])
                     cols.append(blk[c][ok])
-        order = block_order(total, np.concatenate(rows) if rows else np.zeros(0, np.int64),
-                            np.concatenate(cols) if cols else np.zeros(0, np.int64))
-        rank = np.empty(total, np.int64)
-        rank[order] = np.arange(total)
+        # The newest vertices of every store go last, in the order they came (new vertices'
+        # edges mostly reach them: an update then touches the tail of the factor, as iSAM2's
+        # constrained ordering keeps them at the root); AMD orders the others among
+        # themselves.
+        recent = np.zeros(total, bool)
+        for block in base:
+            mine = block[block >= 0]
+            recent[mine[max(len(mine) - self.config.recent, 0):]] = True
+        old = np.flatnonzero(~recent)
+        where = np.full(total, -1, np.int64)
+        where[old] = np.arange(len(old))
+        r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+        c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+        inside = (where[r] >= 0) & (where[c] >= 0)
+        order = np.concatenate([old[block_order(len(old), where[r[inside]], where[c[inside]])],
+                                np.flatnonzero(recent)])
         dims = np.concatenate([np.full(int(f.sum()), s.vtype.dimension) for s, f in
                                zip(st.stores, counts, strict=True)] or [np.zeros(0, np.int64)])
         start = np.zeros(total, np.int64)
@@ -351,7 +379,6 @@ class IncrementalOptimizer:
             free = block >= 0
             off[free] = start[block[free]]
             st.offsets[si] = off
-        del rank
 
 
 def _unused(_: Whitened) -> None:  # pragma: no cover - keeps the import for type checkers

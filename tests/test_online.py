@@ -3,6 +3,7 @@ system's factor, the fallbacks keep the estimate finite, a lone vertex is a clea
 
 from __future__ import annotations
 
+import json
 from typing import ClassVar
 
 import numpy as np
@@ -162,3 +163,30 @@ def test_a_vertex_constrained_in_too_few_directions_never_raises() -> None:
     assert report.factor == "rebuilt" and report.fallback
     for vtype in (VertexSE2, VertexPointXY):
         assert np.isfinite(opt.estimates_of(vtype)).all()
+
+
+ONLINE_KEYS = {"steps", "total_seconds", "median_step_seconds", "p95_step_seconds",
+               "max_step_seconds", "solves", "batch_steps", "fallbacks", "final_batch"}
+
+
+def test_the_app_replays_online_and_reports_the_steps(tmp_path, capsys) -> None:
+    from graphopt.apps.g2o import main
+    from test_g2o_app import KEYS
+
+    js = tmp_path / "online.json"
+    assert main(["--poses", "150", "--online", "--json", str(js)]) == 0
+    _, err = capsys.readouterr()
+    assert "online step 150/150" in err
+    s = json.loads(js.read_text())
+    assert set(s) == KEYS and set(s["online"]) == ONLINE_KEYS
+    o = s["online"]
+    assert o["steps"] == 150 and not o["final_batch"] and s["iterations"] == 0
+    assert o["median_step_seconds"] <= o["p95_step_seconds"] <= o["max_step_seconds"]
+    assert o["total_seconds"] == pytest.approx(s["seconds"])
+    graph = manhattan_world(150, 0)[0]
+    assert s["final_chi2"] <= _batch_chi2(graph) * 1.005
+    polished = tmp_path / "polished.json"
+    assert main(["--poses", "150", "--online", "--online-final-batch", "--quiet",
+                 "--json", str(polished)]) == 0
+    p = json.loads(polished.read_text())
+    assert p["online"]["final_batch"] and p["final_chi2"] <= s["final_chi2"] + 1e-9

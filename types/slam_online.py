@@ -25,6 +25,7 @@ import numpy as np
 from graphopt.errors import GraphError
 from graphopt.online import IncrementalConfig, IncrementalOptimizer, UpdateReport
 from graphopt.optimizer import SparseOptimizer
+from graphopt.robust_kernel import RobustKernel
 from graphopt.types import slam_guess as sg
 from graphopt.types.isometry3 import pose_from_qt
 from graphopt.types.slam2d import EdgeSE2, EdgeSE2PointXY, VertexPointXY
@@ -221,14 +222,17 @@ class Replay:
 
 
 def replay(schedule: ReplaySchedule, config: IncrementalConfig | None = None,
-           on_step: Callable[[int, UpdateReport], None] | None = None) -> Replay:
+           on_step: Callable[[int, UpdateReport, float, SparseOptimizer], None] | None = None,
+           kernel: RobustKernel | None = None) -> Replay:
     """Replay the schedule with an :class:`~graphopt.online.IncrementalOptimizer`: per step,
     add the pose, the new landmarks and the edges to the optimizer, then one ``update``.
 
     Args:
         schedule: From :func:`replay_schedule`.
         config: The incremental optimizer's configuration.
-        on_step: Called after every step with its index and report (outside the timing).
+        on_step: Called after every step with its index, report, seconds and the optimizer
+            (outside the timing).
+        kernel: A robust kernel for every edge, or ``None``.
 
     Returns:
         The :class:`Replay`.
@@ -254,13 +258,13 @@ def replay(schedule: ReplaySchedule, config: IncrementalConfig | None = None,
             lo, hi = e.bounds[k], e.bounds[k + 1]
             if hi > lo:
                 opt.add_edges(e.etype, e.ids[lo:hi], e.measurements[lo:hi],
-                              e.information[lo:hi])
+                              e.information[lo:hi], robust_kernel=kernel)
         report = inc.update()
         times[k] = time.perf_counter() - t0
         if store is None:
             store = opt.graph.stores[ptype]
         if on_step is not None:
-            on_step(k, report)
+            on_step(k, report, float(times[k]), opt)
     poses = opt.graph.stores[ptype].estimates.copy()  # added in step order
     lms = None
     if ltype is not None and len(schedule.landmark_ids):

@@ -14,7 +14,13 @@ from typing import Any
 import numpy as np
 
 from graphopt.graph import Graph
-from graphopt.incremental.whitened import Whitened, edge_chi2, whiten
+from graphopt.incremental.whitened import (
+    Whitened,
+    edge_chi2,
+    join,
+    linear_residual,
+    whiten,
+)
 from graphopt.edge_group import EdgeGroup
 from graphopt.storage import VertexStore
 
@@ -58,6 +64,7 @@ class State:
     offsets: list[np.ndarray] = field(default_factory=list)
     known_edges: dict[int, int] = field(default_factory=dict)
     taken: dict[int, list[Batch]] = field(default_factory=dict)
+    linear: dict[int, list[Whitened]] = field(default_factory=dict)
     flags: list[int] = field(default_factory=list)
 
     def store_index(self, st: VertexStore) -> int:
@@ -130,6 +137,25 @@ class State:
                 self.taken[key] = [joined]
             out.append(self.taken[key][0])
         return out
+
+    def keep_linear(self, batches: list[Batch], rows: list[Whitened], fresh: bool) -> None:
+        """Keep the whitened rows the factor holds (``fresh``: they replace all kept ones)."""
+        if fresh:
+            self.linear = {}
+        for b, w in zip(batches, rows, strict=True):
+            self.linear.setdefault(id(b.group), []).append(w)
+
+    def model_check(self, delta: np.ndarray) -> tuple[float, float]:
+        """``(chi2, model)``: the weighted chi2 of every edge at the current estimates and
+        the linear model's ``Σ‖r + AΔ‖²`` (call when every edge taken in is in the factor)."""
+        true = model = 0.0
+        for key, rows in self.linear.items():
+            joined = join(rows)
+            self.linear[key] = [joined]
+            b = next(x for x in self.all_edges() if id(x.group) == key)
+            true += float(joined.weight @ self.chi2(b))
+            model += float(np.square(linear_residual(joined, delta)).sum())
+        return true, model
 
     def cols(self, b: Batch) -> list[np.ndarray]:
         """Per position, the first unknown of each edge's vertex (``-1``: fixed)."""

@@ -29,12 +29,29 @@ class Whitened:
         blocks: Per position, ``(m, e, d)`` whitened Jacobians ``A_a``.
         residual: ``(m, e)`` whitened errors ``r``.
         chi2: ``(m,)`` ``e'Ωe`` (without the kernel).
+        weight: ``(m,)`` the kernel's ``ρ'`` at the linearisation (ones without one).
     """
 
     cols: list[np.ndarray]
     blocks: list[np.ndarray]
     residual: np.ndarray
     chi2: np.ndarray
+    weight: np.ndarray
+
+
+def join(parts: Sequence[Whitened]) -> Whitened:
+    """One :class:`Whitened` of the rows of several (same edge type), in order.
+
+    Args:
+        parts: The pieces.
+    """
+    if len(parts) == 1:
+        return parts[0]
+    k = len(parts[0].cols)
+    return Whitened([np.concatenate([p.cols[a] for p in parts]) for a in range(k)],
+                    [np.concatenate([p.blocks[a] for p in parts]) for a in range(k)],
+                    *(np.concatenate([getattr(p, f) for p in parts])
+                      for f in ("residual", "chi2", "weight")))
 
 
 def sqrt_information(info: np.ndarray) -> np.ndarray:
@@ -119,7 +136,7 @@ def whiten(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray], measurem
     if w is not None:
         r = r * w[:, None]
         blocks = [b * w[:, None, None] for b in blocks]
-    return Whitened(cols, blocks, r, chi2)
+    return Whitened(cols, blocks, r, chi2, np.ones(len(chi2)) if w is None else w * w)
 
 
 def edge_chi2(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray],
