@@ -367,7 +367,9 @@ class IncrementalOptimizer:
         r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
         c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
         inside = (where[r] >= 0) & (where[c] >= 0)
-        order = np.concatenate([old[block_order(len(old), where[r[inside]], where[c[inside]])],
+        large = max((s.vtype.dimension for s in st.stores), default=1) > 3
+        order = np.concatenate([old[block_order(len(old), where[r[inside]], where[c[inside]],
+                                                large)],
                                 np.flatnonzero(recent)])
         dims = np.concatenate([np.full(int(f.sum()), s.vtype.dimension) for s, f in
                                zip(st.stores, counts, strict=True)] or [np.zeros(0, np.int64)])
