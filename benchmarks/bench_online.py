@@ -48,7 +48,6 @@ import numpy as np  # noqa: E402
 from graphopt.apps.slam_scene import manhattan_world  # noqa: E402
 from graphopt.io.g2o import read_graph  # noqa: E402
 from graphopt.io.g2o_records import GraphFile  # noqa: E402
-from graphopt.online import IncrementalConfig  # noqa: E402
 from graphopt.types.isometry3 import matrix_to_quat  # noqa: E402
 from graphopt.types.slam_graph import SlamGraph, build_graph  # noqa: E402
 from graphopt.types.slam_online import (  # noqa: E402

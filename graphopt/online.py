@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.incremental.factor import GrowingFactor, block_order
 from graphopt.incremental.state import Batch, State
-from graphopt.incremental.whitened import Whitened, gradient_into, hessian, update_columns
+from graphopt.incremental.whitened import gradient_into, hessian, update_columns
 from graphopt.optimizer import SparseOptimizer
 
 __all__ = ["IncrementalConfig", "IncrementalOptimizer", "UpdateReport"]
@@ -328,10 +328,14 @@ class IncrementalOptimizer:
         st.relinearize_all()
         self._delta = zero.copy()
         self._g = zero.copy()  # the estimate is taken as the old edges' optimum
-        try:
-            self._factor = GrowingFactor(H, reserve)
-        except NotPositiveDefiniteError:
-            self._factor = GrowingFactor((H + sp.diags(1e-9 * diag)).tocsc(), reserve)
+        scale = float(diag.max()) if n else 1.0
+        for damping in (0.0, 1e-9, 1e-6, 1e-3):  # a singular system keeps a small prior
+            try:
+                self._factor = GrowingFactor(
+                    (H + sp.identity(n, format="csc") * (damping * scale)).tocsc(), reserve)
+                break
+            except NotPositiveDefiniteError:
+                continue
 
     def _renumber(self, batches: list[Batch]) -> None:
         """Number the free vertices' unknowns in a fill-reducing order of the vertex graph."""
@@ -381,7 +385,3 @@ class IncrementalOptimizer:
             free = block >= 0
             off[free] = start[block[free]]
             st.offsets[si] = off
-
-
-def _unused(_: Whitened) -> None:  # pragma: no cover - keeps the import for type checkers
-    return None

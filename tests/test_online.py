@@ -170,8 +170,9 @@ ONLINE_KEYS = {"steps", "total_seconds", "median_step_seconds", "p95_step_second
 
 
 def test_the_app_replays_online_and_reports_the_steps(tmp_path, capsys) -> None:
-    from graphopt.apps.g2o import main
     from test_g2o_app import KEYS
+
+    from graphopt.apps.g2o import main
 
     js = tmp_path / "online.json"
     assert main(["--poses", "150", "--online", "--json", str(js)]) == 0

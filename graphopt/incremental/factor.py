@@ -7,8 +7,9 @@ vertex takes the next reserved unknowns: its edges enter by a rank update (``LL�
 CHOLMOD's ``updown``, which also grows the pattern of ``L``), and its ``ε`` stays — a prior
 of relative weight 1e-12 towards its starting estimate, far below the data's resolution,
 instead of a downdate per vertex (a second CHOLMOD call per step, and a subtraction that can
-lose definiteness). The symbolic factorisation is redone only when the reserve runs out. New unknowns come last in the
-elimination order, as in iSAM: an update touches the path from its first unknown to the root.
+lose definiteness). The symbolic factorisation is redone only when the reserve runs out. New
+unknowns come last in the elimination order, as in iSAM: an update touches the path from its
+first unknown to the root.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import scipy.sparse as sp
 from graphopt.errors import NotPositiveDefiniteError
 
 try:  # scikit-sparse is optional (see graphopt.solvers.cholmod)
-    from sksparse.cholmod import CholmodError, CholmodNotPositiveDefiniteError, cholesky
+    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
     from sksparse.cholmod import analyze as cholmod_analyze
 
     HAVE_CHOLMOD = True
@@ -79,7 +80,8 @@ class GrowingFactor:
         low.sort_indices()
         self.epsilon = EPSILON * max(float(H.diagonal().max()) if n else 1.0, 1e-300)
         full = sp.csc_matrix(
-            (np.r_[low.data, np.full(reserve, self.epsilon)], np.r_[low.indices, np.arange(n, n + reserve)],
+            (np.r_[low.data, np.full(reserve, self.epsilon)],
+             np.r_[low.indices, np.arange(n, n + reserve)],
              np.r_[low.indptr, low.indptr[-1] + np.arange(1, reserve + 1)]),
             shape=(n + reserve, n + reserve))
         try:
@@ -87,14 +89,9 @@ class GrowingFactor:
         except CholmodNotPositiveDefiniteError as exc:
             raise NotPositiveDefiniteError(f"the system is not positive definite: {exc}"
                                            ) from None
-        self._check()
-
-    def _check(self, columns: np.ndarray | None = None) -> None:
-        d = self._f.D()
-        if columns is not None:
-            d = d[columns]
-        if not np.all(np.isfinite(d)) or d.min() <= 0.0:
-            raise NotPositiveDefiniteError("the factor lost positive definiteness")
+        d = self._f.D()[:n]  # LDLᵀ factorises indefinite matrices too: screen the pivots
+        if n and (not np.all(np.isfinite(d)) or d.min() <= PIVOT_FACTOR * self.epsilon):
+            raise NotPositiveDefiniteError("the system is singular or not positive definite")
 
     @property
     def free(self) -> int:
@@ -143,8 +140,3 @@ class GrowingFactor:
         if not np.all(np.isfinite(x)):
             raise NotPositiveDefiniteError("the incremental solve produced non-finite values")
         return x
-
-    def matrix(self) -> sp.csc_matrix:
-        """``LDLᵀ`` as a matrix (tests: compare with the system it represents)."""
-        L, D = self._f.L_D()
-        return (L @ D @ L.T).tocsc()

@@ -9,10 +9,10 @@ taken in, and the slots of their vertices (appended per update, joined lazily). 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
+from graphopt.edge_group import EdgeGroup
 from graphopt.graph import Graph
 from graphopt.incremental.whitened import (
     Whitened,
@@ -21,7 +21,6 @@ from graphopt.incremental.whitened import (
     linear_residual,
     whiten,
 )
-from graphopt.edge_group import EdgeGroup
 from graphopt.storage import VertexStore
 
 
@@ -232,8 +231,3 @@ class State:
                 if not fixed and vid not in seen:
                     return st, int(vid)
         return None
-
-
-def any_params(b: Batch) -> Any:
-    """The batch's group parameters (for messages)."""
-    return b.group.params
