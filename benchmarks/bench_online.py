@@ -20,8 +20,11 @@ g2o's half-angle quaternion error to angles); Victoria Park's point observations
 the pose frame become ``BearingRangeFactor2D`` (bearing ``atan2(y, x)``, range ``|z|``, σ_range
 = σ, σ_bearing = σ / range for the file's isotropic σ): GTSAM has no such Pose2–Point2 factor.
 
-One thread on every side (set before numpy loads). ``--repeats`` rounds run the sides
-interleaved; the table shows medians of the totals, and the step statistics of the median run.
+One thread on every side (set before numpy loads; GTSAM's wheel has no TBB). ``--repeats``
+rounds run the sides interleaved; the table shows medians of the totals, and the step
+statistics of the median run. Steps are timed in wall time and in process CPU time (columns
+``CPU``): on a machine shared with other jobs the wall time of either side swings by several
+times between runs, the CPU time much less.
 
 Usage::
 
@@ -143,9 +146,10 @@ def gtsam_run(schedule: ReplaySchedule, relinearize_skip: int) -> dict[str, Any]
     binfo = [[_gtsam_info(w) if three_d else w for w in e.information] if not obs else None
              for e, obs in edges]
     steps = np.zeros(n)
+    cpu = np.zeros(n)
     current = None
     for k in range(n):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         if k == 0:
@@ -183,6 +187,7 @@ def gtsam_run(schedule: ReplaySchedule, relinearize_skip: int) -> dict[str, Any]
         current = (isam.calculateEstimatePose3 if three_d
                    else isam.calculateEstimatePose2)(int(pid[k]))
         steps[k] = time.perf_counter() - t0
+        cpu[k] = time.process_time() - c0
     est = isam.calculateEstimate()
     if three_d:
         poses = np.stack([est.atPose3(int(i)).matrix()[:3] for i in pid])
@@ -192,14 +197,16 @@ def gtsam_run(schedule: ReplaySchedule, relinearize_skip: int) -> dict[str, Any]
     lms = None
     if len(schedule.landmark_ids):
         lms = np.stack([est.atPoint2(lm_key + int(j)) for j in schedule.landmark_ids])
-    return {"steps": steps, "poses": poses, "landmarks": lms}
+    return {"steps": steps, "cpu": cpu, "poses": poses, "landmarks": lms}
 
 
 def graphopt_run(schedule: ReplaySchedule) -> dict[str, Any]:
     """Replay with graphopt's :class:`~graphopt.online.IncrementalOptimizer` (defaults)."""
     out = replay(schedule)
-    return {"steps": out.steps, "poses": out.poses, "landmarks": out.landmarks,
-            "reports": out.incremental.reports}
+    reps = out.incremental.reports
+    return {"steps": out.steps, "cpu": out.cpu_steps, "poses": out.poses,
+            "landmarks": out.landmarks, "batch_steps": sum(r.factor == "rebuilt" for r in reps),
+            "solves": sum(r.solved for r in reps)}
 
 
 def summary(steps: np.ndarray) -> dict[str, float]:
@@ -230,17 +237,20 @@ def main() -> None:
             for side, fn in sides:
                 out = fn(schedule)
                 chi2 = chi2_of(slam, schedule, out["poses"], out["landmarks"])
-                runs[side].append({**summary(out["steps"]), "chi2": chi2})
+                cpu = summary(out["cpu"])
+                runs[side].append({**summary(out["steps"]), "chi2": chi2,
+                                   **{f"cpu_{k}": v for k, v in cpu.items()}})
         print(f"\n{name}: {schedule.steps} steps, batch optimum chi2 {best:.6g}")
         print(f"  {'side':<14}{'total s':>9}{'median ms':>11}{'p95 ms':>9}{'max ms':>9}"
-              f"{'chi2':>14}{'vs batch':>10}")
+              f"{'chi2':>14}{'vs batch':>10}{'CPU s':>8}{'CPU p95':>9}")
         results[name] = {"batch_chi2": best, "steps": schedule.steps}
         for side, rs in runs.items():
             mid = sorted(rs, key=lambda r: r["total"])[len(rs) // 2]
             results[name][side] = {**mid, "totals": [r["total"] for r in rs]}
             print(f"  {side:<14}{statistics.median(r['total'] for r in rs):>9.2f}"
                   f"{mid['median'] * 1e3:>11.2f}{mid['p95'] * 1e3:>9.2f}{mid['max'] * 1e3:>9.1f}"
-                  f"{mid['chi2']:>14.6g}{(mid['chi2'] / best - 1) * 100:>9.3f}%", flush=True)
+                  f"{mid['chi2']:>14.6g}{(mid['chi2'] / best - 1) * 100:>9.3f}%"
+                  f"{mid['cpu_total']:>8.2f}{mid['cpu_p95'] * 1e3:>9.2f}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
 

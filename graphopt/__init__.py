@@ -5,6 +5,7 @@ from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError, NotPositiveDefiniteError, SingularSystemError
 from graphopt.linear import SchurConfig
 from graphopt.numeric import numeric_jacobians
+from graphopt.online import IncrementalConfig, IncrementalOptimizer, UpdateReport
 from graphopt.optimizer import SparseOptimizer
 from graphopt.problem import Problem
 from graphopt.result import IterationInfo, OptimizationResult, StopReason
@@ -44,6 +45,8 @@ __all__ = [
     "GaussNewtonConfig",
     "GraphError",
     "ImplicitSchurConfig",
+    "IncrementalConfig",
+    "IncrementalOptimizer",
     "IterationInfo",
     "LevenbergConfig",
     "Linearization",
@@ -72,6 +75,7 @@ __all__ = [
     "SparseOptimizer",
     "StopReason",
     "StoppingConfig",
+    "UpdateReport",
     "VertexVector",
     "make_kernel",
     "numeric_jacobians",
