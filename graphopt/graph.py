@@ -36,6 +36,7 @@ class Graph:
         self.ids: dict[int, tuple[VertexStore, int]] = {}
         self._objects: dict[int, BaseVertex] = {}
         self._edge_objects: list[BaseEdge] = []
+        self._checked_info: set[bytes] = set()  # single information matrices already checked
         #: The initialised level: the edges of this level are active.
         self.level = 0
         self._lookups: dict[int, tuple[Any, ...]] = {}
@@ -253,31 +254,41 @@ class Graph:
                    if len(infos) == m and m else f"(one matrix for all {m} edges)")
             return GraphError(f"{et.__name__} {who}: {what}")
 
-        finite = np.isfinite(infos).all(axis=(1, 2))
-        if not finite.all():
-            raise bad_info(finite, "non-finite information matrix")
-        sym = np.isclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12).all(axis=(1, 2))
-        if not sym.all():
-            raise bad_info(sym, "information matrix is not symmetric")
-        def psd(mats: np.ndarray) -> np.ndarray:
-            low = np.linalg.eigvalsh(mats)
-            return low[:, 0] >= -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)
+        # One matrix seen before (an online loop adds a few edges at a time, most with the
+        # information of the last ones) was checked then: its bytes are remembered.
+        seen = len(infos) == 1 and infos[0].tobytes() in self._checked_info
+        if not seen:
+            finite = np.isfinite(infos).all(axis=(1, 2))
+            if not finite.all():
+                raise bad_info(finite, "non-finite information matrix")
+            sym = np.isclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9,
+                             atol=1e-12).all(axis=(1, 2))
+            if not sym.all():
+                raise bad_info(sym, "information matrix is not symmetric")
 
-        # Distinct matrices only (most files share a few, often one: a comparison is 30x
-        # cheaper than np.unique over rows); per edge only to name a failure. One matrix
-        # repeated for every edge (every edge of w10000 and Victoria Park) is stored once: the
-        # weighting is then a broadcast, not m products.
-        if len(infos) > 1 and bool((infos == infos[0]).all()):
-            distinct = infos[:1]
-            info = infos[0].copy()
-        else:
-            distinct = infos if len(infos) <= 1 else np.unique(infos, axis=0)
-        if not psd(distinct).all():
-            raise bad_info(psd(infos), "information matrix is not positive semi-definite")
+            def psd(mats: np.ndarray) -> np.ndarray:
+                low = np.linalg.eigvalsh(mats)
+                return low[:, 0] >= -1e-9 * np.maximum(np.abs(low[:, -1]), 1.0)
+
+            # Distinct matrices only (most files share a few, often one: a comparison is 30x
+            # cheaper than np.unique over rows); per edge only to name a failure. One matrix
+            # repeated for every edge (every edge of w10000 and Victoria Park) is stored once:
+            # the weighting is then a broadcast, not m products.
+            if len(infos) > 1 and bool((infos == infos[0]).all()):
+                distinct = infos[:1]
+                info = infos[0].copy()
+            else:
+                distinct = infos if len(infos) <= 1 else np.unique(infos, axis=0)
+            if not psd(distinct).all():
+                raise bad_info(psd(infos), "information matrix is not positive semi-definite")
+            if len(infos) == 1:
+                if len(self._checked_info) >= 256:
+                    self._checked_info.clear()
+                self._checked_info.add(infos[0].tobytes())
         for pos, vt in enumerate(et.vertex_types):
             # Check each distinct id once; report the first edge that names a bad one.
             col = vids[:, pos]
-            distinct = np.unique(col).tolist()
+            distinct = set(col.tolist()) if m <= 16 else np.unique(col).tolist()
             bad_ids = [v for v in distinct
                        if v not in self.ids or not issubclass(self.ids[v][0].vtype, vt)]
             if bad_ids:

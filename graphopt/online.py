@@ -37,7 +37,7 @@ import scipy.sparse as sp
 
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.incremental.factor import GrowingFactor, block_order
-from graphopt.incremental.state import Batch, State
+from graphopt.incremental.state import Batch, State, by_group
 from graphopt.incremental.whitened import gradient_into, hessian, update_columns
 from graphopt.optimizer import SparseOptimizer
 
@@ -220,8 +220,9 @@ class IncrementalOptimizer:
         if not self._pending and not self._pending_unknowns:
             return
         assert self._factor is not None
-        wb = [self._state.whiten(b) for b in self._pending]
-        self._state.keep_linear(self._pending, wb, fresh=False)
+        pending = by_group(self._pending)
+        wb = [self._state.whiten(b) for b in pending]
+        self._state.keep_linear(pending, wb, fresh=False)
         gradient_into(self._g, wb)
         self._factor.update(update_columns(wb, self._factor.size))
         self._factor.take(self._pending_unknowns)

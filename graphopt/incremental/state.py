@@ -125,15 +125,7 @@ class State:
         out = []
         for key, chunks in self.taken.items():
             if len(chunks) > 1:
-                f = chunks[0]
-                data = {k: np.concatenate([c.data[k] for c in chunks]) for k in f.data}
-                joined = Batch(f.group, *(np.concatenate([getattr(c, a) for c in chunks])
-                                          for a in ("vids", "measurements", "info",
-                                                    "kernel_index")),
-                               data, f.stores,
-                               [np.concatenate([c.slots[a] for c in chunks])
-                                for a in range(len(f.slots))])
-                self.taken[key] = [joined]
+                self.taken[key] = [join_batches(chunks)]
             out.append(self.taken[key][0])
         return out
 
@@ -231,3 +223,23 @@ class State:
                 if not fixed and vid not in seen:
                     return st, int(vid)
         return None
+
+
+def join_batches(chunks: list[Batch]) -> Batch:
+    """One batch of the edges of several batches of one group, in order."""
+    if len(chunks) == 1:
+        return chunks[0]
+    f = chunks[0]
+    data = {k: np.concatenate([c.data[k] for c in chunks]) for k in f.data}
+    return Batch(f.group, *(np.concatenate([getattr(c, a) for c in chunks])
+                            for a in ("vids", "measurements", "info", "kernel_index")),
+                 data, f.stores,
+                 [np.concatenate([c.slots[a] for c in chunks]) for a in range(len(f.slots))])
+
+
+def by_group(batches: list[Batch]) -> list[Batch]:
+    """The batches joined per group (one linearisation call per edge type)."""
+    groups: dict[int, list[Batch]] = {}
+    for b in batches:
+        groups.setdefault(id(b.group), []).append(b)
+    return [join_batches(c) for c in groups.values()]
