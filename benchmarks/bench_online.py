@@ -22,7 +22,7 @@ the pose frame become ``BearingRangeFactor2D`` (bearing ``atan2(y, x)``, range `
 
 One thread on every side (set before numpy loads; GTSAM's wheel has no TBB). ``--repeats``
 rounds run the sides interleaved; the table shows medians of the totals, and the step
-statistics of the median run. Steps are timed in wall time and in process CPU time (columns
+statistics of the median run. Steps are timed in wall time and in the thread's CPU time (columns
 ``CPU``): on a machine shared with other jobs the wall time of either side swings by several
 times between runs, the CPU time much less.
 
@@ -149,7 +149,7 @@ def gtsam_run(schedule: ReplaySchedule, relinearize_skip: int) -> dict[str, Any]
     cpu = np.zeros(n)
     current = None
     for k in range(n):
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0 = time.perf_counter(), time.thread_time()
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         if k == 0:
@@ -187,7 +187,7 @@ def gtsam_run(schedule: ReplaySchedule, relinearize_skip: int) -> dict[str, Any]
         current = (isam.calculateEstimatePose3 if three_d
                    else isam.calculateEstimatePose2)(int(pid[k]))
         steps[k] = time.perf_counter() - t0
-        cpu[k] = time.process_time() - c0
+        cpu[k] = time.thread_time() - c0
     est = isam.calculateEstimate()
     if three_d:
         poses = np.stack([est.atPose3(int(i)).matrix()[:3] for i in pid])

@@ -191,3 +191,12 @@ def test_the_app_replays_online_and_reports_the_steps(tmp_path, capsys) -> None:
                  "--json", str(polished)]) == 0
     p = json.loads(polished.read_text())
     assert p["online"]["final_batch"] and p["final_chi2"] <= s["final_chi2"] + 1e-9
+
+
+def test_the_app_records_the_online_steps(tmp_path, capsys) -> None:
+    pytest.importorskip("rerun")
+    from graphopt.apps.g2o import main
+
+    rrd = tmp_path / "online.rrd"
+    assert main(["--poses", "60", "--online", "--quiet", "--rrd", str(rrd)]) == 0
+    assert rrd.stat().st_size > 1000

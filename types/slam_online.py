@@ -209,7 +209,7 @@ class Replay:
         optimizer: The optimizer holding the replayed graph (estimates after the last step).
         incremental: The incremental optimizer that ran it.
         steps: ``(n,)`` seconds of every step (adding included; wall time).
-        cpu_steps: ``(n,)`` the same in process CPU time (what a loaded machine does not
+        cpu_steps: ``(n,)`` the same in CPU time of the thread (what a loaded machine does not
             inflate).
         poses: ``(n, *pose_shape)`` final pose estimates in step order.
         landmarks: ``(l, 2)`` final landmark estimates in :attr:`ReplaySchedule.landmark_ids`
@@ -250,7 +250,7 @@ def replay(schedule: ReplaySchedule, config: IncrementalConfig | None = None,
     current = schedule.estimates[:1].copy()
     store = None
     for k in range(n):
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0 = time.perf_counter(), time.thread_time()
         if k:
             current = initial_pose(schedule, k, store.estimates[k - 1:k])
         opt.add_vertices(ptype, pid[k:k + 1], current, fixed=k == 0)
@@ -265,7 +265,7 @@ def replay(schedule: ReplaySchedule, config: IncrementalConfig | None = None,
                               e.information[lo:hi], robust_kernel=kernel)
         report = inc.update()
         times[k] = time.perf_counter() - t0
-        cpu[k] = time.process_time() - c0
+        cpu[k] = time.thread_time() - c0
         if store is None:
             store = opt.graph.stores[ptype]
         if on_step is not None:
