@@ -64,6 +64,7 @@ class State:
     known_edges: dict[int, int] = field(default_factory=dict)
     taken: dict[int, list[Batch]] = field(default_factory=dict)
     linear: dict[int, list[Whitened]] = field(default_factory=dict)
+    _free: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
     flags: list[int] = field(default_factory=list)
 
     def store_index(self, st: VertexStore) -> int:
@@ -174,12 +175,16 @@ class State:
                 step changed are written.
         """
         worst = 0.0
-        for st, th, off in zip(self.stores, self.theta, self.offsets, strict=True):
-            free = np.flatnonzero(off >= 0)
+        for si, (st, th, off) in enumerate(zip(self.stores, self.theta, self.offsets,
+                                               strict=True)):
+            hit = self._free.get(si)
+            if hit is None or hit[0] is not off:  # offsets are replaced, never edited
+                free = np.flatnonzero(off >= 0)
+                hit = self._free[si] = (off, free, off[free][:, None]
+                                        + np.arange(st.vtype.dimension))
+            _, free, cols = hit
             if not len(free):
                 continue
-            d = st.vtype.dimension
-            cols = off[free][:, None] + np.arange(d)
             step = delta[cols]
             worst = max(worst, float(np.abs(step).max()))
             if old is not None and len(old) == len(delta):
