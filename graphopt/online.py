@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.incremental.factor import GrowingFactor, block_order
 from graphopt.incremental.state import Batch, State, by_group
-from graphopt.incremental.whitened import gradient_into, hessian, update_columns
+from graphopt.incremental.whitened import gradient_into, hessian, robust_cost, update_columns
 from graphopt.optimizer import SparseOptimizer
 
 __all__ = ["IncrementalConfig", "IncrementalOptimizer", "UpdateReport"]
@@ -183,9 +183,14 @@ class IncrementalOptimizer:
         self.reports.append(report)
         return report
 
-    def chi2(self) -> float:
-        """``Σ e'Ωe`` over every edge taken in, at the current estimates."""
-        return float(sum(self._state.chi2(b).sum() for b in self._state.all_edges()))
+    def chi2(self, robust: bool = True) -> float:
+        """``Σ ρ(e'Ωe)`` over every edge taken in, at the current estimates (what the
+        optimizer minimises; ``Σ e'Ωe`` with ``robust=False``, equal without kernels).
+
+        Args:
+            robust: Apply the edges' robust kernels.
+        """
+        return float(sum(self._state.chi2(b, robust).sum() for b in self._state.all_edges()))
 
     @property
     def factor(self) -> GrowingFactor | None:
@@ -241,9 +246,11 @@ class IncrementalOptimizer:
         self._delta = delta
         worst = self._state.apply(delta, old)
         report.solved, report.factor = True, "updated"
-        if worst > cfg.relinearize_threshold and worst > self._checked * 1.5:
+        robust = any(g.kernels for g in self.optimizer.graph.groups.values())
+        if robust or (worst > cfg.relinearize_threshold and worst > self._checked * 1.5):
             # A vertex left its linearisation point: relinearise if the linear model no
-            # longer predicts the chi2 (checked again only once the steps grew by half).
+            # longer predicts the chi2 (checked again only once the steps grew by half; with
+            # robust kernels at every solve, as their weights go stale with any step).
             true, model = self._state.model_check(delta)
             self._checked = worst
             if abs(true - model) > cfg.model_tolerance * max(true, 1.0):
@@ -273,7 +280,8 @@ class IncrementalOptimizer:
             wb = [st.whiten(b) for b in batches]
             st.keep_linear(batches, wb, fresh=True)
             self._checked = 0.0
-            before = float(sum(w.chi2.sum() for w in wb))
+            before = float(sum(robust_cost(w.chi2, b.kernel_index, b.group.kernels).sum()
+                               for w, b in zip(wb, batches, strict=True)))
             H = hessian(wb, n)
             self._g = np.zeros(n + reserve)
             gradient_into(self._g, wb)

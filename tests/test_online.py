@@ -200,3 +200,18 @@ def test_the_app_records_the_online_steps(tmp_path, capsys) -> None:
     rrd = tmp_path / "online.rrd"
     assert main(["--poses", "60", "--online", "--quiet", "--rrd", str(rrd)]) == 0
     assert rrd.stat().st_size > 1000
+
+
+def test_a_replay_with_a_robust_kernel_ends_at_the_robust_optimum() -> None:
+    from graphopt import RobustKernelHuber
+
+    graph = manhattan_world(200, 3, sigma_xy=0.2)[0]
+    kernel = RobustKernelHuber(1.0)
+    out = replay(replay_schedule(build_graph(graph)), kernel=kernel)
+    slam = build_graph(graph)
+    for group in slam.optimizer.edge_groups():
+        group.set_kernel(slice(None), kernel)
+    slam.optimizer.optimize(100)
+    slam.optimizer.compute_active_errors()
+    best = float(slam.optimizer.active_robust_chi2())
+    assert out.incremental.chi2() <= best * 1.005

@@ -19,6 +19,8 @@ from graphopt.incremental.whitened import (
     edge_chi2,
     join,
     linear_residual,
+    robust_cost,
+    robust_weights,
     whiten,
 )
 from graphopt.storage import VertexStore
@@ -138,14 +140,17 @@ class State:
             self.linear.setdefault(id(b.group), []).append(w)
 
     def model_check(self, delta: np.ndarray) -> tuple[float, float]:
-        """``(chi2, model)``: the weighted chi2 of every edge at the current estimates and
-        the linear model's ``Σ‖r + AΔ‖²`` (call when every edge taken in is in the factor)."""
+        """``(chi2, model)``: the weighted chi2 of every edge at the current estimates (robust
+        weights ``ρ'`` taken there: weights gone stale count as a model error too) and the
+        linear model's ``Σ‖r + AΔ‖²`` (call when every edge taken in is in the factor)."""
         true = model = 0.0
         for key, rows in self.linear.items():
             joined = join(rows)
             self.linear[key] = [joined]
             b = next(x for x in self.all_edges() if id(x.group) == key)
-            true += float(joined.weight @ self.chi2(b))
+            s = self.chi2(b)
+            w = robust_weights(s, b.kernel_index, b.group.kernels)  # today's weights: a
+            true += float(s @ (w * w) if w is not None else s.sum())  # stale one also counts
             model += float(np.square(linear_residual(joined, delta)).sum())
         return true, model
 
@@ -160,11 +165,12 @@ class State:
         return whiten(g.etype, g.params, x, b.measurements, b.info, self.cols(b),
                       b.kernel_index, g.kernels, b.data)
 
-    def chi2(self, b: Batch) -> np.ndarray:
-        """``e'Ωe`` per edge at the current estimates."""
+    def chi2(self, b: Batch, robust: bool = False) -> np.ndarray:
+        """``e'Ωe`` per edge at the current estimates (``ρ(e'Ωe)`` if ``robust``)."""
         g = b.group
         x = [self.stores[si].estimates[s] for si, s in zip(b.stores, b.slots, strict=True)]
-        return edge_chi2(g.etype, g.params, x, b.measurements, b.info, b.data)
+        s = edge_chi2(g.etype, g.params, x, b.measurements, b.info, b.data)
+        return robust_cost(s, b.kernel_index, g.kernels) if robust else s
 
     def apply(self, delta: np.ndarray, old: np.ndarray | None = None) -> float:
         """Estimates ``θ ⊞ Δ`` of every vertex with unknowns; returns ``max |Δ|``.

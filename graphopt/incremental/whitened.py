@@ -107,6 +107,24 @@ def robust_weights(chi2: np.ndarray, kernel_index: np.ndarray,
     return w
 
 
+def robust_cost(chi2: np.ndarray, kernel_index: np.ndarray,
+                kernels: Sequence[RobustKernel]) -> np.ndarray:
+    """``ρ(s)`` per edge (``s`` itself without a kernel): what the optimizer minimises.
+
+    Args:
+        chi2: ``(m,)`` ``s = e'Ωe``.
+        kernel_index: ``(m,)`` kernel slot per edge (``-1``: none).
+        kernels: The group's kernels.
+    """
+    if not len(kernels) or not (kernel_index >= 0).any():
+        return chi2
+    out = chi2.copy()
+    for k in np.unique(kernel_index[kernel_index >= 0]).tolist():
+        sel = kernel_index == k
+        out[sel] = kernels[k].robustify(chi2[sel])[0]
+    return out
+
+
 def whiten(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray], measurements: np.ndarray,
            info: np.ndarray, cols: list[np.ndarray], kernel_index: np.ndarray,
            kernels: Sequence[RobustKernel], data: dict[str, np.ndarray]) -> Whitened:
