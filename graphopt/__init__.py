@@ -1,8 +1,10 @@
 """graphopt: g2o-style graph optimisation with batched (struct-of-arrays) edges."""
 
 from graphopt.algorithms import DoglegConfig, GaussNewtonConfig, LevenbergConfig
+from graphopt.autodiff import Jet, JetError
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError, NotPositiveDefiniteError, SingularSystemError
+from graphopt.jacobian_check import JacobianCheck, check_jacobians, edge_jacobians
 from graphopt.linear import SchurConfig
 from graphopt.numeric import numeric_jacobians
 from graphopt.online import IncrementalConfig, IncrementalOptimizer, UpdateReport
@@ -48,6 +50,9 @@ __all__ = [
     "IncrementalConfig",
     "IncrementalOptimizer",
     "IterationInfo",
+    "JacobianCheck",
+    "Jet",
+    "JetError",
     "LevenbergConfig",
     "Linearization",
     "LinearSolver",
@@ -77,6 +82,8 @@ __all__ = [
     "StoppingConfig",
     "UpdateReport",
     "VertexVector",
+    "check_jacobians",
+    "edge_jacobians",
     "make_kernel",
     "numeric_jacobians",
 ]
