@@ -60,6 +60,8 @@ class IncrementalConfig:
             (a full evaluation); a batch step relinearises everything if they differ by more
             than ``model_tolerance`` (relative).
         model_tolerance: See ``relinearize_threshold``.
+        check_every: While a vertex stays past the threshold, the model is checked again
+            after this many solves (or once the largest step grew by half).
         solve_threshold: New edges whose chi2 at the current estimate is at most this are
             taken in without a solve.
         check_chi2: Also check the chi2 of every incremental solve (a full evaluation), not
@@ -75,7 +77,8 @@ class IncrementalConfig:
     recent: int = 64
     reserve_fraction: float = 0.0
     relinearize_threshold: float = 0.1
-    model_tolerance: float = 1e-3
+    model_tolerance: float = 1e-4
+    check_every: int = 20
     solve_threshold: float = 1e-9
     check_chi2: bool = False
     max_batch_iterations: int = 5
@@ -136,6 +139,7 @@ class IncrementalOptimizer:
         self._delta = np.zeros(0)
         self._removals = 0
         self._checked = 0.0
+        self._since_check = 0
         self.reports: list[UpdateReport] = []
 
     # --- public ------------------------------------------------------------------------------
@@ -247,12 +251,15 @@ class IncrementalOptimizer:
         worst = self._state.apply(delta, old)
         report.solved, report.factor = True, "updated"
         robust = any(g.kernels for g in self.optimizer.graph.groups.values())
-        if robust or (worst > cfg.relinearize_threshold and worst > self._checked * 1.5):
+        self._since_check += 1
+        if robust or (worst > cfg.relinearize_threshold and (
+                worst > self._checked * 1.5 or self._since_check >= cfg.check_every)):
             # A vertex left its linearisation point: relinearise if the linear model no
-            # longer predicts the chi2 (checked again only once the steps grew by half; with
-            # robust kernels at every solve, as their weights go stale with any step).
+            # longer predicts the chi2 (checked again once the steps grew by half or after
+            # check_every solves; with robust kernels at every solve, as their weights go
+            # stale with any step).
             true, model = self._state.model_check(delta)
-            self._checked = worst
+            self._checked, self._since_check = worst, 0
             if abs(true - model) > cfg.model_tolerance * max(true, 1.0):
                 self._rebuild(report, "relinearize")
         elif before is not None and self.chi2() > before:
@@ -279,7 +286,7 @@ class IncrementalOptimizer:
                 self.config.reserve, int(self.config.reserve_fraction * report.relinearized))
             wb = [st.whiten(b) for b in batches]
             st.keep_linear(batches, wb, fresh=True)
-            self._checked = 0.0
+            self._checked, self._since_check = 0.0, 0
             before = float(sum(robust_cost(w.chi2, b.kernel_index, b.group.kernels).sum()
                                for w, b in zip(wb, batches, strict=True)))
             H = hessian(wb, n)
