@@ -274,7 +274,10 @@ class IncrementalOptimizer:
         st = self._state
         report.factor, report.reason, report.solved = "rebuilt", reason, True
         self._pending, self._pending_unknowns = [], 0
-        for _ in range(self.config.max_batch_iterations):
+        # A reserve step only makes room: one iteration (the model check relinearises later
+        # if it must); the others iterate to convergence.
+        iterations = 1 if reason == "reserve" else self.config.max_batch_iterations
+        for _ in range(iterations):
             st.relinearize_all()
             batches = st.all_edges()
             self._renumber(batches)
