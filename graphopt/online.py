@@ -361,8 +361,8 @@ class IncrementalOptimizer:
         st = self._state
         base, counts = [], []
         total = 0
-        for off in st.offsets:
-            free = off >= 0
+        for store, off in zip(st.stores, st.offsets, strict=True):
+            free = ~store.fixed[: len(off)]  # the flags as they are now
             block = np.full(len(off), -1, np.int64)
             block[free] = total + np.arange(int(free.sum()))
             total += int(free.sum())

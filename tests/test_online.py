@@ -215,3 +215,16 @@ def test_a_replay_with_a_robust_kernel_ends_at_the_robust_optimum() -> None:
     slam.optimizer.compute_active_errors()
     best = float(slam.optimizer.active_robust_chi2())
     assert out.incremental.chi2() <= best * 1.005
+
+
+def test_fixing_a_vertex_between_updates_rebuilds_without_it() -> None:
+    opt = SparseOptimizer()
+    _chain(opt, 5)
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    opt.vertex(4).set_fixed(True)
+    opt.add_edges(EdgeSE2, [[0, 4]], [[4.05, 0.0, 0.0]], INFO)
+    report = inc.update()
+    assert report.factor == "rebuilt" and report.reason == "flags"
+    assert inc.factor.used == 9  # poses 1-3 free
+    assert np.allclose(opt.vertex(4).estimate, [4.0, 0.0, 0.0])
