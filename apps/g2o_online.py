@@ -77,12 +77,12 @@ def _copy_estimates(src: SparseOptimizer, dst: SparseOptimizer) -> None:
 
 def _step_recorder(path: str, prog: str, view: GraphView, n: int) -> tuple[Any, Any]:
     """A recording and the callback that logs a step into it (on the ``step`` timeline)."""
-    recording = SlamRecording(path, prog, view)
+    recording = SlamRecording(path, prog, view, timeline="step")
     every = max(1, n // TRAJECTORY_FRAMES)
 
     def log(k: int, seconds: float, poses: np.ndarray) -> None:
         with recording.timed() as rec:
-            rec._rec.set_time("step", sequence=k)  # until the recording API has timelines
+            rec.set_step(k)
             rec.log_scalar("step_seconds", seconds)
             if k % every == 0 or k == n - 1:
                 xyz = poses[:, :3, 3] if poses.ndim == 3 else np.column_stack(
