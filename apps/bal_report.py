@@ -19,7 +19,13 @@ import numpy as np
 from graphopt.apps._cli import RunRecording
 from graphopt.io.bal import BALProblem
 from graphopt.lie import make_transform, so3_exp, transform_inverse
-from graphopt.recording_view import BEFORE, OUTLIER, ErrorScale, outlier_mask, summary_markdown
+from graphopt.recording_view import (
+    BEFORE,
+    OUTLIER,
+    ErrorScale,
+    outlier_mask,
+    run_summary_markdown,
+)
 from graphopt.types.bal import EdgeBALProjection, reprojection_errors
 
 __all__ = ["MAX_POINTS", "STILL", "BALRecording", "cameras_to_poses", "point_rms",
@@ -189,27 +195,19 @@ def recording_markdown(prog: str, s: dict[str, Any], rec: BALRecording) -> str:
     lm = f" ({s['lm_schedule']} schedule, {s['lm_damping']} damping)" if s.get("lm_damping") \
         else ""
     shown = len(rec.shown)
-    rows = [
+    head = [
         ("input", f"`{s['input']}`"),
         ("size", f"{s['cameras']} cameras, {s['points']} points, {s['observations']} "
                  "observations"),
         ("algorithm", f"{s['algorithm']}{lm}"),
-        ("linear solver", s["solver_text"]),
-        ("robust kernel", s["robust_kernel"] or "none"),
-        ("stop", f"{s['stop_reason']} after {s['iterations']} iterations"),
-        ("chi2", f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g}"),
-        ("RMS reprojection error", f"{s['initial_rms_px']:.4g} px → {s['rms_px']:.4g} px"),
-        ("seconds", f"{s['seconds']:.3f} ({s['seconds_per_iteration']:.4f} per iteration, "
-                    "without the recording)"),
     ]
-    notes = []
-    if rec.scale is not None:
-        notes.append(rec.scale.legend())
-    notes.append(
-        "**Entities**: `world/before` the start (grey; toggle it with its eye in the blueprint "
-        "panel), `world/after` the estimate at the selected iteration"
-        + (f" ({shown} of {s['points']} points, evenly spaced)" if shown < s["points"] else "")
+    return run_summary_markdown(
+        f"{prog}", s, head, solver_text=s["solver_text"],
+        chi2=f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g}",
+        after_chi2=[("RMS reprojection error",
+                     f"{s['initial_rms_px']:.4g} px → {s['rms_px']:.4g} px")],
+        scale=rec.scale,
+        entities=(f" ({shown} of {s['points']} points, evenly spaced)"
+                  if shown < s["points"] else "")
         + (f", `world/after/outliers` ({rec.outliers} observations the kernel down-weights "
-           "at the end: ρ' < 1 beyond its width) in magenta" if rec.outliers else "")
-        + ". Scrub the `iteration` timeline to replay the run.")
-    return summary_markdown(f"{prog}", rows, notes)
+           "at the end: ρ' < 1 beyond its width) in magenta" if rec.outliers else ""))

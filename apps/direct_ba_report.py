@@ -19,7 +19,7 @@ from graphopt.recording_view import (
     TRUTH,
     ErrorScale,
     outlier_mask,
-    summary_markdown,
+    run_summary_markdown,
 )
 
 __all__ = ["DirectBARecording", "pose_errors", "recording_markdown", "truth_report", "write_png"]
@@ -318,33 +318,26 @@ def recording_markdown(prog: str, s: dict[str, Any], rec: DirectBARecording,
         rec: The recording (its colour scale and outliers).
         solver_text: How to name the linear solver.
     """
-    rows = [
+    head = [
         ("input", f"`{s['input']}`"),
         ("size", f"{s['poses']} images, {s['points']} points ({s['parametrization']})"),
         ("edges", f"{s['edges']} patches {s['patch']}x{s['patch']}; active "
                   f"{s['active_edges']} → {s['active_edges_final']}"),
         ("algorithm", s["algorithm"]),
-        ("linear solver", solver_text),
-        ("robust kernel", s["robust_kernel"] or "none"),
-        ("stop", f"{s['stop_reason']} after {s['iterations']} iterations"),
-        ("chi2", f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g} (robust, Σ ρ(e'e))"),
-        ("seconds", f"{s['seconds']:.3f} ({s['seconds_per_iteration']:.4f} per iteration, "
-                    "without the recording)"),
     ]
+    tail = []
     if "final_rotation_error_deg_mean" in s:
-        rows.append(("vs truth", f"rotation {s['initial_rotation_error_deg_mean']:.3g} → "
+        tail.append(("vs truth", f"rotation {s['initial_rotation_error_deg_mean']:.3g} → "
                                  f"{s['final_rotation_error_deg_mean']:.3g} deg (mean), points "
                                  f"{s['initial_point_error_m_median']:.3g} → "
                                  f"{s['final_point_error_m_median']:.3g} (median)"))
-    notes = [] if rec.scale is None else [rec.scale.legend()]
     share = rec.outliers / max(s["edges"], 1)
-    notes.append(
-        "**Entities**: `world/before` the start (grey; toggle it with its eye in the blueprint "
-        "panel), `world/after` the estimate at the selected iteration, `images/{k}` each image "
-        "with its patches' projections"
+    return run_summary_markdown(
+        prog, s, head, solver_text=solver_text,
+        chi2=f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g} (robust, Σ ρ(e'e))",
+        tail=tail, scale=rec.scale,
+        entities=", `images/{k}` each image with its patches' projections"
         + (f"; `outliers` ({rec.outliers} patches, {100 * share:.0f} % of the edges, that the "
            "kernel down-weights at the end: ρ' < 1 beyond its width) in magenta"
            + (", hidden at first: the kernel is narrower than most residuals (show them with "
-              "their eye)" if rec.outliers_hidden else "") if rec.outliers else "")
-        + ". Scrub the `iteration` timeline to replay the run.")
-    return summary_markdown(prog, rows, notes)
+              "their eye)" if rec.outliers_hidden else "") if rec.outliers else ""))

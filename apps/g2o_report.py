@@ -25,7 +25,7 @@ from graphopt.recording_view import (
     TRUTH,
     ErrorScale,
     outlier_mask,
-    summary_markdown,
+    run_summary_markdown,
 )
 from graphopt.types.slam_graph import VERTEX_TYPES, SlamGraph
 
@@ -456,32 +456,24 @@ def recording_markdown(prog: str, s: dict[str, Any], rec: SlamRecording,
     counts = ", ".join(f"{t} {n}" for t, n in s["edge_types"].items())
     robust = (f"; with the kernel {s['initial_robust_chi2']:.6g} → "
               f"{s['final_robust_chi2']:.6g}" if s["robust_kernel"] else "")
-    rows = [
+    head = [
         ("input", f"`{s['input']}`"),
         ("size", f"{s['vertices']} vertices, {s['edges']} edges ({counts}), "
                  f"{s['loop_closures']} loop closures"),
         ("algorithm", s["algorithm"] + (f" ({s['lm_schedule']} schedule)"
                                         if s.get("lm_schedule") else "")),
-        ("linear solver", solver_text),
-        ("robust kernel", s["robust_kernel"] or "none"),
-        ("stop", f"{s['stop_reason']} after {s['iterations']} iterations"),
-        ("chi2", f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g} (g2o's Σ e'Ωe{robust})"),
-        ("seconds", f"{s['seconds']:.3f} ({s['seconds_per_iteration']:.4f} per iteration, "
-                    "without the recording)"),
     ]
     g = s.get("ground_truth")
-    if g is not None:
-        rows.append(("vs ground truth", f"position RMS {g['initial']['rms_position']:.4g} → "
-                                        f"{g['final']['rms_position']:.4g}"))
-    notes = [] if rec.scale is None else [rec.scale.legend()]
-    notes.append(
-        "**Entities**: `world/before` the start (grey; toggle it with its eye in the blueprint "
-        "panel), `world/after` the estimate at the selected iteration: `trajectory` (odometry "
-        "edges), `loop_closures`"
+    tail = [] if g is None else [
+        ("vs ground truth", f"position RMS {g['initial']['rms_position']:.4g} → "
+                            f"{g['final']['rms_position']:.4g}")]
+    return run_summary_markdown(
+        prog, s, head, solver_text=solver_text,
+        chi2=f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g} (g2o's Σ e'Ωe{robust})",
+        tail=tail, scale=rec.scale,
+        entities=": `trajectory` (odometry edges), `loop_closures`"
         + (", `landmarks`" if len(rec.landmark_ids) else "")
         + (f", `outliers` ({rec.outliers} edges the kernel down-weights at the end: ρ' < 1 "
            "beyond its width) in magenta" if rec.outliers else "")
-        + ("; `world/truth` the true trajectory (green)" if g is not None else "")
-        + ". Scrub the `iteration` timeline to replay the run.")
-    return summary_markdown(prog, rows, notes)
+        + ("; `world/truth` the true trajectory (green)" if g is not None else ""))
 

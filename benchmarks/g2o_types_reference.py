@@ -109,6 +109,21 @@ def _edge(g2o: Any, opt: Any, cls: str, verts: list[Any], z: Any, info: np.ndarr
     return e
 
 
+def _lots_edge(g2o: Any, opt: Any, cls: str, d: int, verts: list[Any], z: np.ndarray,
+               info: np.ndarray) -> Any:
+    """A variable-arity edge (one pose, ``k`` points of dimension ``d``): g2o wants its
+    dimension and vertex count set before the vertices."""
+    e = getattr(g2o, cls)()
+    e.set_dimension(d * (len(verts) - 1))
+    e.resize(len(verts))
+    for j, v in enumerate(verts):
+        e.set_vertex(j, v)
+    e.set_measurement(z)
+    e.set_information(info)
+    assert opt.add_edge(e), cls
+    return e
+
+
 def _iso(g2o: Any, T: np.ndarray) -> Any:
     return g2o.Isometry3d(np.ascontiguousarray(T))
 
@@ -165,15 +180,7 @@ def slam3d(rng: np.random.Generator) -> list[dict[str, Any]]:
     def b_lots(g2o: Any, opt: Any, i: int) -> Any:
         v = [_vertex(g2o, opt, "VertexSE3", 10 * i, _iso(g2o, xi[i]))]
         v += [_vertex(g2o, opt, "VertexPointXYZ", 10 * i + 1 + j, pts[j][i]) for j in range(k)]
-        e = g2o.EdgeSE3LotsOfXYZ()
-        e.set_dimension(3 * k)
-        e.resize(k + 1)
-        for j, vv in enumerate(v):
-            e.set_vertex(j, vv)
-        e.set_measurement(c.z[i])
-        e.set_information(c.info[i])
-        assert opt.add_edge(e)
-        return e
+        return _lots_edge(g2o, opt, "EdgeSE3LotsOfXYZ", 3, v, c.z[i], c.info[i])
     out.append(c.record(_g2o_chi2(c, b_lots)))
     out += _camera_edges(rng, xi)
     return out
@@ -274,15 +281,7 @@ def slam2d(rng: np.random.Generator) -> list[dict[str, Any]]:
     def b_lots(g2o: Any, opt: Any, i: int) -> Any:
         v = [_vertex(g2o, opt, "VertexSE2", 10 * i, se2(g2o, xi[i]))]
         v += [_vertex(g2o, opt, "VertexPointXY", 10 * i + 1 + j, pts[j][i]) for j in range(k)]
-        e = g2o.EdgeSE2LotsOfXY()
-        e.set_dimension(2 * k)
-        e.resize(k + 1)
-        for j, vv in enumerate(v):
-            e.set_vertex(j, vv)
-        e.set_measurement(c.z[i])
-        e.set_information(c.info[i])
-        assert opt.add_edge(e)
-        return e
+        return _lots_edge(g2o, opt, "EdgeSE2LotsOfXY", 2, v, c.z[i], c.info[i])
     out.append(c.record(_g2o_chi2(c, b_lots)))
     return out
 

@@ -41,6 +41,23 @@ class _RigidBase:
         obj._R, obj._t = R, t
         return obj
 
+    def _set_common(self, args: tuple[Any, ...]) -> bool:
+        """Set from the forms both constructors take: nothing (identity), ``(R, t)`` or another
+        rigid transform (copied). ``False`` for a single other argument, left to the subclass.
+
+        Args:
+            args: The constructor's arguments.
+        """
+        if not args:
+            self._R, self._t = np.eye(3), np.zeros(3)
+        elif len(args) == 2:
+            self._R, self._t = _rotation(args[0]), vector(args[1], 3, "translation")
+        elif isinstance(args[0], _RigidBase):
+            self._R, self._t = args[0]._R.copy(), args[0]._t.copy()
+        else:
+            return False
+        return True
+
     def rotation_matrix(self) -> np.ndarray:
         """The 3x3 rotation matrix."""
         return self._R.copy()
@@ -117,17 +134,12 @@ class Isometry3d(_RigidBase):
     __slots__ = ()
 
     def __init__(self, *args: Any) -> None:
-        if not args:
-            self._R, self._t = np.eye(3), np.zeros(3)
-        elif len(args) == 2:
-            self._R, self._t = _rotation(args[0]), vector(args[1], 3, "translation")
-        elif isinstance(args[0], _RigidBase):
-            self._R, self._t = args[0]._R.copy(), args[0]._t.copy()
-        else:
-            m = np.array(args[0], dtype=float)
-            if m.shape not in ((4, 4), (3, 4)):
-                raise ValueError(f"Isometry3d: expected a 4x4 or 3x4 matrix, got {m.shape}")
-            self._R, self._t = m[:3, :3].copy(), m[:3, 3].copy()
+        if self._set_common(args):
+            return
+        m = np.array(args[0], dtype=float)
+        if m.shape not in ((4, 4), (3, 4)):
+            raise ValueError(f"Isometry3d: expected a 4x4 or 3x4 matrix, got {m.shape}")
+        self._R, self._t = m[:3, :3].copy(), m[:3, 3].copy()
 
     def rotation(self) -> np.ndarray:
         """The 3x3 rotation matrix (Eigen's ``rotation()``)."""
@@ -174,21 +186,16 @@ class SE3Quat(_RigidBase):
     __slots__ = ()
 
     def __init__(self, *args: Any) -> None:
-        if not args:
-            self._R, self._t = np.eye(3), np.zeros(3)
-        elif len(args) == 2:
-            self._R, self._t = _rotation(args[0]), vector(args[1], 3, "translation")
-        elif isinstance(args[0], _RigidBase):
-            self._R, self._t = args[0]._R.copy(), args[0]._t.copy()
+        if self._set_common(args):
+            return
+        v = np.array(args[0], dtype=float).ravel()
+        if v.size == 7:
+            self._R, self._t = quat_to_matrix(v[None, 3:] / np.linalg.norm(v[3:]))[0], v[:3]
+        elif v.size == 6:
+            w = math.sqrt(max(0.0, 1.0 - float(v[3:] @ v[3:])))
+            self._R, self._t = quat_to_matrix(np.append(v[3:], w)[None])[0], v[:3]
         else:
-            v = np.array(args[0], dtype=float).ravel()
-            if v.size == 7:
-                self._R, self._t = quat_to_matrix(v[None, 3:] / np.linalg.norm(v[3:]))[0], v[:3]
-            elif v.size == 6:
-                w = math.sqrt(max(0.0, 1.0 - float(v[3:] @ v[3:])))
-                self._R, self._t = quat_to_matrix(np.append(v[3:], w)[None])[0], v[:3]
-            else:
-                raise ValueError(f"SE3Quat: expected (R, t), 6 or 7 values, got {v.size}")
+            raise ValueError(f"SE3Quat: expected (R, t), 6 or 7 values, got {v.size}")
 
     def rotation(self) -> Quaternion:
         """The rotation as a quaternion (g2o's ``rotation()``)."""

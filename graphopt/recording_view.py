@@ -16,7 +16,7 @@ Every app's recording has the same shape, so that a reviewer who has seen one ca
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,6 +32,7 @@ __all__ = [
     "error_colors",
     "outlier_mask",
     "run_blueprint",
+    "run_summary_markdown",
     "summary_markdown",
 ]
 
@@ -162,6 +163,54 @@ def summary_markdown(title: str, rows: Sequence[tuple[str, str]],
     for note in notes:
         lines += ["", note]
     return "\n".join(lines) + "\n"
+
+
+def run_summary_markdown(
+    title: str,
+    s: Mapping[str, Any],
+    head: Sequence[tuple[str, str]],
+    *,
+    solver_text: str,
+    chi2: str,
+    after_chi2: Sequence[tuple[str, str]] = (),
+    tail: Sequence[tuple[str, str]] = (),
+    scale: ErrorScale | None = None,
+    entities: str = "",
+) -> str:
+    """The summary document of an app's optimisation run (:func:`summary_markdown`): the app's
+    ``head`` rows, the rows every app has (linear solver, robust kernel, stop, chi2, seconds),
+    the colour scale's legend and the note on the entities.
+
+    Args:
+        title: First line.
+        s: The app's summary dictionary (``robust_kernel``, ``stop_reason``, ``iterations``,
+            ``seconds``, ``seconds_per_iteration``).
+        head: Rows before the linear solver (input, size, algorithm).
+        solver_text: How to name the linear solver.
+        chi2: The chi2 row's value.
+        after_chi2: Rows between chi2 and seconds.
+        tail: Rows after seconds.
+        scale: The error colours' scale (its legend is the first note), if any.
+        entities: What follows "``world/after`` the estimate at the selected iteration" in
+            the entities note.
+    """
+    rows = [
+        *head,
+        ("linear solver", solver_text),
+        ("robust kernel", s["robust_kernel"] or "none"),
+        ("stop", f"{s['stop_reason']} after {s['iterations']} iterations"),
+        ("chi2", chi2),
+        *after_chi2,
+        ("seconds", f"{s['seconds']:.3f} ({s['seconds_per_iteration']:.4f} per iteration, "
+                    "without the recording)"),
+        *tail,
+    ]
+    notes = [] if scale is None else [scale.legend()]
+    notes.append(
+        "**Entities**: `world/before` the start (grey; toggle it with its eye in the blueprint "
+        "panel), `world/after` the estimate at the selected iteration" + entities
+        + ". Scrub the `iteration` timeline to replay the run.")
+    return summary_markdown(title, rows, notes)
 
 
 def run_blueprint(

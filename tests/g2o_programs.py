@@ -20,15 +20,13 @@ def _scene(seed: int, n_points: int = 500, n_poses: int = 15) -> tuple[Any, ...]
     return rng, points, n_poses
 
 
-def ba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, outlier_ratio: float = 0.0,
-            robust: bool = False, iterations: int = 10, n_points: int = 500) -> dict[str, Any]:
-    """g2o's ``ba_demo``: 15 poses (2 fixed), points marginalised, ``EdgeProjectXYZ2UV``.
+def _ba_demo_graph(g2o: Any, num_pose: int) -> tuple[Any, Any, list[Any]]:
+    """The start both BA demos share: a Levenberg optimizer on ``BlockSolverSE3``, the camera
+    (parameter 0), ``num_pose`` ``VertexSE3Expmap`` 4 cm apart along x (the first two fixed).
 
     Returns:
-        ``chi2`` (final active chi2), ``rmse_before``/``rmse_after`` of the inlier points,
-        ``iterations``, ``edges``.
+        ``(optimizer, cam, true_poses)``.
     """
-    rng, true_points, num_pose = _scene(seed, n_points)
     optimizer = g2o.SparseOptimizer()
     solver = g2o.BlockSolverSE3(g2o.LinearSolverEigenSE3())
     optimizer.set_algorithm(g2o.OptimizationAlgorithmLevenberg(solver))
@@ -44,14 +42,51 @@ def ba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, outlier_ratio: float = 
         v.set_estimate(pose)
         v.set_fixed(i < 2)
         optimizer.add_vertex(v)
+    return optimizer, cam, true_poses
+
+
+def _in_image(observations: Any) -> list[tuple[int, np.ndarray]]:
+    """The ``(pose index, pixel)`` observations that fall inside the 640x480 image."""
+    return [(j, z) for j, z in observations if 0 <= z[0] < 640 and 0 <= z[1] < 480]
+
+
+def _dense_levenberg(g2o: Any) -> Any:
+    """An optimizer with Levenberg on a dense ``BlockSolverX`` (the small test programs)."""
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    return opt
+
+
+def _edge_chi2s(opt: Any, edges: dict[str, Any]) -> dict[str, float]:
+    """``{name: chi2}`` of each edge at the current estimates."""
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    for e in edges.values():
+        e.compute_error()
+    return {name: float(e.chi2()) for name, e in edges.items()}
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    """A random proper rotation ``(3, 3)`` (QR of a Gaussian matrix, reflected if needed)."""
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    return R if np.linalg.det(R) > 0 else -R
+
+
+def ba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, outlier_ratio: float = 0.0,
+            robust: bool = False, iterations: int = 10, n_points: int = 500) -> dict[str, Any]:
+    """g2o's ``ba_demo``: 15 poses (2 fixed), points marginalised, ``EdgeProjectXYZ2UV``.
+
+    Returns:
+        ``chi2`` (final active chi2), ``rmse_before``/``rmse_after`` of the inlier points,
+        ``iterations``, ``edges``.
+    """
+    rng, true_points, num_pose = _scene(seed, n_points)
+    optimizer, cam, true_poses = _ba_demo_graph(g2o, num_pose)
     point_cls = getattr(g2o, "VertexPointXYZ", None) or g2o.VertexSBAPointXYZ
     point_id, inliers, sse0 = num_pose, {}, 0.0
     for i, point in enumerate(true_points):
-        visible = []
-        for j, pose in enumerate(true_poses):
-            z = cam.cam_map(pose * point)
-            if 0 <= z[0] < 640 and 0 <= z[1] < 480:
-                visible.append((j, z))
+        visible = _in_image((j, cam.cam_map(pose * point)) for j, pose in enumerate(true_poses))
         if len(visible) < 2:
             continue
         vp = point_cls()
@@ -101,29 +136,11 @@ def ba_anchored_inverse_depth(g2o: Any, seed: int = 0, noise: float = 1.0,
         ``chi2``, ``rmse_before``/``rmse_after`` (world points), ``iterations``.
     """
     rng, true_points, num_pose = _scene(seed, n_points)
-    optimizer = g2o.SparseOptimizer()
-    solver = g2o.BlockSolverSE3(g2o.LinearSolverEigenSE3())
-    optimizer.set_algorithm(g2o.OptimizationAlgorithmLevenberg(solver))
-    cam = g2o.CameraParameters(1000.0, np.array([320.0, 240.0]), 0.0)
-    cam.set_id(0)
-    optimizer.add_parameter(cam)
-    true_poses = []
-    for i in range(num_pose):
-        pose = g2o.SE3Quat(np.identity(3), np.array([i * 0.04 - 1, 0, 0]))
-        true_poses.append(pose)
-        v = g2o.VertexSE3Expmap()
-        v.set_id(i)
-        v.set_estimate(pose)
-        v.set_fixed(i < 2)
-        optimizer.add_vertex(v)
+    optimizer, cam, true_poses = _ba_demo_graph(g2o, num_pose)
     point_cls = getattr(g2o, "VertexPointXYZ", None) or g2o.VertexSBAPointXYZ
     point_id, inliers, sse0 = num_pose, {}, 0.0
     for i, point in enumerate(true_points):
-        visible = []
-        for j, pose in enumerate(true_poses):
-            z = cam.cam_map(pose * point)
-            if 0 <= z[0] < 640 and 0 <= z[1] < 480:
-                visible.append((j, z))
+        visible = _in_image((j, cam.cam_map(pose * point)) for j, pose in enumerate(true_poses))
         if len(visible) < 2:
             continue
         vp = point_cls()
@@ -244,9 +261,7 @@ def gicp_demo(g2o: Any, seed: int = 0, noise: float = 0.02, n_points: int = 1000
         ``[0, 0, 1]``), ``iterations``.
     """
     rng = np.random.default_rng(seed)
-    optimizer = g2o.SparseOptimizer()
-    optimizer.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
-        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    optimizer = _dense_levenberg(g2o)
     true_points = np.column_stack([rng.random(n_points) * 3 - 1.5, rng.random(n_points) - 0.5,
                                    rng.random(n_points) + 10])
     for i in range(2):
@@ -294,9 +309,7 @@ def sensor_types_chi2(g2o: Any, seed: int = 0) -> dict[str, float]:
         ``{edge class: chi2}`` after ``compute_active_errors``.
     """
     rng = np.random.default_rng(seed)
-    opt = g2o.SparseOptimizer()
-    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
-        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    opt = _dense_levenberg(g2o)
     off = g2o.ParameterSE3Offset()
     off.set_id(0)
     opt.add_parameter(off)
@@ -364,11 +377,7 @@ def sensor_types_chi2(g2o: Any, seed: int = 0) -> dict[str, float]:
     e.set_parameter_id(0, 1)
     opt.add_edge(e)
     edges["EdgeProjectXYZ2UVU"] = e
-    opt.initialize_optimization()
-    opt.compute_active_errors()
-    for e in edges.values():
-        e.compute_error()
-    return {name: float(e.chi2()) for name, e in edges.items()}
+    return _edge_chi2s(opt, edges)
 
 
 # --- ORB-SLAM's procedures (benchmarks/bench_g2o_api.py times them) ---
@@ -533,9 +542,7 @@ def optimize_sim3(g2o: Any, seed: int = 0, n: int = 100, noise: float = 1e-3,
     t, s = np.array([0.3, -0.1, 0.2]), 1.7
     X2 = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(3, 6, n)])
     X1 = s * X2 @ R.T + t
-    opt = g2o.SparseOptimizer()
-    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
-        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    opt = _dense_levenberg(g2o)
     v = g2o.VertexSim3Expmap()
     v.set_id(0)
     start = R @ np.array([[1.0, -0.02, 0.0], [0.02, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -603,9 +610,7 @@ def offset_types_chi2(g2o: Any, seed: int = 1) -> dict[str, float]:
         ``{edge class: chi2}`` after ``compute_active_errors``.
     """
     rng = np.random.default_rng(seed)
-    opt = g2o.SparseOptimizer()
-    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
-        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    opt = _dense_levenberg(g2o)
     for pid in (0, 1):
         p2 = g2o.ParameterSE2Offset()
         p2.set_id(pid)
@@ -613,8 +618,7 @@ def offset_types_chi2(g2o: Any, seed: int = 1) -> dict[str, float]:
         opt.add_parameter(p2)
         p3 = g2o.ParameterSE3Offset()
         p3.set_id(10 + pid)
-        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-        R = R if np.linalg.det(R) > 0 else -R
+        R = _rotation(rng)
         p3.set_param(g2o.Isometry3d(R, rng.normal(0, 0.5, (3, 1))))
         opt.add_parameter(p3)
     vs = []
@@ -632,9 +636,7 @@ def offset_types_chi2(g2o: Any, seed: int = 1) -> dict[str, float]:
     for i in range(2):
         v = g2o.VertexSE3()
         v.set_id(3 + i)
-        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-        v.set_estimate(g2o.Isometry3d(R if np.linalg.det(R) > 0 else -R,
-                                      rng.normal(0, 1, (3, 1))))
+        v.set_estimate(g2o.Isometry3d(_rotation(rng), rng.normal(0, 1, (3, 1))))
         opt.add_vertex(v)
         ps.append(v)
     edges = {}
@@ -656,19 +658,14 @@ def offset_types_chi2(g2o: Any, seed: int = 1) -> dict[str, float]:
     e = g2o.EdgeSE3Offset()
     e.set_vertex(0, ps[0])
     e.set_vertex(1, ps[1])
-    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    e.set_measurement(g2o.Isometry3d(R if np.linalg.det(R) > 0 else -R, rng.normal(0, 1, (3, 1))))
+    e.set_measurement(g2o.Isometry3d(_rotation(rng), rng.normal(0, 1, (3, 1))))
     e.set_information(np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]))
     e.set_parameter_id(0, 10)
     e.set_parameter_id(1, 11)
     edges["EdgeSE3Offset"] = e
     for e in edges.values():
         opt.add_edge(e)
-    opt.initialize_optimization()
-    opt.compute_active_errors()
-    for e in edges.values():
-        e.compute_error()
-    return {name: float(e.chi2()) for name, e in edges.items()}
+    return _edge_chi2s(opt, edges)
 
 
 def sba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, n_points: int = 300,
@@ -698,11 +695,7 @@ def sba_demo(g2o: Any, seed: int = 0, noise: float = 1.0, n_points: int = 300,
     point_cls = getattr(g2o, "VertexPointXYZ", None) or g2o.VertexSBAPointXYZ
     point_id, inliers, sse0 = num_pose, {}, 0.0
     for i, point in enumerate(true_points):
-        visible = []
-        for j in range(num_pose):
-            z = optimizer.vertex(j).map_point(point)
-            if 0 <= z[0] < 640 and 0 <= z[1] < 480:
-                visible.append((j, z))
+        visible = _in_image((j, optimizer.vertex(j).map_point(point)) for j in range(num_pose))
         if len(visible) < 2:
             continue
         vp = point_cls()
@@ -737,13 +730,10 @@ def sba_cam_chi2(g2o: Any, seed: int = 2) -> dict[str, float]:
         ``{edge class: chi2}`` after ``compute_active_errors``.
     """
     rng = np.random.default_rng(seed)
-    opt = g2o.SparseOptimizer()
-    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
-        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    opt = _dense_levenberg(g2o)
     cams = []
     for i in range(2):
-        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-        R = R if np.linalg.det(R) > 0 else -R
+        R = _rotation(rng)
         c = g2o.SBACam(g2o.SE3Quat(R, rng.normal(0, 0.3, 3)))
         c.set_cam(450.0 + 10 * i, 460.0, 320.0, 240.0, 0.1)
         v = g2o.VertexCam()
@@ -770,11 +760,7 @@ def sba_cam_chi2(g2o: Any, seed: int = 2) -> dict[str, float]:
         e.set_information(np.identity(d) * 2.0)
         opt.add_edge(e)
         edges[name] = e
-    opt.initialize_optimization()
-    opt.compute_active_errors()
-    for e in edges.values():
-        e.compute_error()
-    return {name: float(e.chi2()) for name, e in edges.items()}
+    return _edge_chi2s(opt, edges)
 
 
 def variable_and_odometry_chi2(g2o: Any, seed: int = 3) -> dict[str, float]:
@@ -785,9 +771,7 @@ def variable_and_odometry_chi2(g2o: Any, seed: int = 3) -> dict[str, float]:
         ``{edge class: chi2}`` after ``compute_active_errors``.
     """
     rng = np.random.default_rng(seed)
-    opt = g2o.SparseOptimizer()
-    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
-        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    opt = _dense_levenberg(g2o)
     vid = 0
 
     def add(cls: str, est: Any) -> Any:
@@ -801,9 +785,7 @@ def variable_and_odometry_chi2(g2o: Any, seed: int = 3) -> dict[str, float]:
 
     poses = [add("VertexSE2", g2o.SE2(*rng.normal(0, 1, 3))) for _ in range(2)]
     xy = [add("VertexPointXY", rng.normal(0, 2, 2)) for _ in range(3)]
-    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    pose3 = add("VertexSE3", g2o.Isometry3d(R if np.linalg.det(R) > 0 else -R,
-                                            rng.normal(0, 1, (3, 1))))
+    pose3 = add("VertexSE3", g2o.Isometry3d(_rotation(rng), rng.normal(0, 1, (3, 1))))
     xyz = [add("VertexPointXYZ", rng.normal(0, 2, 3)) for _ in range(2)]
     calib = add("VertexOdomDifferentialParams", np.array([1.02, 0.97, 0.5]))
     edges = {}
@@ -824,11 +806,7 @@ def variable_and_odometry_chi2(g2o: Any, seed: int = 3) -> dict[str, float]:
         e.set_information(A @ A.T + d * np.identity(d))
         opt.add_edge(e)
         edges[name] = e
-    opt.initialize_optimization()
-    opt.compute_active_errors()
-    for e in edges.values():
-        e.compute_error()
-    return {name: float(e.chi2()) for name, e in edges.items()}
+    return _edge_chi2s(opt, edges)
 
 
 def slam_backend_types_chi2(g2o: Any, seed: int = 4) -> dict[str, float]:
@@ -839,13 +817,10 @@ def slam_backend_types_chi2(g2o: Any, seed: int = 4) -> dict[str, float]:
         ``{edge class: chi2}`` after ``compute_active_errors``.
     """
     rng = np.random.default_rng(seed)
-    opt = g2o.SparseOptimizer()
-    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
-        g2o.BlockSolverX(g2o.LinearSolverDenseX())))
+    opt = _dense_levenberg(g2o)
 
     def rot() -> np.ndarray:
-        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-        R = R if np.linalg.det(R) > 0 else -R
+        R = _rotation(rng)
         w = np.array([[0, -0.1, 0.05], [0.1, 0, -0.02], [-0.05, 0.02, 0]])
         return np.eye(3) + w + 0.5 * w @ w if rng.random() < 2 else R  # near the identity
 
@@ -898,8 +873,4 @@ def slam_backend_types_chi2(g2o: Any, seed: int = 4) -> dict[str, float]:
             e.Xw = np.array([0.3, 0.1, 4.5])
         opt.add_edge(e)
         edges[name] = e
-    opt.initialize_optimization()
-    opt.compute_active_errors()
-    for e in edges.values():
-        e.compute_error()
-    return {name: float(e.chi2()) for name, e in edges.items()}
+    return _edge_chi2s(opt, edges)

@@ -19,6 +19,12 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.types.point_edges import (
+    PointDifferenceEdge,
+    PointPriorEdge,
+    points_family,
+    scatter_point_jacobians,
+)
 from graphopt.types.slam2d import (
     EdgeFromParts,
     EdgeSE2,
@@ -43,12 +49,9 @@ __all__ = [
 ]
 
 
-def _eye(m: int, d: int) -> np.ndarray:
-    return np.broadcast_to(np.eye(d), (m, d, d)).copy()
-
-
-class EdgePointXY(BaseEdge):
-    """The difference of two 2D points (g2o's ``EdgePointXY``): ``e = p_j − p_i − z``.
+class EdgePointXY(PointDifferenceEdge):
+    """The difference of two 2D points (g2o's ``EdgePointXY``): ``e = p_j − p_i − z``,
+    Jacobians ``(−I, I)`` (:class:`~graphopt.types.point_edges.PointDifferenceEdge`).
 
     Args:
         vertices: ``(p_i, p_j)``.
@@ -60,34 +63,10 @@ class EdgePointXY(BaseEdge):
     dimension: ClassVar[int] = 2
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexPointXY, VertexPointXY)
 
-    @classmethod
-    def error(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-              ctx: EdgeContext) -> np.ndarray:
-        """``(m, 2)`` errors.
 
-        Args:
-            x: ``(p_i (m, 2), p_j (m, 2))``.
-            measurement: ``(m, 2)``.
-            ctx: Unused.
-        """
-        return x[1] - x[0] - measurement
-
-    @classmethod
-    def jacobians(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-                  ctx: EdgeContext) -> tuple[np.ndarray, ...]:
-        """``(−I, I)``.
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: Unused.
-        """
-        eye = _eye(len(measurement), 2)
-        return -eye, eye
-
-
-class EdgeXYPrior(BaseEdge):
-    """A prior on a 2D point (g2o's ``EdgeXYPrior``): ``e = p − z``.
+class EdgeXYPrior(PointPriorEdge):
+    """A prior on a 2D point (g2o's ``EdgeXYPrior``): ``e = p − z``, Jacobian ``I``
+    (:class:`~graphopt.types.point_edges.PointPriorEdge`).
 
     Args:
         vertices: ``(point,)``.
@@ -98,30 +77,6 @@ class EdgeXYPrior(BaseEdge):
 
     dimension: ClassVar[int] = 2
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexPointXY,)
-
-    @classmethod
-    def error(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-              ctx: EdgeContext) -> np.ndarray:
-        """``(m, 2)`` errors.
-
-        Args:
-            x: ``(points (m, 2),)``.
-            measurement: ``(m, 2)``.
-            ctx: Unused.
-        """
-        return x[0] - measurement
-
-    @classmethod
-    def jacobians(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-                  ctx: EdgeContext) -> tuple[np.ndarray, ...]:
-        """``(I,)``.
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: Unused.
-        """
-        return (_eye(len(measurement), 2),)
 
 
 class EdgeSE2XYPrior(BaseEdge):
@@ -425,12 +380,7 @@ class EdgeSE2LotsOfXY(BaseEdge):
         Args:
             k: Number of points, ``k ≥ 1``.
         """
-        if int(k) < 1:
-            raise ValueError(f"EdgeSE2LotsOfXY needs at least one point, got {k}")
-        k = int(k)
-        return type(f"EdgeSE2LotsOfXY_{k}", (EdgeSE2LotsOfXY,), {
-            "points": k, "dimension": 2 * k,
-            "vertex_types": (VertexSE2,) + (VertexPointXY,) * k, "__module__": __name__})
+        return points_family(EdgeSE2LotsOfXY, k, VertexSE2, VertexPointXY, 2)
 
     @classmethod
     def error(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
@@ -469,12 +419,7 @@ class EdgeSE2LotsOfXY(BaseEdge):
         if not with_jacobians:
             return Linearization(e)
         Jx, Jp = lin.jacobians
-        out: list[np.ndarray] = [Jx.reshape(m, 2 * k, 3)]
-        Jp = Jp.reshape(m, k, 2, 2)
-        for i in range(k):
-            Ji = np.zeros((m, 2 * k, 2))
-            Ji[:, 2 * i:2 * i + 2] = Jp[:, i]
-            out.append(Ji)
+        out = [Jx.reshape(m, 2 * k, 3), *scatter_point_jacobians(Jp.reshape(m, k, 2, 2))]
         return Linearization(e, tuple(out))
 
 

@@ -20,6 +20,12 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.lie import hat
+from graphopt.types.point_edges import (
+    PointDifferenceEdge,
+    PointPriorEdge,
+    points_family,
+    scatter_point_jacobians,
+)
 from graphopt.types.slam2d import EdgeFromParts
 from graphopt.types.slam3d import EdgeSE3, ParameterSE3Offset, VertexSE3
 from graphopt.types.vertices import VertexPointXYZ
@@ -45,14 +51,10 @@ def _tr(R: np.ndarray) -> np.ndarray:
     return np.swapaxes(R, -1, -2)
 
 
-def _identity_jacobian(m: int, d: int) -> np.ndarray:
-    return np.broadcast_to(np.eye(d), (m, d, d)).copy()
-
-
-class EdgePointXYZ(BaseEdge):
+class EdgePointXYZ(PointDifferenceEdge):
     """The difference of two 3D points (g2o's ``EdgePointXYZ``): ``e = p_j − p_i − z``.
 
-    Jacobians ``−I`` and ``I``.
+    Jacobians ``−I`` and ``I`` (:class:`~graphopt.types.point_edges.PointDifferenceEdge`).
 
     Args:
         vertices: ``(p_i, p_j)`` :class:`VertexPointXYZ` or ids.
@@ -64,34 +66,10 @@ class EdgePointXYZ(BaseEdge):
     dimension: ClassVar[int] = 3
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexPointXYZ, VertexPointXYZ)
 
-    @classmethod
-    def error(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-              ctx: EdgeContext) -> np.ndarray:
-        """``(m, 3)`` errors.
 
-        Args:
-            x: ``(p_i (m, 3), p_j (m, 3))``.
-            measurement: ``(m, 3)``.
-            ctx: Unused.
-        """
-        return x[1] - x[0] - measurement
-
-    @classmethod
-    def jacobians(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-                  ctx: EdgeContext) -> tuple[np.ndarray, ...]:
-        """``(−I, I)``, each ``(m, 3, 3)``.
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: Unused.
-        """
-        eye = _identity_jacobian(len(measurement), 3)
-        return -eye, eye
-
-
-class EdgeXYZPrior(BaseEdge):
-    """A prior on a 3D point (g2o's ``EdgeXYZPrior``): ``e = p − z``, Jacobian ``I``.
+class EdgeXYZPrior(PointPriorEdge):
+    """A prior on a 3D point (g2o's ``EdgeXYZPrior``): ``e = p − z``, Jacobian ``I``
+    (:class:`~graphopt.types.point_edges.PointPriorEdge`).
 
     Args:
         vertices: ``(point,)``.
@@ -102,30 +80,6 @@ class EdgeXYZPrior(BaseEdge):
 
     dimension: ClassVar[int] = 3
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexPointXYZ,)
-
-    @classmethod
-    def error(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-              ctx: EdgeContext) -> np.ndarray:
-        """``(m, 3)`` errors.
-
-        Args:
-            x: ``(points (m, 3),)``.
-            measurement: ``(m, 3)``.
-            ctx: Unused.
-        """
-        return x[0] - measurement
-
-    @classmethod
-    def jacobians(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
-                  ctx: EdgeContext) -> tuple[np.ndarray, ...]:
-        """``(I,)`` ``(m, 3, 3)``.
-
-        Args:
-            x: As in :meth:`error`.
-            measurement: As in :meth:`error`.
-            ctx: Unused.
-        """
-        return (_identity_jacobian(len(measurement), 3),)
 
 
 class EdgeSE3XYZPrior(BaseEdge):
@@ -428,13 +382,7 @@ class EdgeSE3LotsOfXYZ(BaseEdge):
         Args:
             k: Number of points, ``k ≥ 1``.
         """
-        if int(k) < 1:
-            raise ValueError(f"EdgeSE3LotsOfXYZ needs at least one point, got {k}")
-        k = int(k)
-        return type(f"EdgeSE3LotsOfXYZ_{k}", (EdgeSE3LotsOfXYZ,), {
-            "points": k, "dimension": 3 * k,
-            "vertex_types": (VertexSE3,) + (VertexPointXYZ,) * k,
-            "__module__": __name__})
+        return points_family(EdgeSE3LotsOfXYZ, k, VertexSE3, VertexPointXYZ, 3)
 
     @classmethod
     def error(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
@@ -472,9 +420,5 @@ class EdgeSE3LotsOfXYZ(BaseEdge):
         Jx = np.empty((m, k, 3, 6))
         Jx[:, :, :, :3] = -np.eye(3)
         Jx[:, :, :, 3:] = 2.0 * hat(local.reshape(-1, 3)).reshape(m, k, 3, 3)
-        jac: list[np.ndarray] = [Jx.reshape(m, 3 * k, 6)]
-        for i in range(k):
-            Ji = np.zeros((m, 3 * k, 3))
-            Ji[:, 3 * i:3 * i + 3] = RXT
-            jac.append(Ji)
-        return Linearization(e, tuple(jac))
+        Jp = np.broadcast_to(RXT[:, None], (m, k, 3, 3))  # every point's block is R_Xᵀ
+        return Linearization(e, (Jx.reshape(m, 3 * k, 6), *scatter_point_jacobians(Jp)))
