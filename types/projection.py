@@ -152,6 +152,19 @@ class EdgeSE3ProjectXYZ(BaseEdge):
         J_point = D @ T[:, :3, :3]
         return Linearization(e, (J_pose, J_point))
 
+    @classmethod
+    def depth_positive(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """g2o's ``isDepthPositive``: ``(m,)`` True where the camera-frame point has ``z > 0``.
+
+        Args:
+            x: ``(T_cw (m, 4, 4), X (m, 3))``.
+            measurement: ``(m, 2)`` (unused).
+            ctx: Unused.
+        """
+        return transform_points(x[0], x[1])[:, 2] > 0
+
 
 class EdgeProjectXYZ2UV(EdgeSE3ProjectXYZ):
     """g2o's name for the same pinhole reprojection edge (see :class:`EdgeSE3ProjectXYZ`).
@@ -246,4 +259,18 @@ class EdgeInverseDepthProjection(BaseEdge):
         Dt = np.einsum("nij,nj->ni", D, t_ca)[:, :, None]
         J_point = np.concatenate([DR[:, :, :2], Dt], axis=2)
         return Linearization(e, (J_anchor, J_obs, J_point))
+
+    @classmethod
+    def depth_positive(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """``(m,)`` True where the point lies in front of the observing camera: ``h_z > 0``
+        (``h = ρ P_c`` with ``ρ > 0``, so the sign is the depth's).
+
+        Args:
+            x: ``(T_aw, T_cw, [a, b, ρ])``.
+            measurement: ``(m, 2)`` (unused).
+            ctx: Unused.
+        """
+        return cls._scaled_point(x)[0][:, 2] > 0
 
