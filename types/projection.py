@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, ClassVar
 
 import numpy as np
@@ -49,6 +50,16 @@ class CameraParameters:
     fy: float
     cx: float
     cy: float
+
+    @cached_property
+    def focal(self) -> np.ndarray:
+        """``[fx, fy]`` (computed once: batched edges scale ``(m, 2)`` arrays by it)."""
+        return np.array([self.fx, self.fy])
+
+    @cached_property
+    def centre(self) -> np.ndarray:
+        """``[cx, cy]``."""
+        return np.array([self.cx, self.cy])
 
     @classmethod
     def coerce(cls, params: Any) -> CameraParameters:

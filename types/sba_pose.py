@@ -103,13 +103,51 @@ def _pose_jacobian(D: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 
 class _OnlyPose(BaseEdge):
-    """Unary projection edges on one pose; the world point per edge in ``data["Xw"]``."""
+    """Unary projection edges on one pose; the world point per edge in ``data["Xw"]``.
+
+    The most frequent call of a SLAM system (every frame, every iteration), so written with
+    few numpy calls: g2o's closed-form Jacobian rows instead of ``∂e/∂P·[−[P]×, I]``.
+    """
 
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE3Expmap,)
+    stereo: ClassVar[bool] = False
 
     @classmethod
     def _point(cls, x: Sequence[np.ndarray], ctx: EdgeContext) -> np.ndarray:
         return transform_points(x[0], _world_points(ctx, cls, len(x[0])))
+
+    @classmethod
+    def _project(cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext, jacobian: bool
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Errors ``(m, 2|3)`` and, when asked, the pose Jacobians ``(m, 2|3, 6)``."""
+        cam = (StereoCameraParameters.coerce(ctx.params) if cls.stereo
+               else CameraParameters.coerce(ctx.params))
+        P = cls._point(x, ctx)
+        iz = 1.0 / P[:, 2]
+        uv = P[:, :2] * iz[:, None]                 # normalised image coordinates
+        pix = uv * cam.focal + cam.centre
+        if cls.stereo:
+            e = np.empty((len(P), 3))
+            e[:, :2] = z[:, :2] - pix
+            e[:, 2] = z[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
+        else:
+            e = z - pix
+        if not jacobian:
+            return e, None
+        u, v = uv[:, 0], uv[:, 1]
+        uvp, zero = u * v, np.zeros_like(u)
+        rows = [uvp, -1.0 - u * u, v, -iz, zero, u * iz,
+                1.0 + v * v, -uvp, -u, zero, -iz, v * iz]
+        k = 3 if cls.stereo else 2
+        J = np.stack(rows + rows[:6] if cls.stereo else rows, axis=1).reshape(-1, k, 6)
+        J[:, :2] *= cam.focal[:, None]
+        if cls.stereo:
+            J[:, 2] *= cam.fx
+            bi = cam.bf * iz                             # type: ignore[attr-defined]
+            J[:, 2, 0] -= bi * v
+            J[:, 2, 1] += bi * u
+            J[:, 2, 5] -= bi * iz
+        return e, J
 
     @classmethod
     def depth_positive(
@@ -153,9 +191,7 @@ class EdgeSE3ProjectXYZOnlyPose(_OnlyPose):
             measurement: ``(m, 2)`` pixels.
             ctx: ``params`` (intrinsics) and ``data["Xw"]``.
         """
-        P = cls._point(x, ctx)
-        return _pinhole((P[:, 0], P[:, 1], P[:, 2]), measurement,
-                        CameraParameters.coerce(ctx.params))[0]
+        return cls._project(x, measurement, ctx, False)[0]
 
     @classmethod
     def linearize(
@@ -168,10 +204,8 @@ class EdgeSE3ProjectXYZOnlyPose(_OnlyPose):
             measurement: ``(m, 2)`` pixels.
             ctx: ``params`` and ``data["Xw"]``.
         """
-        P = cls._point(x, ctx)
-        e, D = _pinhole((P[:, 0], P[:, 1], P[:, 2]), measurement,
-                        CameraParameters.coerce(ctx.params))
-        return Linearization(e, (_pose_jacobian(D, P),))
+        e, J = cls._project(x, measurement, ctx, True)
+        return Linearization(e, (J,))
 
 
 class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
@@ -190,6 +224,7 @@ class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
     """
 
     dimension: ClassVar[int] = 3
+    stereo: ClassVar[bool] = True
 
     @classmethod
     def error(
@@ -202,8 +237,7 @@ class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
             measurement: ``(m, 3)``.
             ctx: ``params`` and ``data["Xw"]``.
         """
-        return _stereo(cls._point(x, ctx), measurement,
-                       StereoCameraParameters.coerce(ctx.params))[0]
+        return cls._project(x, measurement, ctx, False)[0]
 
     @classmethod
     def linearize(
@@ -216,9 +250,8 @@ class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
             measurement: ``(m, 3)``.
             ctx: ``params`` and ``data["Xw"]``.
         """
-        P = cls._point(x, ctx)
-        e, D = _stereo(P, measurement, StereoCameraParameters.coerce(ctx.params))
-        return Linearization(e, (_pose_jacobian(D, P),))
+        e, J = cls._project(x, measurement, ctx, True)
+        return Linearization(e, (J,))
 
 
 class EdgeStereoSE3ProjectXYZ(BaseEdge):
