@@ -16,9 +16,21 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from graphopt.errors import GraphError
 from graphopt.numeric import numeric_jacobians
 from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
+
+
+def check_level(level: Any) -> int:
+    """``level`` as an int, or a :class:`GraphError` if it is not a non-negative integer.
+
+    Args:
+        level: An edge level (g2o's ``setLevel``) or the level to initialise.
+    """
+    if isinstance(level, bool | np.bool_) or not isinstance(level, int | np.integer) or level < 0:
+        raise GraphError(f"a level must be a non-negative integer, got {level!r}")
+    return int(level)
 
 
 class Linearization(NamedTuple):
@@ -170,6 +182,23 @@ class BaseEdge:
         raise NotImplementedError
 
     @classmethod
+    def depth_positive(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """``(m,)`` whether each edge's point is in front of its camera(s) (g2o's
+        ``isDepthPositive``); projection types implement it.
+
+        Args:
+            x: As in :meth:`error`.
+            measurement: As in :meth:`error`.
+            ctx: As in :meth:`error`.
+
+        Raises:
+            GraphError: the type has no notion of depth (the default).
+        """
+        raise GraphError(f"{cls.__name__} has no depth_positive (not a projection edge type)")
+
+    @classmethod
     def has_analytic_jacobians(cls) -> bool:
         """True if the type overrides :meth:`jacobians` or :meth:`linearize`."""
         return (
@@ -262,8 +291,27 @@ class BaseEdge:
         self._robust_kernel = robust_kernel
         self.params = params
         self.data = dict(data or {})
-        self._group: Any = None
-        self._index = -1
+        self._level = 0
+        self._group: Any = None  # the EdgeGroup once added
+        self._uid = -1  # the edge's uid in its group
+        self._graph: Any = None
+
+    @property
+    def _index(self) -> int:
+        """The edge's current index in its group (edges removed before it move it)."""
+        g = self._group
+        if not g.removals:
+            return self._uid
+        return int(g.index_of(np.array([self._uid]))[0])
+
+    def _detach(self) -> None:
+        """Keep the edge's values on the object and leave the group (the edge was removed)."""
+        i = self._index
+        self._measurement = self._group.measurements[i].copy()
+        self._information = self._group.information_of(i)
+        self._robust_kernel = self._group.kernel_of(i)
+        self._level = int(self._group.levels[i])
+        self._group, self._uid, self._graph = None, -1, None
 
     def set_vertex(self, i: int, vertex: BaseVertex | int) -> None:
         """Attach the vertex at position ``i``.
@@ -339,11 +387,32 @@ class BaseEdge:
         else:
             self._robust_kernel = kernel
 
+    def level(self) -> int:
+        """The edge's level (g2o's ``level()``): it is active when the optimizer is initialised
+        with this level."""
+        if self._group is not None:
+            self._group.finalize()
+            return int(self._group.levels[self._index])
+        return self._level
+
+    def set_level(self, level: int) -> None:
+        """Set the edge's level (g2o's ``setLevel``; no new structure).
+
+        Args:
+            level: A non-negative integer.
+        """
+        level = check_level(level)
+        if self._group is not None:
+            self._group.set_levels(np.array([self._index]), level)
+        else:
+            self._level = level
+
     def chi2(self) -> float:
-        """``e' Ω e`` of this edge at the current estimates (after ``compute_active_errors``)."""
+        """``e' Ω e`` of this edge at the current estimates, without the kernel (g2o's
+        ``chi2()``; evaluated with all edges of its group, once per state)."""
         if self._group is None:
             raise ValueError("the edge is not in an optimizer")
-        return float(self._group.last_chi2[self._index])
+        return float(self._graph.edge_chi2(self._group)[self._index])
 
     def __repr__(self) -> str:
         ids = [v.id if isinstance(v, BaseVertex) else v for v in self._vertices]

@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.edge import BaseEdge
+from graphopt.edge import BaseEdge, check_level
+from graphopt.edge_set import group_errors
 from graphopt.errors import GraphError
 from graphopt.robust_kernel import RobustKernel
 from graphopt.storage import EdgeGroup, VertexStore
@@ -35,6 +36,10 @@ class Graph:
         self.ids: dict[int, tuple[VertexStore, int]] = {}
         self._objects: dict[int, BaseVertex] = {}
         self._edge_objects: list[BaseEdge] = []
+        #: The initialised level: the edges of this level are active.
+        self.level = 0
+        self._lookups: dict[int, tuple[Any, ...]] = {}
+        self._evals: dict[int, tuple[Any, ...]] = {}  # per group: errors at a state
 
     # --- vertices ----------------------------------------------------------------------------
 
@@ -156,14 +161,15 @@ class Graph:
         info = edge._information if edge._information is not None else np.eye(et.dimension)
         data = {k: np.asarray(v)[None] for k, v in edge.data.items()}
         group = self._group(et, edge.params)
-        idx = self._add_edges(group, np.array([ids]), edge._measurement[None], info[None],
-                              edge._robust_kernel, data, single=True)
-        edge._group, edge._index = group, idx
+        uid = self._add_edges(group, np.array([ids]), edge._measurement[None], info[None],
+                              edge._robust_kernel, data, single=True, levels=edge._level)
+        edge._group, edge._uid, edge._graph = group, uid, self
         self._edge_objects.append(edge)
 
     def add_edges(self, etype: type[BaseEdge], vertex_ids: Any, measurements: Any,
                   information: Any = None, robust_kernel: RobustKernel | None = None,
-                  params: Any = None, data: dict[str, Any] | None = None) -> None:
+                  params: Any = None, data: dict[str, Any] | None = None
+                  ) -> tuple[EdgeGroup, int, int]:
         """Add many edges of one type (see :meth:`SparseOptimizer.add_edges`).
 
         Args:
@@ -174,6 +180,9 @@ class Graph:
             robust_kernel: One kernel for these edges, or ``None``.
             params: Shared parameters.
             data: Per-edge auxiliary arrays.
+
+        Returns:
+            ``(group, uid of the first edge, number of edges)``.
         """
         group = self._group(etype, params)
         vids = np.asarray(vertex_ids)
@@ -204,12 +213,17 @@ class Graph:
             if arr.shape[:1] != (m,):
                 raise GraphError(f"{etype.__name__}: data[{key!r}] must have first dimension {m}")
             arrays[key] = arr
-        self._add_edges(group, vids.astype(np.int64), meas, info, robust_kernel, arrays)
+        start = self._add_edges(group, vids.astype(np.int64), meas, info, robust_kernel, arrays)
+        return group, start, m
 
     def _add_edges(self, group: EdgeGroup, vids: np.ndarray, meas: np.ndarray, info: np.ndarray,
                    kernel: RobustKernel | None, data: dict[str, np.ndarray],
-                   single: bool = False) -> int:
-        """Validate and append; the group is registered only once something was added."""
+                   single: bool = False, levels: int = 0) -> int:
+        """Validate and append; the group is registered only once something was added.
+
+        Returns:
+            The uid of the first edge appended.
+        """
         et = group.etype
         m, e = len(vids), et.dimension
         mshape = group.mshape
@@ -220,7 +234,7 @@ class Graph:
             raise GraphError(f"{et.__name__} {what}: measurement has shape {got}, expected {want}"
                              .replace("  ", " "))
         if m == 0:
-            return group.size  # nothing to add (and no empty group to register)
+            return group.next_uid  # nothing to add (and no empty group to register)
         bad = ~np.isfinite(meas.reshape(m, -1)).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
@@ -270,8 +284,9 @@ class Graph:
                 i = int(np.flatnonzero(np.isin(col, bad_ids))[0])
                 self._check_vertex(et, vids[i], pos, int(col[i]), vt)
         kslot = group.kernel_slot(kernel)
-        start = group.append(vids, meas, info, kslot, data)
-        self.groups.setdefault((et, id(group.params)), group)
+        start = group.append(vids, meas, info, kslot, data, levels)
+        if self.groups.setdefault((et, id(group.params)), group) is group:
+            group.level = self.level
         return start
 
     def _check_vertex(self, et: type[BaseEdge], ids: np.ndarray, pos: int, vid: int,
@@ -284,6 +299,17 @@ class Graph:
             raise GraphError(f"{et.__name__} on vertices {ids.tolist()}: vertex {vid} is a "
                              f"{st.vtype.__name__}, position {pos} needs a {vt.__name__}")
 
+    def flush(self) -> None:
+        """Move objects added one at a time into the arrays (nothing to do yet)."""
+
+    def edge_chi2(self, g: EdgeGroup) -> np.ndarray:
+        """``(m,)`` ``eᵀΩe`` of every edge of a group (see :func:`~graphopt.edge_set.group_errors`).
+
+        Args:
+            g: The group.
+        """
+        return group_errors(self, g)[1]
+
     def edges(self) -> list[BaseEdge]:
         """The edges added one at a time (bulk edges live only as arrays)."""
         return list(self._edge_objects)
@@ -291,9 +317,128 @@ class Graph:
     # --- structure ---------------------------------------------------------------------------
 
     def structure_key(self) -> tuple[Any, ...]:
-        """Changes whenever vertices, edges or fixed/marginalised flags change."""
-        return (tuple((id(s), len(s), s.flags_version) for s in self.stores.values()),
-                tuple((id(g), g.size) for g in self.groups.values()))
+        """Changes whenever vertices, edges or fixed/marginalised flags change (not levels,
+        kernels or estimates)."""
+        return (tuple((id(s), len(s), s.flags_version, s.removals) for s in self.stores.values()),
+                tuple((id(g), g.size, g.removals) for g in self.groups.values()))
+
+    def set_level(self, level: int) -> None:
+        """Make the edges of ``level`` the active ones (g2o's ``initializeOptimization(level)``).
+
+        Args:
+            level: A non-negative integer.
+        """
+        self.level = check_level(level)
+        for g in self.groups.values():
+            g.apply_level(self.level)
+
+    # --- removing ----------------------------------------------------------------------------
+
+    def remove_edges(self, group: EdgeGroup, index: np.ndarray) -> None:
+        """Remove edges of a group (an emptied group leaves the graph).
+
+        Args:
+            group: The group.
+            index: ``(r,)`` edge indices in the group.
+        """
+        if not len(index):
+            return
+        gone = group.uids[index]
+        objs = [e for e in self._edge_objects if e._group is group]
+        if objs:  # edge objects among them become free objects again (re-addable)
+            hit = np.isin(np.array([e._uid for e in objs]), gone)
+            for e, h in zip(objs, hit.tolist(), strict=True):
+                if h:
+                    e._detach()
+            self._edge_objects = [e for e in self._edge_objects if e._group is not None]
+        group.remove(index)
+        if group.size == 0:
+            self.groups.pop((group.etype, id(group.params)), None)
+
+    def remove_vertices(self, ids: Any) -> None:
+        """Remove vertices that no edge uses any more.
+
+        Args:
+            ids: Vertex ids.
+
+        Raises:
+            GraphError: an unknown id, or edges still using some of them (naming them).
+        """
+        arr = np.atleast_1d(np.asarray(ids))
+        if arr.ndim != 1 or (arr.size and not np.issubdtype(arr.dtype, np.integer)):
+            raise GraphError(f"remove_vertices: ids must be integers, got {ids!r}")
+        wanted = np.unique(arr.astype(np.int64))
+        unknown = [v for v in wanted.tolist() if v not in self.ids]
+        if unknown:
+            raise GraphError(f"remove_vertices: no vertex with id {unknown[:10]}")
+        for g in self.groups.values():
+            g.finalize()
+            used = np.isin(g.vertex_ids, wanted).any(axis=1)
+            if used.any():
+                busy = np.intersect1d(g.vertex_ids[used], wanted)
+                raise GraphError(
+                    f"remove_vertices: vertices {busy[:10].tolist()} are still used by "
+                    f"{int(used.sum())} {g.etype.__name__} edges (first on vertices "
+                    f"{g.vertex_ids[int(np.flatnonzero(used)[0])].tolist()}); remove those first")
+        by_store: dict[int, tuple[VertexStore, list[int]]] = {}
+        for vid in wanted.tolist():
+            st, slot = self.ids.pop(vid)
+            by_store.setdefault(id(st), (st, []))[1].append(slot)
+            v = self._objects.pop(vid, None)
+            if v is not None:
+                v._detach()
+        for st, slots in by_store.values():
+            new = st.remove(np.array(slots))
+            if len(st) == 0:
+                del self.stores[st.vtype]
+            for vid, slot in zip(st.ids.tolist(), range(len(st)), strict=True):
+                self.ids[vid] = (st, slot)
+                v = self._objects.get(vid)
+                if v is not None:
+                    v._slot = slot
+            del new
+
+    # --- structure ---------------------------------------------------------------------------
+
+    def _lookup(self, st: VertexStore) -> tuple[np.ndarray, np.ndarray]:
+        """A store's ids sorted, and the slots in that order (cached per store content)."""
+        key = (len(st), st.removals)
+        hit = self._lookups.get(id(st))
+        if hit is None or hit[0] != key or hit[1] is not st:
+            order = np.argsort(st.ids)
+            hit = (key, st, st.ids[order], order)
+            self._lookups[id(st)] = hit
+        return hit[2], hit[3]
+
+    def group_slots(self, g: EdgeGroup, rows: slice | np.ndarray = slice(None)
+                    ) -> list[tuple[VertexStore, np.ndarray]]:
+        """Per vertex position of some edges of a group, their store and slots.
+
+        Args:
+            g: A finalised group.
+            rows: The edges (indices or a slice; at least one).
+
+        Raises:
+            GraphError: a position of an edge type that mixes vertex types.
+        """
+        out = []
+        vids = g.vertex_ids[rows]
+        for a in range(g.k):
+            col = vids[:, a]
+            first = self.ids[int(col[0])][0]
+            sids, order = self._lookup(first)
+            loc = np.searchsorted(sids, col).clip(0, max(len(sids) - 1, 0))
+            ok = sids[loc] == col
+            if not ok.all():
+                bad = int(col[np.flatnonzero(~ok)[0]])
+                other = self.ids[bad][0].vtype.__name__
+                raise GraphError(
+                    f"{g.etype.__name__}: position {a} mixes vertex types "
+                    f"({first.vtype.__name__} and {other}, vertex {bad}); use one type per "
+                    "position within an edge type"
+                )
+            out.append((first, order[loc]))
+        return out
 
     def resolve(self) -> tuple[list[VertexStore], list[EdgeGroup], Positions]:
         """Finalise the groups and map every edge's vertex ids to store slots.
@@ -307,31 +452,14 @@ class Graph:
         """
         stores = list(self.stores.values())
         index = {id(s): i for i, s in enumerate(stores)}
-        lookup: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for i, s in enumerate(stores):
-            order = np.argsort(s.ids)
-            lookup[i] = (s.ids[order], order)
         positions: Positions = []
         groups = list(self.groups.values())
         for g in groups:
             g.finalize()
             pos = []
-            for a in range(g.k):
-                col = g.vertex_ids[:, a]
-                first = self.ids[int(col[0])][0]
-                si = index[id(first)]
-                sids, order = lookup[si]
-                loc = np.searchsorted(sids, col).clip(0, max(len(sids) - 1, 0))
-                ok = sids[loc] == col
-                if not ok.all():
-                    bad = int(col[np.flatnonzero(~ok)[0]])
-                    other = self.ids[bad][0].vtype.__name__
-                    raise GraphError(
-                        f"{g.etype.__name__}: position {a} mixes vertex types "
-                        f"({first.vtype.__name__} and {other}, vertex {bad}); use one type per "
-                        "position within an edge type"
-                    )
-                slots = order[loc]  # int32 where it fits: 4 bytes per edge and position fewer
-                pos.append((si, slots.astype(np.int32) if len(sids) < 2**31 else slots))
+            for st, slots in self.group_slots(g):
+                # int32 where it fits: 4 bytes per edge and position fewer
+                pos.append((index[id(st)], slots.astype(np.int32) if len(st) < 2**31 else slots))
             positions.append(pos)
         return stores, groups, positions
+

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from graphopt.activity import only_active
 from graphopt.edge import EdgeContext, Linearization
 from graphopt.errors import GraphError
 from graphopt.storage import EdgeGroup, VertexStore
@@ -77,6 +78,7 @@ class Linearizer:
         # whether it is stored transposed).
         self._state_cache: dict[tuple[int, str], tuple[int, np.ndarray | None, bool]] = {}
         self.last: Evaluation | None = None
+        self.last_state: tuple[tuple[int, ...], tuple[int, ...]] | None = None
 
     # --- gathering ---------------------------------------------------------------------------
 
@@ -329,7 +331,12 @@ class Linearizer:
     def _finish(self, totals: list[float]) -> Evaluation:
         rchi2 = totals[1] if np.isfinite(totals[1]) else float("inf")
         self.last = Evaluation(totals[0], rchi2, int(totals[2]))
+        self.last_state = self.state_key()
         return self.last
+
+    def state_key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """What an evaluation depends on besides the structure: estimates, levels, kernels."""
+        return self._state(), tuple(g.activity_version for g in self.groups)
 
     # --- the two entry points ----------------------------------------------------------------
 
@@ -353,6 +360,8 @@ class Linearizer:
                 out = self._linearization(gi)
             else:
                 out = self._run(gi, "evaluate")
+            if g.active_edges is not None:  # edges of other levels: zero rows
+                out = only_active(out, g.active_edges)
             _, s = self._sq(g, out.error)
             rho, _ = self._robustify(g, s)
             self._record(g, s, rho, out.active, totals)
@@ -372,6 +381,8 @@ class Linearizer:
         totals = [0.0, 0.0, 0.0]
         for gi, g in enumerate(self.groups):
             out = self._linearization(gi, consume=True)
+            if g.active_edges is not None:  # edges of other levels: zero rows
+                out = only_active(out, g.active_edges)
             e, J = out.error, out.jacobians
             oe, s = self._sq(g, e)
             if g.etype.linearization_rows is not None:

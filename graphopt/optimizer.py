@@ -19,7 +19,9 @@ from typing import Any, TextIO
 import numpy as np
 
 from graphopt.algorithms import Algorithm, AlgorithmConfig, make_algorithm
-from graphopt.edge import BaseEdge
+from graphopt.edge import BaseEdge, check_level
+from graphopt.edge_set import EdgeSet
+from graphopt.editing import GraphEditing
 from graphopt.errors import GraphError
 from graphopt.graph import Graph
 from graphopt.linear import LinearSystem, SchurConfig
@@ -35,7 +37,7 @@ from graphopt.vertex import BaseVertex
 Callback = Callable[["SparseOptimizer", IterationInfo], Any]
 
 
-class SparseOptimizer:
+class SparseOptimizer(GraphEditing):
     """A graph of vertices and edges, optimised by GN, LM or Dogleg with a Schur complement.
 
     Args:
@@ -252,7 +254,7 @@ class SparseOptimizer:
         robust_kernel: RobustKernel | None = None,
         params: Any = None,
         data: dict[str, Any] | None = None,
-    ) -> None:
+    ) -> EdgeSet:
         """Add many edges of one type at once (the fast path).
 
         Args:
@@ -264,11 +266,16 @@ class SparseOptimizer:
             params: Shared parameters (edges with the same type and params form one group).
             data: Per-edge auxiliary arrays, each with first dimension ``m``.
 
+        Returns:
+            An :class:`~graphopt.edge_set.EdgeSet` of these edges (per-edge chi2, levels,
+            kernels, removal).
+
         Raises:
             GraphError: missing vertices, wrong shapes, non-finite values.
         """
-        self.graph.add_edges(etype, vertex_ids, measurements, information, robust_kernel,
-                             params, data)
+        group, start, m = self.graph.add_edges(etype, vertex_ids, measurements, information,
+                                               robust_kernel, params, data)
+        return EdgeSet(self.graph, group, np.arange(start, start + m))
 
     def edges(self) -> list[BaseEdge]:
         """The edges added one at a time (bulk edges live only as arrays)."""
@@ -284,23 +291,37 @@ class SparseOptimizer:
 
     # --- initialisation ----------------------------------------------------------------------
 
-    def initialize_optimization(self) -> bool:
-        """Build the structure: slots, block pattern, scatter maps, Schur plan, symbolic
-        factorisation. Called by :meth:`optimize` when the graph changed.
+    def initialize_optimization(self, level: int = 0) -> bool:
+        """Select the edges of ``level`` (g2o's ``initializeOptimization(level)``) and build the
+        structure — slots, block pattern, scatter maps, Schur plan, symbolic factorisation —
+        unless the graph's structure is unchanged: a change of levels, kernels or estimates
+        reuses it (inactive edges weigh nothing). Called by :meth:`optimize` when the graph
+        changed.
+
+        Args:
+            level: The level whose edges are optimised (g2o: 0 unless set otherwise).
 
         Returns:
             True.
+
+        Raises:
+            GraphError: a level that is not a non-negative integer, or invalid objects.
         """
-        stores, groups, positions = self.graph.resolve()
-        self._problem = Problem(stores, groups, positions, make_solver(self._solver_spec),
-                                self._schur)
-        self._structure_key = self.graph.structure_key()
+        self.graph.set_level(check_level(level))
+        self.graph.flush()
+        if self._problem is None or self._structure_key != self.graph.structure_key():
+            stores, groups, positions = self.graph.resolve()
+            self._problem = None  # the old structure's memory goes before the new is built
+            self._problem = Problem(stores, groups, positions, make_solver(self._solver_spec),
+                                    self._schur)
+            self._structure_key = self.graph.structure_key()
         self.algorithm.reset()
         return True
 
     def _ensure_problem(self) -> Problem:
+        self.graph.flush()
         if self._problem is None or self._structure_key != self.graph.structure_key():
-            self.initialize_optimization()
+            self.initialize_optimization(self.graph.level)
         assert self._problem is not None
         return self._problem
 
@@ -312,19 +333,24 @@ class SparseOptimizer:
         self._ensure_problem().evaluate()
 
     def _last(self) -> Evaluation:
+        """The evaluation at the current estimates, levels and kernels (made if stale)."""
         p = self._ensure_problem()
-        return p.linearizer.last if p.linearizer.last is not None else p.evaluate()
+        lin = p.linearizer
+        if lin.last is None or lin.last_state != lin.state_key():
+            return p.evaluate(linearize=False)
+        return lin.last
 
     def chi2(self) -> float:
-        """Σ e'Ωe over the edges, without robust kernels, at the last evaluation."""
+        """Σ e'Ωe over the active edges, without robust kernels, at the current estimates."""
         return self._last().chi2
 
     def active_robust_chi2(self) -> float:
-        """Σ ρ(e'Ωe) at the last evaluation (what g2o prints)."""
+        """Σ ρ(e'Ωe) over the active edges at the current estimates (what g2o prints)."""
         return self._last().robust_chi2
 
     def active_edge_count(self) -> int:
-        """Edges active at the last evaluation (edges may deactivate themselves)."""
+        """Edges active at the current estimates: those of the initialised level (and not
+        deactivated by their type, as a projection outside the image)."""
         return self._last().active
 
     # --- optimisation ------------------------------------------------------------------------

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from graphopt.activity import IdleAnchors
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linearizer import Evaluation, Linearizer, Positions
@@ -104,6 +105,7 @@ class Problem:
                                    u_order=solver.block_order)
         self.solver = solver
         solver.analyze(self.system.pattern, self.system.udims)
+        self.anchors = IdleAnchors(self.system.index)  # vertices whose edges are all inactive
         self.trial_linearization = trial_linearization_allowed(
             groups, self.system.matrix_free, available_memory())
         self.timing = Timing()
@@ -136,6 +138,7 @@ class Problem:
         t0 = time.perf_counter()
         lin, ev = self.linearizer.linearize()
         asm = self.system.assemble(lin.jacobians, lin.weighted, lin.weighted_errors)
+        self.anchors.apply(asm)
         # A non-finite Jacobian of a free vertex reaches its U or V block (every block holds
         # Σ J'ΩJ): checking the small assembled arrays spares a pass over the Jacobians.
         if not self.system.is_finite(asm):

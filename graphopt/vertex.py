@@ -105,6 +105,14 @@ class BaseVertex:
         v._fixed = v._marginalized = False
         return v
 
+    def _detach(self) -> None:
+        """Keep the estimate on the object and leave the store (the vertex was removed)."""
+        if self._store is not None:
+            self._estimate = self._store.estimates[self._slot].copy()
+            self._fixed = bool(self._store.fixed[self._slot])
+            self._marginalized = bool(self._store.marginalized[self._slot])
+        self._store, self._slot = None, -1
+
     @property
     def id(self) -> int:
         """The vertex id."""

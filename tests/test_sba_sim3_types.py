@@ -25,6 +25,7 @@ from graphopt.types import (
     EdgeStereoSE3ProjectXYZ,
     EdgeStereoSE3ProjectXYZOnlyPose,
     StereoCameraParameters,
+    VertexSE3Expmap,
     VertexSim3Expmap,
     sim3_matrix,
 )
@@ -260,3 +261,16 @@ def test_only_pose_edges_need_world_points() -> None:
     from graphopt.errors import GraphError
     with pytest.raises(GraphError, match="EdgeSE3ProjectXYZOnlyPose needs data"):
         EdgeSE3ProjectXYZOnlyPose.error((_rep(C.pose()),), C.pixels(), EdgeContext(CAM))
+
+
+def test_edge_set_depth_positive_and_chi2_per_edge() -> None:
+    """Through the optimizer's ``EdgeSet``: the recorded chi2 and g2o's ``isDepthPositive``."""
+    X = C.points().copy()
+    opt = SparseOptimizer()
+    opt.add_vertices(VertexSE3Expmap, [0], C.pose()[None])
+    es = opt.add_edges(EdgeSE3ProjectXYZOnlyPose, np.zeros((C.M, 1), int), C.pixels(),
+                       information=C.INFO2, params=CAM, data={"Xw": X})
+    np.testing.assert_allclose(es.chi2(), G2O_CHI2["EdgeSE3ProjectXYZOnlyPose"], rtol=1e-9)
+    assert es.is_depth_positive().all()
+    opt.vertex(0).set_estimate(C.pose() @ np.diag([-1.0, 1.0, -1.0, 1.0]))   # facing away
+    assert not es.is_depth_positive().any()

@@ -24,6 +24,21 @@ module                 types
                        ``EdgeSE2Prior``
 ``slam3d``             ``VertexSE3``, ``ParameterSE3Offset``, ``EdgeSE3``, ``EdgeSE3PointXYZ``,
                        ``EdgeSE3Prior``
+``slam3d_sensors``     ``EdgeSE3Offset``, ``EdgePointXYZ``, ``EdgeXYZPrior``, ``EdgeSE3XYZPrior``,
+                       ``ParameterCamera``, ``EdgeSE3PointXYZDepth``,
+                       ``EdgeSE3PointXYZDisparity``, ``EdgeSE3LotsOfXYZ`` (``.of(k)``)
+``slam2d_sensors``     ``EdgePointXY``, ``EdgeXYPrior``, ``EdgeSE2XYPrior``,
+                       ``EdgeSE2PointXYBearing``, ``ParameterSE2Offset``, ``EdgeSE2Offset``,
+                       ``EdgeSE2PointXYOffset``, ``EdgeSE2PointXYCalib``,
+                       ``EdgeSE2TwoPointsXY``, ``EdgeSE2LotsOfXY`` (``.of(k)``)
+``sclam2d``            ``EdgeSE2SensorCalib``, ``VertexOdomDifferentialParams``,
+                       ``EdgeSE2OdomDifferentialCalib``
+``sba_cam``            ``VertexCam`` (g2o's ``SBACam``), ``EdgeProjectP2MC``,
+                       ``EdgeProjectP2SC``, ``EdgeSBACam``, ``EdgeSBAScale``,
+                       ``VertexIntrinsics``
+``sba_expmap``         ``SBACameraParameters``, ``EdgeProjectXYZ2UVU``, ``EdgeProjectPSI2UV``
+``icp``                ``EdgeVVGicp``, ``EdgeVVGicpPlaneToPlane``, ``VertexSCam``,
+                       ``SCamParameters``, ``EdgeXyzVsc``
 ``slam_graph``         ``SlamGraph``, ``build_graph``, ``graph_file`` (g2o/TORO records ↔
                        optimizer), ``pose_graph_levenberg``, ``POSE_GRAPH_INITIAL_LAMBDA``
 =====================  ==========================================================================
@@ -50,6 +65,23 @@ _WHERE = {
     "EdgeSE2PointXY": "slam2d", "EdgeSE2Prior": "slam2d",
     "VertexSE3": "slam3d", "ParameterSE3Offset": "slam3d", "EdgeSE3": "slam3d",
     "EdgeSE3PointXYZ": "slam3d", "EdgeSE3Prior": "slam3d",
+    "EdgeSE3Offset": "slam3d_sensors", "EdgePointXYZ": "slam3d_sensors",
+    "EdgeXYZPrior": "slam3d_sensors", "EdgeSE3XYZPrior": "slam3d_sensors",
+    "ParameterCamera": "slam3d_sensors", "EdgeSE3PointXYZDepth": "slam3d_sensors",
+    "EdgeSE3PointXYZDisparity": "slam3d_sensors", "EdgeSE3LotsOfXYZ": "slam3d_sensors",
+    "EdgePointXY": "slam2d_sensors", "EdgeXYPrior": "slam2d_sensors",
+    "EdgeSE2XYPrior": "slam2d_sensors", "EdgeSE2PointXYBearing": "slam2d_sensors",
+    "ParameterSE2Offset": "slam2d_sensors", "EdgeSE2Offset": "slam2d_sensors",
+    "EdgeSE2PointXYOffset": "slam2d_sensors", "EdgeSE2PointXYCalib": "slam2d_sensors",
+    "EdgeSE2TwoPointsXY": "slam2d_sensors", "EdgeSE2LotsOfXY": "slam2d_sensors",
+    "EdgeSE2SensorCalib": "sclam2d", "VertexOdomDifferentialParams": "sclam2d",
+    "EdgeSE2OdomDifferentialCalib": "sclam2d",
+    "VertexCam": "sba_cam", "EdgeProjectP2MC": "sba_cam", "EdgeProjectP2SC": "sba_cam",
+    "EdgeSBACam": "sba_cam", "EdgeSBAScale": "sba_cam", "VertexIntrinsics": "sba_cam",
+    "SBACameraParameters": "sba_expmap", "EdgeProjectXYZ2UVU": "sba_expmap",
+    "EdgeProjectPSI2UV": "sba_expmap",
+    "EdgeVVGicp": "icp", "EdgeVVGicpPlaneToPlane": "icp", "VertexSCam": "icp",
+    "SCamParameters": "icp", "EdgeXyzVsc": "icp",
     "SlamGraph": "slam_graph", "build_graph": "slam_graph", "graph_file": "slam_graph",
     "pose_graph_levenberg": "slam_graph", "POSE_GRAPH_INITIAL_LAMBDA": "slam_graph",
 }

@@ -1,0 +1,365 @@
+"""``EdgeGroup``: all edges of one type and parameter object, as arrays (struct of arrays).
+
+Filled by chunks (one per ``add_edges`` call or object), concatenated lazily by
+:meth:`EdgeGroup.finalize`. A group made of one bulk chunk keeps the arrays it was given (no
+copy: do not modify them afterwards); one robust kernel slot or level for all edges is one
+broadcast value, not a per-edge array. Levels, kernels and removals are edited here.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.errors import GraphError
+from graphopt.robust_kernel import RobustKernel
+
+
+def join_chunks(chunks: list[np.ndarray]) -> np.ndarray:
+    """The chunks as one array: the only chunk itself, or their concatenation.
+
+    Args:
+        chunks: Arrays with the same trailing shape.
+    """
+    return chunks[0] if len(chunks) == 1 else np.concatenate(chunks)
+
+
+_join = join_chunks
+
+
+class EdgeGroup:
+    """All edges of one type sharing one parameter object, as arrays.
+
+    Every edge gets a *uid*, its serial number in the group: uids only grow, so ``uids`` is
+    sorted and an edge's index is found by a search even after others were removed (an
+    :class:`~graphopt.edge_set.EdgeSet` holds uids, not indices). Every edge has a *level*
+    (g2o's ``setLevel``); the edges whose level is the initialised one are active
+    (``active_edges``, ``None`` when all are).
+
+    Args:
+        etype: The edge class.
+        params: The shared parameter object (see :class:`~graphopt.edge.EdgeContext`).
+    """
+
+    def __init__(self, etype: type[BaseEdge], params: Any) -> None:
+        self.etype = etype
+        self.params = params
+        self.k = len(etype.vertex_types)
+        self.mshape = tuple(etype.get_measurement_shape())
+        e = etype.dimension
+        self._vids: list[np.ndarray] = []
+        self._meas: list[np.ndarray] = []
+        self._info: list[np.ndarray] = []  # per chunk: (e, e) shared or (n, e, e)
+        self._kern: list[np.ndarray] = []
+        self._lvl: list[np.ndarray] = []
+        self._data: list[dict[str, np.ndarray]] = []
+        self.kernels: list[RobustKernel] = []
+        self._kernel_keys: dict[Any, int] = {}
+        self.size = 0
+        self.dim = e
+        self.next_uid = 0
+        #: Incremented whenever edges are removed (indices move; the structure is stale).
+        self.removals = 0
+        # Filled by finalize():
+        self.vertex_ids = np.zeros((0, self.k), dtype=np.int64)
+        self.slots = np.zeros((0, self.k), dtype=np.int64)
+        self.measurements = np.zeros((0, *self.mshape))
+        self.information: np.ndarray | None = None  # (e, e) shared, or (m, e, e)
+        self.info_is_identity = True
+        self.info_diagonal: np.ndarray | None = None  # (e,) when the shared matrix is diagonal
+        self.kernel_index = np.zeros(0, dtype=np.int64)
+        self.levels = np.zeros(0, dtype=np.int64)
+        self.uids = np.zeros(0, dtype=np.int64)
+        self.data: dict[str, np.ndarray] = {}
+        self.measured: np.ndarray | None = None  # the type's measurement_derived values
+        self.last_chi2 = np.zeros(0)
+        self.active_count = 0
+        #: The initialised level, the ``(m,)`` mask of the edges at that level (``None``: all
+        #: are), and a counter of its changes.
+        self.level = 0
+        self.active_edges: np.ndarray | None = None
+        self.activity_version = 0
+        self._finalized_size = -1
+
+    # --- adding ----------------------------------------------------------------------------
+
+    def kernel_slot(self, kernel: RobustKernel | None) -> int:
+        """Index of ``kernel`` in this group's kernel list (-1 for none).
+
+        Kernels equal in type and parameters share a slot (one ``robustify`` call per distinct
+        kernel and iteration, however many kernel objects the edges were given).
+
+        Args:
+            kernel: A kernel or ``None``.
+        """
+        if kernel is None:
+            return -1
+        if not isinstance(kernel, RobustKernel):
+            raise GraphError(
+                f"{self.etype.__name__}: robust_kernel must be a RobustKernel, got {kernel!r}"
+            )
+        key = _kernel_key(kernel)
+        slot = self._kernel_keys.get(key)
+        if slot is not None and _kernel_key(self.kernels[slot]) == key:
+            return slot
+        for i, k in enumerate(self.kernels):  # a kernel changed after it was added
+            if _kernel_key(k) == key:
+                self._kernel_keys[key] = i
+                return i
+        self.kernels.append(kernel)
+        self._kernel_keys[key] = len(self.kernels) - 1
+        return len(self.kernels) - 1
+
+    def append(
+        self,
+        vids: np.ndarray,
+        meas: np.ndarray,
+        info: np.ndarray,
+        kernel: int | np.ndarray,
+        data: dict[str, np.ndarray],
+        levels: int | np.ndarray = 0,
+    ) -> int:
+        """Append validated edges; returns the uid of the first one (the others follow).
+
+        Args:
+            vids: ``(n, k)`` vertex ids.
+            meas: ``(n, *measurement_shape)``.
+            info: ``(e, e)`` shared or ``(n, e, e)``.
+            kernel: Kernel slot for all, or per edge.
+            data: Per-edge arrays.
+            levels: One level for all, or ``(n,)`` levels.
+        """
+        n = len(vids)
+        start = self.next_uid
+        if self._data and set(data) != set(self._data[0]):
+            raise GraphError(
+                f"{self.etype.__name__}: every add_edges call of a group must give the same data "
+                f"keys ({sorted(self._data[0])}), got {sorted(data)}"
+            )
+        self._vids.append(vids)
+        self._meas.append(meas)
+        self._info.append(info)
+        # One value for the chunk: a broadcast (no bytes per edge) until it is set per edge.
+        self._kern.append(_per_edge(kernel, n))
+        self._lvl.append(_per_edge(levels, n))
+        self._data.append(data)
+        self.size += n
+        self.next_uid += n
+        return start
+
+    # --- finalising --------------------------------------------------------------------------
+
+    def finalize(self) -> None:
+        """Concatenate chunks into the group's arrays (idempotent)."""
+        if self._finalized_size == self.size:
+            return
+        first_new = len(self.uids)
+        self.vertex_ids = _join(self._vids) if self._vids else self.vertex_ids
+        self.measurements = _join(self._meas) if self._meas else self.measurements
+        if self._kern:
+            self.kernel_index = _join_values(self._kern, self.size)
+        if self._lvl:
+            self.levels = _join_values(self._lvl, self.size)
+        if self.size > first_new:  # uids of the edges appended since the last finalize
+            self.uids = np.concatenate([self.uids, np.arange(self.next_uid - self.size
+                                                             + first_new, self.next_uid)])
+        shared = [i for i in self._info if i.ndim == 2]
+        if len(shared) == len(self._info) and all(np.array_equal(shared[0], i) for i in shared):
+            self.information = shared[0] if shared else np.eye(self.dim)
+        else:
+            self.information = np.concatenate(
+                [np.broadcast_to(i, (len(v), self.dim, self.dim)) for i, v in
+                 zip(self._info, self._vids, strict=True)]
+            )
+        self.info_is_identity = self.information.ndim == 2 and np.array_equal(
+            self.information, np.eye(self.dim)
+        )
+        self.info_diagonal = None
+        if self.information.ndim == 2 and not np.count_nonzero(
+                self.information - np.diag(np.diag(self.information))):
+            self.info_diagonal = np.diag(self.information).copy()
+        if self._data:
+            self.data = {key: _join([d[key] for d in self._data]) for key in self._data[0]}
+        self.measured = self.etype.measurement_derived(self.measurements) if self.size else None
+        if self.measured is not None and (self.measured.ndim != 2
+                                          or len(self.measured) != self.size):
+            raise GraphError(f"{self.etype.__name__}.measurement_derived returned shape "
+                             f"{self.measured.shape}, expected ({self.size}, k)")
+        # Keep one chunk so further appends concatenate onto the consolidated arrays.
+        self._vids, self._meas = [self.vertex_ids], [self.measurements]
+        self._kern, self._lvl = [self.kernel_index], [self.levels]
+        self._info = [self.information]
+        self._data = [self.data] if self._data else []
+        self.last_chi2 = np.zeros(self.size)
+        self._finalized_size = self.size
+        self.apply_level(self.level, force=True)
+
+    def context(self) -> EdgeContext:
+        """A fresh :class:`EdgeContext` over all edges of the group."""
+        return EdgeContext(self.params, self.data, measured=self.measured)
+
+    # --- addressing edges by uid ---------------------------------------------------------------
+
+    def index_of(self, uids: np.ndarray) -> np.ndarray:
+        """Current indices of edges given by uid.
+
+        Args:
+            uids: ``(r,)`` uids.
+
+        Raises:
+            GraphError: an edge was removed (naming how many).
+        """
+        self.finalize()
+        if not self.removals:  # nothing removed: a uid is its index
+            return uids
+        pos = np.searchsorted(self.uids, uids).clip(0, max(self.size - 1, 0))
+        gone = (self.uids[pos] != uids) if self.size else np.ones(len(uids), dtype=bool)
+        if gone.any():
+            raise GraphError(f"{self.etype.__name__}: {int(gone.sum())} of these {len(uids)} "
+                             "edges were removed")
+        return pos
+
+    def information_of(self, i: int) -> np.ndarray:
+        """Information matrix of edge ``i``.
+
+        Args:
+            i: Edge index in the group.
+        """
+        self.finalize()
+        assert self.information is not None
+        return self.information.copy() if self.information.ndim == 2 else self.information[i].copy()
+
+    def kernel_of(self, i: int) -> RobustKernel | None:
+        """Robust kernel of edge ``i``.
+
+        Args:
+            i: Edge index in the group.
+        """
+        self.finalize()
+        k = int(self.kernel_index[i])
+        return None if k < 0 else self.kernels[k]
+
+    # --- editing -----------------------------------------------------------------------------
+
+    def set_kernel(self, i: int | slice | np.ndarray, kernel: RobustKernel | None) -> None:
+        """Set the robust kernel of some edges (the structure stays).
+
+        Args:
+            i: Edge index (or indices) in the group.
+            kernel: The kernel or ``None``.
+        """
+        self.finalize()
+        slot = self.kernel_slot(kernel)
+        if not self.kernel_index.flags.writeable:  # one broadcast slot so far
+            if int(self.kernel_index[0]) == slot:
+                return
+            self.kernel_index = self.kernel_index.copy()
+        self.kernel_index[i] = slot
+        self._compact_kernels()
+        self.activity_version += 1  # evaluations at the old kernels are stale
+
+    def _compact_kernels(self) -> None:
+        """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
+        used = np.unique(self.kernel_index)
+        used = used[used >= 0]
+        if len(used) != len(self.kernels):
+            remap = np.full(len(self.kernels) + 1, -1, dtype=np.int64)
+            remap[used] = np.arange(len(used))
+            self.kernel_index = remap[self.kernel_index]
+            self.kernels = [self.kernels[int(u)] for u in used]
+            self._kernel_keys = {_kernel_key(k): i for i, k in enumerate(self.kernels)}
+        if len(used) <= 1 and len(self.kernel_index):
+            value = np.int64(self.kernel_index[0])
+            if (self.kernel_index == value).all():
+                self.kernel_index = np.broadcast_to(value, (self.size,))
+        self._kern = [self.kernel_index]
+
+    def set_levels(self, i: slice | np.ndarray, levels: int | np.ndarray) -> None:
+        """Set the level of some edges (validated by the caller); the structure stays.
+
+        Args:
+            i: Edge indices in the group.
+            levels: One level or one per edge.
+        """
+        self.finalize()
+        if not self.levels.flags.writeable:
+            self.levels = self.levels.copy()
+        self.levels[i] = levels
+        self._lvl = [self.levels]
+        self.apply_level(self.level, force=True)
+
+    def apply_level(self, level: int, force: bool = False) -> None:
+        """Make the edges of ``level`` the active ones.
+
+        Args:
+            level: The initialised level.
+            force: Recompute even if the level is the same (the levels changed).
+        """
+        if level == self.level and not force:
+            return
+        self.level = level
+        if self.levels.strides == (0,) and len(self.levels):  # one level for all
+            act = None if int(self.levels[0]) == level else np.zeros(self.size, dtype=bool)
+        else:
+            act = self.levels == level
+            act = None if act.all() else act
+        if act is None and self.active_edges is None:
+            return
+        self.active_edges = act
+        self.activity_version += 1
+
+    def remove(self, index: np.ndarray) -> None:
+        """Remove edges; the others keep their order and uids (the structure is stale).
+
+        Args:
+            index: ``(r,)`` indices of the edges to remove.
+        """
+        self.finalize()
+        keep = np.ones(self.size, dtype=bool)
+        keep[index] = False
+        self.vertex_ids = self.vertex_ids[keep]
+        self.measurements = self.measurements[keep]
+        assert self.information is not None
+        if self.information.ndim == 3:
+            self.information = self.information[keep]
+        self.kernel_index = np.ascontiguousarray(self.kernel_index[keep])
+        self.levels = np.ascontiguousarray(self.levels[keep])
+        self.uids = self.uids[keep]
+        self.data = {key: v[keep] for key, v in self.data.items()}
+        self.size = int(keep.sum())
+        self._vids, self._meas, self._info = [self.vertex_ids], [self.measurements], [
+            self.information]
+        self._data = [self.data] if self._data else []
+        self._compact_kernels()
+        self._lvl = [self.levels]
+        self.removals += 1
+        self._finalized_size = -1
+        self.active_edges = None
+        self.finalize()
+        self.activity_version += 1
+
+
+def _kernel_key(kernel: RobustKernel) -> Any:
+    """What makes two kernels interchangeable: their type and parameters (or identity)."""
+    key = (type(kernel), *kernel.__dict__.values())
+    try:
+        hash(key)
+    except TypeError:
+        return id(kernel)
+    return key
+
+
+def _per_edge(value: int | np.ndarray, n: int) -> np.ndarray:
+    """``(n,)`` int64 values: a broadcast of one value (no bytes per edge), or a copy."""
+    arr = np.asarray(value, dtype=np.int64)
+    return np.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr.copy()
+
+
+def _join_values(chunks: list[np.ndarray], n: int) -> np.ndarray:
+    """Per-edge value chunks as one array: a broadcast while all are the same broadcast."""
+    live = [c for c in chunks if len(c)]
+    if live and all(c.strides == (0,) for c in live) and len({int(c[0]) for c in live}) == 1:
+        return np.broadcast_to(np.int64(live[0][0]), (n,))
+    return _join(chunks) if chunks else np.zeros(0, dtype=np.int64)

@@ -1,0 +1,247 @@
+"""Editing a graph between runs (graphopt.edge_set, graphopt.activity): levels select edges as
+g2o's do, kernels change, edges and vertices go and come back — without a new structure where
+only numbers change — and bad edits are clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from ba_scene import CAMERA, build, local_ba_scene
+from custom_types import EdgeSE2, VertexSE2, pose_graph
+
+from graphopt import GraphError, RobustKernelHuber, SparseOptimizer, StoppingConfig
+from graphopt.lie import transform_points
+from graphopt.types import EdgeSE3Expmap, EdgeSE3ProjectXYZ, VertexPointXYZ, VertexSE3Expmap
+
+
+@pytest.fixture(scope="module")
+def scene():
+    sc = local_ba_scene(free=4, fixed=2, points=50, per_point=4, outliers=0.0, seed=3)
+    # One gross outlier in every third point's observations (each point keeps three inliers:
+    # Gauss–Newton needs two), and every observation of point 0 (at level 0 it is idle).
+    rng = np.random.default_rng(4)
+    out = np.zeros((50, 4), bool)
+    out[np.arange(0, 50, 3), rng.integers(0, 4, 17)] = True
+    out[0] = True
+    sc.outlier = out.ravel()
+    sc.meas[sc.outlier] += rng.uniform(20, 60, (int(sc.outlier.sum()), 2))
+    return sc
+
+
+def _estimates(opt: SparseOptimizer, point_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pts = np.stack([opt.vertex(int(i)).estimate for i in point_ids])
+    return opt.estimates_of(VertexSE3Expmap), pts
+
+
+def _chi2_by_hand(sc, opt: SparseOptimizer) -> np.ndarray:
+    """``eᵀe`` of every observation, projected here, not by the edge type."""
+    T = opt.estimates_of(VertexSE3Expmap)[sc.ids[:, 0]]
+    X = np.stack([opt.vertex(int(i)).estimate for i in sc.ids[:, 1]])
+    P = transform_points(T, X)
+    uv = np.column_stack([CAMERA.fx * P[:, 0] / P[:, 2] + CAMERA.cx,
+                          CAMERA.fy * P[:, 1] / P[:, 2] + CAMERA.cy])
+    return ((sc.meas - uv) ** 2).sum(1)
+
+
+@pytest.mark.parametrize("algorithm", ["gn", "lm"])
+def test_levels_select_the_edges_as_a_graph_of_the_active_edges_only(scene, algorithm) -> None:
+    """Outliers at level 1, the optimizer initialised at level 0: the same chi2 and optimum as
+    a graph built from the inliers alone; the idle point (all its edges inactive) stays put
+    and does not make Gauss–Newton's system singular."""
+    inl = np.flatnonzero(~scene.outlier)
+    ref, _ = build(scene, inl, kernel=False, algorithm=algorithm, only_used=True)
+    opt, es = build(scene, kernel=False, algorithm=algorithm)
+    es.set_level(scene.outlier.astype(int))
+    opt.initialize_optimization(0)
+    assert opt.active_edge_count() == len(inl)
+    assert opt.chi2() == pytest.approx(ref.chi2(), rel=1e-12)
+    idle = len(scene.poses)
+    before = opt.vertex(idle).estimate
+    r1, r2 = ref.optimize(15), opt.optimize(15)
+    assert r2.final_chi2 == pytest.approx(r1.final_chi2, rel=1e-9)
+    assert r2.final_chi2 < 0.05 * r2.initial_chi2
+    used = np.unique(scene.ids[inl, 1])
+    for a, b in zip(_estimates(opt, used), _estimates(ref, used), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-7)
+    np.testing.assert_array_equal(opt.vertex(idle).estimate, before)
+    # Level 1 alone: the outliers are the active edges now, the same structure.
+    p = opt.problem
+    opt.initialize_optimization(1)
+    assert opt.problem is p and opt.active_edge_count() == int(scene.outlier.sum())
+    assert opt.chi2() == pytest.approx(es.chi2()[scene.outlier].sum(), rel=1e-12)
+
+
+def test_a_pose_whose_edges_are_all_inactive_does_not_move(scene) -> None:
+    opt, es = build(scene, kernel=False, algorithm="gn")
+    # The outliers and every observation by free keyframe 1 to level 1.
+    levels = (scene.outlier | (scene.ids[:, 0] == 1)).astype(int)
+    es.set_level(levels)
+    before = opt.vertex(1).estimate
+    res = opt.optimize(5)
+    assert res.final_chi2 < 0.05 * res.initial_chi2
+    np.testing.assert_array_equal(opt.vertex(1).estimate, before)
+
+
+def test_chi2_per_edge_is_the_kernel_free_error_of_every_level(scene) -> None:
+    opt, es = build(scene)
+    opt.optimize(3)
+    np.testing.assert_allclose(es.chi2(), _chi2_by_hand(scene, opt), rtol=1e-10)
+    e = es.errors()
+    assert e.shape == (len(es), 2)
+    np.testing.assert_allclose((e**2).sum(1), es.chi2(), rtol=1e-12)
+    es.set_level(scene.outlier.astype(int))  # per-edge chi2 does not depend on the level
+    np.testing.assert_allclose(es.chi2(), _chi2_by_hand(scene, opt), rtol=1e-10)
+    assert opt.chi2() == pytest.approx(es.chi2()[~scene.outlier].sum(), rel=1e-12)
+    sub = es[scene.outlier]
+    assert len(sub) == int(scene.outlier.sum())
+    np.testing.assert_array_equal(sub.levels(), 1)
+    np.testing.assert_array_equal(sub.ids, scene.ids[scene.outlier])
+    np.testing.assert_allclose(sub.chi2(), es.chi2()[scene.outlier])
+
+
+def test_dropping_the_kernel_reaches_the_kernel_free_optimum_on_the_same_structure(scene):
+    inl = np.flatnonzero(~scene.outlier)
+    ref, _ = build(scene, inl, kernel=False)
+    ref.stopping = StoppingConfig.iterations_only()
+    ref.optimize(40)
+    opt, es = build(scene, inl)  # Huber kernels
+    opt.stopping = ref.stopping
+    opt.optimize(5)
+    p = opt.problem
+    es.set_robust_kernel(None)
+    opt.initialize_optimization()
+    assert opt.problem is p and opt.problem.system.pattern is p.system.pattern
+    opt.optimize(40)
+    assert opt.problem is p
+    assert opt.chi2() == pytest.approx(ref.chi2(), rel=1e-9)
+    assert opt.active_robust_chi2() == opt.chi2()
+    np.testing.assert_allclose(opt.estimates_of(VertexPointXYZ), ref.estimates_of(VertexPointXYZ),
+                               atol=1e-7)
+    es[:3].set_robust_kernel(RobustKernelHuber(1.0))  # a kernel on some edges only
+    assert opt.active_robust_chi2() < opt.chi2()
+
+
+def test_remove_and_add_again(scene) -> None:
+    """Outliers removed: the inlier graph's optimum (a new structure); added back: the whole
+    graph's. Another set's removal leaves a set valid; a removed set's edges raise."""
+    full, _ = build(scene)
+    full.optimize(20)
+    inl = np.flatnonzero(~scene.outlier)
+    ref, _ = build(scene, inl)
+    ref.optimize(20)
+    opt, es = build(scene)
+    bad = es[scene.outlier]
+    good = es[~scene.outlier]
+    chi_good = good.chi2()
+    bad.remove()
+    assert len(bad) == 0 and opt.num_edges() == len(inl)
+    np.testing.assert_array_equal(good.chi2(), chi_good)
+    np.testing.assert_array_equal(good.ids, scene.ids[inl])
+    opt.optimize(20)
+    assert opt.chi2() == pytest.approx(ref.chi2(), rel=1e-8)
+    np.testing.assert_allclose(opt.estimates_of(VertexSE3Expmap),
+                               ref.estimates_of(VertexSE3Expmap), atol=1e-7)
+    stale = es[scene.outlier]
+    with pytest.raises(GraphError, match=r"EdgeSet of EdgeSE3ProjectXYZ: \d+ of these \d+ edges "
+                                         "were removed"):
+        stale.chi2()
+    with pytest.raises(GraphError, match="were removed"):
+        stale.set_level(1)
+    # The idle point is used by no edge now: it can go, and come back.
+    idle = len(scene.poses)
+    with pytest.raises(GraphError, match=r"vertices \[\d+\] are still used by \d+ "
+                                         "EdgeSE3ProjectXYZ edges"):
+        opt.remove_vertices([idle + 1])
+    v = opt.vertex(idle)
+    opt.remove_vertices([idle])
+    assert opt.vertex(idle) is None and v.estimate.shape == (3,)
+    opt.add_vertices(VertexPointXYZ, [idle], scene.points[:1], marginalized=True)
+    back = opt.add_edges(EdgeSE3ProjectXYZ, scene.ids[scene.outlier], scene.meas[scene.outlier],
+                         params=CAMERA, robust_kernel=RobustKernelHuber(np.sqrt(5.991)))
+    assert opt.num_edges() == len(scene.ids) and len(back) == int(scene.outlier.sum())
+    opt.set_estimates_of(VertexSE3Expmap, scene.poses)
+    opt.set_estimates_of(VertexPointXYZ, scene.points[np.argsort(opt.ids_of(VertexPointXYZ))
+                                                      .argsort()])
+    opt.optimize(20)
+    assert opt.chi2() == pytest.approx(full.chi2(), rel=1e-6)
+
+
+def test_single_edges_levels_and_removal() -> None:
+    _, init, edges, meas = pose_graph(5)
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(VertexSE2, np.arange(5), init, fixed=np.arange(5) == 0)
+    objs = [EdgeSE2(list(map(int, e)), z) for e, z in zip(edges, meas, strict=True)]
+    for e in objs:
+        opt.add_edge(e)
+    chi = [e.chi2() for e in objs]
+    assert sum(chi) == pytest.approx(opt.chi2(), rel=1e-12)
+    objs[1].set_level(2)
+    assert objs[1].level() == 2 and objs[0].level() == 0
+    assert opt.chi2() == pytest.approx(sum(chi) - chi[1], rel=1e-12)
+    opt.remove_edge(objs[0])
+    assert opt.num_edges() == len(objs) - 1
+    with pytest.raises(ValueError, match="not in an optimizer"):
+        objs[0].chi2()
+    assert objs[2].chi2() == pytest.approx(chi[2], rel=1e-12)  # its index moved
+    with pytest.raises(GraphError, match="is not in this optimizer"):
+        opt.remove_edge(objs[0])
+    opt.add_edge(objs[0])  # removed objects can be added again
+    assert objs[0].chi2() == pytest.approx(chi[0], rel=1e-12)
+    for e in objs:
+        if 4 in [v if isinstance(v, int) else v.id for v in e.vertices]:
+            opt.remove_edge(e)
+    v4 = opt.vertex(4)
+    assert opt.remove_vertex(v4) and opt.vertex(4) is None and 4 not in opt.vertex_ids()
+    np.testing.assert_array_equal(v4.estimate, init[4])
+    assert opt.optimize(5).final_chi2 < 1e-6 + opt.chi2()
+
+
+def test_bad_edits_are_clear_errors(scene) -> None:
+    opt, es = build(scene)
+    m = len(es)
+    for bad in (-1, 1.5, True, "1", np.zeros(m - 1, int), np.full(m, 0.0), np.full((m, 1), 1)):
+        with pytest.raises(GraphError, match="EdgeSet of EdgeSE3ProjectXYZ.set_level: levels"):
+            es.set_level(bad)
+    for bad in (-2, 0.5, None):
+        with pytest.raises(GraphError, match="a level must be a non-negative integer"):
+            opt.initialize_optimization(bad)
+    with pytest.raises(GraphError, match=rf"a mask must have shape \({m},\), got \(3,\)"):
+        es[np.ones(3, bool)]
+    with pytest.raises(GraphError, match="index out of range"):
+        es[[m]]
+    with pytest.raises(GraphError, match="select with a"):
+        es[[0.5]]
+    with pytest.raises(GraphError, match=r"remove\): a mask must have shape"):
+        es.remove(np.ones(2, bool))
+    with pytest.raises(GraphError, match="robust_kernel must be a RobustKernel or None"):
+        es.set_robust_kernel("huber")
+    ep = opt.add_edges(EdgeSE3Expmap, [[0, 1]], np.eye(4)[None])
+    with pytest.raises(GraphError, match="EdgeSE3Expmap has no depth_positive"):
+        ep.is_depth_positive()
+    ep.remove()
+    with pytest.raises(GraphError, match=r"no vertex with id \[999\]"):
+        opt.remove_vertices([999])
+    with pytest.raises(GraphError, match="a level must be a non-negative integer"):
+        EdgeSE2().set_level(-3)
+    es.remove()
+    assert len(es) == 0 and opt.num_edges() == 0
+
+
+def test_a_level_change_reuses_the_problem_and_gives_fresh_results(scene) -> None:
+    """No rebuild for levels, kernels or estimates (the same Problem, pattern and solver),
+    and chi2 queries are never stale after an edit."""
+    opt, es = build(scene)
+    opt.optimize(3)
+    p, solver = opt.problem, opt.solver
+    c0 = opt.chi2()
+    es.set_level(scene.outlier.astype(int))
+    c1 = opt.chi2()
+    assert c1 < c0 and opt.problem is p
+    opt.set_estimates_of(VertexSE3Expmap, scene.poses)
+    assert opt.chi2() != c1
+    opt.initialize_optimization(0)
+    opt.optimize(3)
+    assert opt.problem is p and opt.solver is solver
+    es[:1].remove()  # removing edges rebuilds
+    opt.optimize(1)
+    assert opt.problem is not p
