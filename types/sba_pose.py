@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
@@ -102,11 +103,49 @@ def _pose_jacobian(D: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.concatenate([_cross_matrix_rows(D, P), D], axis=2)
 
 
+@lru_cache(maxsize=64)
+def _only_pose_map(fx: float, fy: float, bf: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(M (12, 6k), C (6k,))`` with ``J.reshape(m, 6k) = F @ M + C`` for the only-pose edges.
+
+    ``F`` holds the products ``a_i b_j`` (index ``3i + j``) of ``a = [u, v, iz, 1]`` and
+    ``b = [u, v, iz]`` (``u, v`` normalised image coordinates, ``iz = 1/z``): every entry of
+    g2o's Jacobian rows is a combination of them (``k = 2``, or 3 rows with ``bf``)."""
+    k = 2 if bf is None else 3
+    M, C = np.zeros((12, 6 * k)), np.zeros(6 * k)
+    U, V, IZ, ONE = 0, 1, 2, 3               # the factors of a
+    u, v, iz = 0, 1, 2                       # the factors of b
+
+    def put(row: int, col: int, i: int, j: int, coef: float) -> None:
+        M[3 * i + j, 6 * row + col] += coef
+
+    for row, f in [(0, fx)] + ([] if bf is None else [(2, fx)]):
+        # fx·[uv, −(1 + u²), v, −iz, 0, u·iz]
+        put(row, 0, U, v, f)
+        C[6 * row + 1] = -f
+        put(row, 1, U, u, -f)
+        put(row, 2, ONE, v, f)
+        put(row, 3, ONE, iz, -f)
+        put(row, 5, U, iz, f)
+    # fy·[1 + v², −uv, −u, 0, −iz, v·iz]
+    C[6] = fy
+    put(1, 0, V, v, fy)
+    put(1, 1, U, v, -fy)
+    put(1, 2, ONE, u, -fy)
+    put(1, 4, ONE, iz, -fy)
+    put(1, 5, V, iz, fy)
+    if bf is not None:       # u_r = u − bf·iz: row 0 plus bf·[−v·iz, u·iz, 0, 0, 0, −iz²]
+        put(2, 0, V, iz, -bf)
+        put(2, 1, U, iz, bf)
+        put(2, 5, IZ, iz, -bf)
+    return M, C
+
+
 class _OnlyPose(BaseEdge):
     """Unary projection edges on one pose; the world point per edge in ``data["Xw"]``.
 
     The most frequent call of a SLAM system (every frame, every iteration), so written with
-    few numpy calls: g2o's closed-form Jacobian rows instead of ``∂e/∂P·[−[P]×, I]``.
+    few numpy calls: g2o's closed-form Jacobian rows as one product of per-edge monomials with
+    a constant matrix (:func:`_only_pose_map`), instead of ``∂e/∂P·[−[P]×, I]``.
     """
 
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE3Expmap,)
@@ -123,31 +162,25 @@ class _OnlyPose(BaseEdge):
         cam = (StereoCameraParameters.coerce(ctx.params) if cls.stereo
                else CameraParameters.coerce(ctx.params))
         P = cls._point(x, ctx)
+        m = len(P)
         iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]                 # normalised image coordinates
+        uv = P[:, :2] * iz[:, None]                  # normalised image coordinates
         pix = uv * cam.focal + cam.centre
         if cls.stereo:
-            e = np.empty((len(P), 3))
-            e[:, :2] = z[:, :2] - pix
+            e = np.empty((m, 3))
+            np.subtract(z[:, :2], pix, out=e[:, :2])
             e[:, 2] = z[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
         else:
             e = z - pix
         if not jacobian:
             return e, None
-        u, v = uv[:, 0], uv[:, 1]
-        uvp, zero = u * v, np.zeros_like(u)
-        rows = [uvp, -1.0 - u * u, v, -iz, zero, u * iz,
-                1.0 + v * v, -uvp, -u, zero, -iz, v * iz]
-        k = 3 if cls.stereo else 2
-        J = np.stack(rows + rows[:6] if cls.stereo else rows, axis=1).reshape(-1, k, 6)
-        J[:, :2] *= cam.focal[:, None]
-        if cls.stereo:
-            J[:, 2] *= cam.fx
-            bi = cam.bf * iz                             # type: ignore[attr-defined]
-            J[:, 2, 0] -= bi * v
-            J[:, 2, 1] += bi * u
-            J[:, 2, 5] -= bi * iz
-        return e, J
+        a = np.empty((m, 4))                         # [u, v, iz, 1]
+        a[:, :2], a[:, 2], a[:, 3] = uv, iz, 1.0
+        F = (a[:, :, None] * a[:, None, :3]).reshape(m, 12)
+        M, C = _only_pose_map(cam.fx, cam.fy, cam.bf if cls.stereo else None)  # type: ignore[attr-defined]
+        J = F @ M
+        J += C
+        return e, J.reshape(m, 3 if cls.stereo else 2, 6)
 
     @classmethod
     def depth_positive(
