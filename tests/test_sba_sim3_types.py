@@ -261,6 +261,16 @@ def test_only_pose_edges_need_world_points() -> None:
     from graphopt.errors import GraphError
     with pytest.raises(GraphError, match="EdgeSE3ProjectXYZOnlyPose needs data"):
         EdgeSE3ProjectXYZOnlyPose.error((_rep(C.pose()),), C.pixels(), EdgeContext(CAM))
+    # Intrinsics without a baseline, or none: a GraphError naming the type, from the optimizer.
+    opt = SparseOptimizer()
+    opt.add_vertices(VertexSE3Expmap, [0], C.pose()[None])
+    opt.add_edges(EdgeStereoSE3ProjectXYZOnlyPose, np.zeros((C.M, 1), int), C.stereo(),
+                  params=CAM, data={"Xw": C.points()})
+    with pytest.raises(GraphError, match="EdgeStereoSE3ProjectXYZOnlyPose needs params="
+                                         "StereoCameraParameters"):
+        opt.optimize(1)
+    with pytest.raises(GraphError, match="EdgeSim3ProjectXYZ needs params=CameraParameters"):
+        EdgeSim3ProjectXYZ.error((C.points(), _rep(np.eye(4))), C.pixels(), EdgeContext())
 
 
 def test_edge_set_depth_positive_and_chi2_per_edge() -> None:

@@ -23,6 +23,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.errors import GraphError
 from graphopt.lie import relative_transform, transform_points
 from graphopt.types.vertices import VertexPointInverseDepth, VertexPointXYZ, VertexSE3Expmap
 from graphopt.vertex import BaseVertex
@@ -76,6 +77,22 @@ class CameraParameters:
             return cls(*(float(params[k]) for k in ("fx", "fy", "cx", "cy")))
         fx, fy, cx, cy = (float(v) for v in params)
         return cls(fx, fy, cx, cy)
+
+
+def camera_params(etype: type, params: Any,
+                  kind: type[CameraParameters] = CameraParameters) -> CameraParameters:
+    """``kind.coerce(params)`` for an edge type, or a :class:`GraphError` naming the type.
+
+    Args:
+        etype: The edge type (for the message).
+        params: The group's ``ctx.params``.
+        kind: :class:`CameraParameters` or a subclass (stereo).
+    """
+    try:
+        return kind.coerce(params)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise GraphError(f"{etype.__name__} needs params={kind.__name__}(...), got {params!r} "
+                         f"({exc})") from None
 
 
 def _pinhole(

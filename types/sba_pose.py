@@ -29,7 +29,12 @@ import numpy as np
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError
 from graphopt.lie import transform_inverse, transform_points
-from graphopt.types.projection import CameraParameters, _cross_matrix_rows, _pinhole
+from graphopt.types.projection import (
+    CameraParameters,
+    _cross_matrix_rows,
+    _pinhole,
+    camera_params,
+)
 from graphopt.types.sim3_lie import log_left_jacobian, se3quat_log, sim3_adjoint
 from graphopt.types.vertices import VertexPointXYZ, VertexSE3Expmap
 from graphopt.vertex import BaseVertex
@@ -67,7 +72,8 @@ class StereoCameraParameters(CameraParameters):
         if isinstance(params, StereoCameraParameters):
             return params
         if params is None or isinstance(params, CameraParameters):
-            raise ValueError("stereo edges need params=StereoCameraParameters(fx, fy, cx, cy, bf)")
+            raise ValueError("stereo edges need the baseline: StereoCameraParameters(fx, fy, "
+                             "cx, cy, bf)")
         if isinstance(params, dict):
             return cls(*(float(params[k]) for k in ("fx", "fy", "cx", "cy", "bf")))
         fx, fy, cx, cy, bf = (float(v) for v in params)
@@ -159,8 +165,8 @@ class _OnlyPose(BaseEdge):
     def _project(cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext, jacobian: bool
                  ) -> tuple[np.ndarray, np.ndarray | None]:
         """Errors ``(m, 2|3)`` and, when asked, the pose Jacobians ``(m, 2|3, 6)``."""
-        cam = (StereoCameraParameters.coerce(ctx.params) if cls.stereo
-               else CameraParameters.coerce(ctx.params))
+        cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
+                            else CameraParameters)
         P = cls._point(x, ctx)
         m = len(P)
         iz = 1.0 / P[:, 2]
@@ -316,7 +322,7 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
             ctx: ``params``.
         """
         return _stereo(transform_points(x[0], x[1]), measurement,
-                       StereoCameraParameters.coerce(ctx.params))[0]
+                       camera_params(cls, ctx.params, StereoCameraParameters))[0]
 
     @classmethod
     def linearize(
@@ -331,7 +337,7 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
         """
         T, X = x
         P = transform_points(T, X)
-        e, D = _stereo(P, measurement, StereoCameraParameters.coerce(ctx.params))
+        e, D = _stereo(P, measurement, camera_params(cls, ctx.params, StereoCameraParameters))
         return Linearization(e, (_pose_jacobian(D, P), D @ T[:, :3, :3]))
 
     @classmethod

@@ -37,7 +37,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.lie import hat
-from graphopt.types.projection import CameraParameters, _pinhole
+from graphopt.types.projection import _pinhole, camera_params
 from graphopt.types.sim3_lie import (
     log_left_jacobian,
     sim3_adjoint,
@@ -237,7 +237,7 @@ class _Sim3Projection(BaseEdge):
         """
         P = cls._camera_point(x)
         return _pinhole((P[:, 0], P[:, 1], P[:, 2]), measurement,
-                        CameraParameters.coerce(ctx.params))[0]
+                        camera_params(cls, ctx.params))[0]
 
     @classmethod
     def linearize(
@@ -257,7 +257,7 @@ class _Sim3Projection(BaseEdge):
         R, t, s = sim3_parts(S)
         P = cls._camera_point(x)
         e, Dp = _pinhole((P[:, 0], P[:, 1], P[:, 2]), measurement,
-                         CameraParameters.coerce(ctx.params))
+                         camera_params(cls, ctx.params))
         m = len(X)
         G = np.zeros((m, 3, 7))
         if cls.inverse:
