@@ -1,8 +1,10 @@
 """graphopt: g2o-style graph optimisation with batched (struct-of-arrays) edges."""
 
 from graphopt.algorithms import DoglegConfig, GaussNewtonConfig, LevenbergConfig
+from graphopt.autodiff import Jet, JetError
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError, NotPositiveDefiniteError, SingularSystemError
+from graphopt.jacobian_check import JacobianCheck, check_jacobians, edge_jacobians
 from graphopt.linear import SchurConfig
 from graphopt.numeric import numeric_jacobians
 from graphopt.optimizer import SparseOptimizer
@@ -45,6 +47,9 @@ __all__ = [
     "GraphError",
     "ImplicitSchurConfig",
     "IterationInfo",
+    "JacobianCheck",
+    "Jet",
+    "JetError",
     "LevenbergConfig",
     "Linearization",
     "LinearSolver",
@@ -73,6 +78,8 @@ __all__ = [
     "StopReason",
     "StoppingConfig",
     "VertexVector",
+    "check_jacobians",
+    "edge_jacobians",
     "make_kernel",
     "numeric_jacobians",
 ]

@@ -5,6 +5,11 @@ vertices and a batched :meth:`BaseEdge.error` over **all edges of a group at onc
 whose first axis runs over edges). Analytic Jacobians are optional: without them a vectorised
 central-difference Jacobian is used (:func:`graphopt.numeric.numeric_jacobians`).
 
+Which Jacobians a type's default :meth:`BaseEdge.linearize` uses is its ``differentiation``:
+``"auto"`` (analytic ones when the type defines them, else automatic differentiation of
+``error`` on jets, :mod:`graphopt.autodiff`), ``"analytic"``, ``"autodiff"`` or ``"numeric"``
+(central differences).
+
 Instances are the per-object front of g2o's API; the optimizer copies them into arrays.
 """
 
@@ -16,10 +21,29 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from graphopt.autodiff import (
+    JetError,
+    autodiff_linearize,
+    check_independent_edges,
+    jet_error_message,
+)
 from graphopt.errors import GraphError
 from graphopt.numeric import numeric_jacobians
 from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
+
+#: The values of ``BaseEdge.differentiation``.
+DIFFERENTIATION = ("auto", "analytic", "autodiff", "numeric")
+
+# Edge types whose batched error was seen to treat each edge on its own (checked once).
+_INDEPENDENT: set[type] = set()
+
+
+def _analytic_twin(cls: type) -> type:
+    """A subclass of ``cls``'s nearest parent with analytic Jacobians, keeping them."""
+    parent = next(c for c in cls.__mro__[1:] if issubclass(c, BaseEdge)
+                  and c.has_analytic_jacobians())
+    return parent
 
 
 def check_level(level: Any) -> int:
@@ -122,6 +146,30 @@ class BaseEdge:
     #: Receive the vertices' :meth:`~graphopt.vertex.BaseVertex.derived` values in
     #: ``ctx.derived`` (gathered per edge by the optimizer).
     uses_derived: ClassVar[bool] = False
+    #: Where the default :meth:`linearize` takes Jacobians from: ``"auto"`` (the type's analytic
+    #: ones if it defines :meth:`jacobians` or :meth:`linearize`, else ``"autodiff"``),
+    #: ``"analytic"``, ``"autodiff"`` (exact, from one ``error`` call on jets; see
+    #: ``docs/autodiff.md``) or ``"numeric"`` (central differences). A subclass that sets
+    #: ``"autodiff"`` or ``"numeric"`` under a parent with analytic Jacobians uses the generic
+    #: linearisation (full rows); the parent's stays reachable for
+    #: :func:`graphopt.check_jacobians`.
+    differentiation: ClassVar[str] = "auto"
+    #: For a type switched to ``"autodiff"``/``"numeric"``: the parent whose analytic
+    #: Jacobians it replaced (else ``None``).
+    analytic_type: ClassVar[type | None] = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        mode = cls.differentiation
+        if mode not in DIFFERENTIATION:
+            raise GraphError(f"{cls.__name__}.differentiation must be one of "
+                             f"{', '.join(DIFFERENTIATION)}, got {mode!r}")
+        if mode in ("autodiff", "numeric") and cls.has_analytic_jacobians():
+            # Keep the analytic linearisation for comparisons, use the generic one.
+            cls.analytic_type = _analytic_twin(cls)
+            cls.linearize = BaseEdge.__dict__["linearize"]  # type: ignore[assignment]
+            cls.jacobians = BaseEdge.__dict__["jacobians"]  # type: ignore[assignment]
+            cls.linearization_rows = None
 
     # --- the batched type interface --------------------------------------------------------
 
@@ -180,6 +228,14 @@ class BaseEdge:
         if own_linearize and cls.linearization_rows is None:
             return cls.linearize(x, measurement, ctx).jacobians
         raise NotImplementedError
+
+    @classmethod
+    def differentiation_method(cls) -> str:
+        """The method the default :meth:`linearize` uses: ``"analytic"``, ``"autodiff"`` or
+        ``"numeric"`` (``"auto"`` resolved)."""
+        if cls.differentiation == "auto":
+            return "analytic" if cls.has_analytic_jacobians() else "autodiff"
+        return cls.differentiation
 
     @classmethod
     def depth_positive(
@@ -248,10 +304,24 @@ class BaseEdge:
         Returns:
             A :class:`Linearization`.
         """
+        method = cls.differentiation_method()
+        if method == "autodiff":
+            try:
+                e, jac, active = autodiff_linearize(cls, x, measurement, ctx)
+                if cls not in _INDEPENDENT:  # once per type: no edge sees another's vertices
+                    check_independent_edges(cls, x, measurement, ctx, e, jac)
+                    _INDEPENDENT.add(cls)
+            except JetError as exc:
+                raise GraphError(jet_error_message(cls, exc)) from exc
+            return Linearization(e, jac, active=active)
         ev = cls.evaluate(x, measurement, ctx)
-        try:
-            jac = cls.jacobians(x, measurement, ctx)
-        except NotImplementedError:
+        if method == "analytic":
+            try:
+                jac = cls.jacobians(x, measurement, ctx)
+            except NotImplementedError:
+                raise GraphError(f"{cls.__name__}: differentiation = 'analytic' but the type "
+                                 "defines no jacobians or linearize") from None
+        else:
             jac = numeric_jacobians(cls, x, measurement, ctx)
         # One array instead of a tuple stays one array: the linearizer reports it.
         jac = jac if isinstance(jac, np.ndarray) else tuple(jac)

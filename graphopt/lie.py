@@ -51,7 +51,7 @@ def hat(w: np.ndarray) -> np.ndarray:
         ``(n, 3, 3)`` matrices with ``hat(w) @ v == cross(w, v)``.
     """
     n = len(w)
-    out = np.zeros((n, 3, 3))
+    out = np.zeros((n, 3, 3), like=w)  # like=: a jet w gives a jet (graphopt.autodiff)
     out[:, 0, 1], out[:, 0, 2] = -w[:, 2], w[:, 1]
     out[:, 1, 0], out[:, 1, 2] = w[:, 2], -w[:, 0]
     out[:, 2, 0], out[:, 2, 1] = -w[:, 1], w[:, 0]
@@ -162,7 +162,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
         ``(n, 4, 4)`` homogeneous transforms ``[[exp(ω), J_l(ω) υ], [0, 1]]``.
     """
     w, u = xi[:, :3], xi[:, 3:]
-    T = np.zeros((len(xi), 4, 4))
+    T = np.zeros((len(xi), 4, 4), like=xi)
     T[:, :3, :3] = so3_exp(w)
     T[:, :3, 3] = np.einsum("nij,nj->ni", so3_left_jacobian(w), u)
     T[:, 3, 3] = 1.0
@@ -213,7 +213,7 @@ def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
         R: ``(n, 3, 3)`` rotations.
         t: ``(n, 3)`` translations.
     """
-    T = np.zeros((len(R), 4, 4))
+    T = np.zeros((len(R), 4, 4), like=R)
     T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
     return T
 

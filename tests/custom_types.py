@@ -38,6 +38,13 @@ class EdgeCurveNumeric(EdgeCurve):
     """The same edge with the numeric Jacobian."""
 
     jacobians = BaseEdge.jacobians
+    differentiation = "numeric"
+
+
+class EdgeCurveAutodiff(EdgeCurve):
+    """The same edge with Jacobians from automatic differentiation."""
+
+    differentiation = "autodiff"
 
 
 def wrap(a):

@@ -214,6 +214,7 @@ class EdgeSquare2Numeric(BaseEdge):
     dimension = 2
     vertex_types = (VertexPoint2,)
     error = EdgeSquare2.error
+    differentiation = "numeric"
 
 
 class EdgeDiff2(BaseEdge):

@@ -201,7 +201,7 @@ class EdgeBALProjection(BaseEdge):
         cam, X = x
         m = len(cam)
         rot = None if ctx is None or ctx.derived is None else ctx.derived[0]
-        e = np.empty((m, 2))
+        e = np.empty((m, 2), like=cam)  # like=: jets give a jet (graphopt.autodiff)
         bs = cls.block_size
         for s in range(0, m, bs):  # blocks of edges, not a loop per edge
             r = None if rot is None else rot[s : s + bs]

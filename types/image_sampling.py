@@ -214,7 +214,7 @@ def _corners(
     v0 = np.floor(v)
     base = (image.astype(np.int64) * prm.height + v0.astype(np.int64)) * prm.width
     base += u0.astype(np.int64)
-    ab = np.empty((2, len(u)), dtype=prm.flat.dtype)
+    ab = np.empty((2, len(u)), dtype=prm.flat.dtype, like=u)  # like=: jets stay jets
     np.subtract(u, u0, out=ab[0], casting="same_kind")
     np.subtract(v, v0, out=ab[1], casting="same_kind")
     a, b = ab
@@ -305,6 +305,18 @@ def sample_patches(
     return patch.reshape(p * p, m), gu, gv
 
 
+def _samples_generic(u: np.ndarray, v: np.ndarray, image: np.ndarray,
+                     prm: PhotometricParams) -> np.ndarray:
+    """Bilinear samples ``(P², m)`` in k order by plain array operations (no ``out=``
+    buffers), for array-likes that are not ndarrays: jets (graphopt.autodiff) carry the
+    derivative of the interpolant through the weights."""
+    p = prm.patch
+    base, _, w = _corners(u, v, image, prm)
+    win = _window(prm, base, False)
+    val = w[0] * win[:p, :p] + w[1] * win[1:, :p] + w[2] * win[:p, 1:] + w[3] * win[1:, 1:]
+    return val.reshape(p * p, len(base))
+
+
 def patch_residuals(
     u: np.ndarray, v: np.ndarray, image: np.ndarray, meas: np.ndarray, prm: PhotometricParams,
     grad: bool,
@@ -330,6 +342,8 @@ def patch_residuals(
         ``None``).
     """
     p, m = prm.patch, len(u)
+    if type(u) is not np.ndarray and not grad:
+        return meas - _samples_generic(u, v, image, prm).T, None
     ext = grad and prm.gradient == "central"
     base, ab, w = _corners(u, v, image, prm)
     n = p + 3 if ext else p + 1

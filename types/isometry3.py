@@ -60,7 +60,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
         ``(n, 4)`` unit quaternions ``[qx, qy, qz, qw]``.
     """
     n = len(R)
-    q = np.empty((n, 4))
+    q = np.empty((n, 4), like=R)  # like=: jets stay jets (graphopt.autodiff)
     tr = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
     pos = tr > 0.0
     every = bool(pos.all())
@@ -123,7 +123,7 @@ def from_compact_quaternion(v: np.ndarray) -> np.ndarray:
     w = np.sqrt(np.where(bad, 1.0, w2))
     if bad.any():
         x, y, z = (np.where(bad, 0.0, c) for c in (x, y, z))
-    R = np.empty((len(v), 3, 3))
+    R = np.empty((len(v), 3, 3), like=v)
     R[:, 0, 0] = 1.0 - 2.0 * (y * y + z * z)
     R[:, 0, 1] = 2.0 * (x * y - z * w)
     R[:, 0, 2] = 2.0 * (x * z + y * w)
@@ -145,7 +145,7 @@ def pose_from_qt(v: np.ndarray) -> np.ndarray:
     Returns:
         ``(n, 3, 4)`` poses.
     """
-    T = np.empty((len(v), 3, 4))
+    T = np.empty((len(v), 3, 4), like=v)
     T[:, :, :3] = quat_to_matrix(v[:, 3:7])
     T[:, :, 3] = v[:, :3]
     return T

@@ -428,5 +428,6 @@ def numeric_variant(edge_type: type[BaseEdge]) -> type[BaseEdge]:
         f"{edge_type.__name__}Numeric",
         (edge_type,),
         {"linearize": BaseEdge.__dict__["linearize"], "jacobians": BaseEdge.__dict__["jacobians"],
-         "linearization_rows": None, "linearize_on_trial": False},
+         "linearization_rows": None, "linearize_on_trial": False,
+         "differentiation": "numeric"},
     )

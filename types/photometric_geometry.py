@@ -42,7 +42,7 @@ def pose_rows(T: np.ndarray) -> tuple[RotationRows, list[np.ndarray]]:
     one cache line per edge.
     """
     T2 = T.reshape(-1, 16)
-    e = np.empty((12, len(T2)))
+    e = np.empty((12, len(T2)), like=T)  # like=: jets stay jets (graphopt.autodiff)
     for lo in range(0, len(T2), 2048):  # blocked: source and destination stay in cache
         e[:, lo:lo + 2048] = T2[lo:lo + 2048, :12].T
     return [[e[4 * i + j] for j in range(3)] for i in range(3)], [e[4 * i + 3] for i in range(3)]
@@ -50,7 +50,7 @@ def pose_rows(T: np.ndarray) -> tuple[RotationRows, list[np.ndarray]]:
 
 def apply(R: RotationRows, t: list[np.ndarray] | None, p: list[np.ndarray]) -> np.ndarray:
     """``R p + t`` (``R p`` if ``t`` is ``None``) as ``(3, m)`` (a matmul's summation order)."""
-    out = np.empty((3, len(p[0])))
+    out = np.empty((3, len(p[0])), like=p[0])
     for i in range(3):
         np.multiply(R[i][0], p[0], out=out[i])
         out[i] += R[i][1] * p[1]
@@ -66,7 +66,7 @@ def anchor_point(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rho = q[:, 2]
     ok = rho > 0
     irho = 1.0 / np.where(ok, rho, 1.0)
-    pa = np.empty((3, len(q)))
+    pa = np.empty((3, len(q)), like=q)
     np.multiply(q[:, 0], irho, out=pa[0])
     np.multiply(q[:, 1], irho, out=pa[1])
     pa[2] = irho

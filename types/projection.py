@@ -103,10 +103,10 @@ def _pinhole(
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1.0 / hz
     u, v = hx * iz, hy * iz
-    e = np.empty((len(hx), 2))
+    e = np.empty((len(hx), 2), like=hx)  # like=: jets stay jets (graphopt.autodiff)
     e[:, 0] = measurement[:, 0] - (cam.fx * u + cam.cx)
     e[:, 1] = measurement[:, 1] - (cam.fy * v + cam.cy)
-    D = np.zeros((len(hx), 2, 3))
+    D = np.zeros((len(hx), 2, 3), like=hx)
     D[:, 0, 0] = -cam.fx * iz
     D[:, 0, 2] = cam.fx * u * iz
     D[:, 1, 1] = -cam.fy * iz
@@ -243,7 +243,7 @@ class EdgeInverseDepthProjection(BaseEdge):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         T_aw, T_cw, ip = x
         R_ca, t_ca = relative_transform(T_aw, T_cw)
-        q = np.ones((len(ip), 3))
+        q = np.ones((len(ip), 3), like=ip)
         q[:, :2] = ip[:, :2]
         rho = ip[:, 2]
         h = np.einsum("nij,nj->ni", R_ca, q) + rho[:, None] * t_ca

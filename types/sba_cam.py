@@ -46,10 +46,9 @@ __all__ = [
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton products ``a ⊗ b`` of ``(n, 4)`` ``[x, y, z, w]`` quaternions."""
     av, aw, bv, bw = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
-    out = np.empty_like(a)
-    out[:, :3] = aw * bv + bw * av + np.cross(av, bv)
-    out[:, 3:] = aw * bw - np.einsum("ni,ni->n", av, bv)[:, None]
-    return out
+    # concatenated, not written into np.empty_like(a): a jet b gives a jet (graphopt.autodiff)
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv),
+                           aw * bw - np.einsum("ni,ni->n", av, bv)[:, None]], axis=1)
 
 
 class VertexCam(BaseVertex):
@@ -97,7 +96,8 @@ class VertexCam(BaseVertex):
             estimates: ``(n, 12)``.
             deltas: ``(n, 6)`` ``[δt, δq]``.
         """
-        out = estimates.copy()
+        out = np.empty(estimates.shape, like=deltas)  # like=: a jet δ gives a jet
+        out[...] = estimates
         out[:, :3] += deltas[:, :3]
         w2 = 1.0 - np.einsum("ni,ni->n", deltas[:, 3:], deltas[:, 3:])
         dq = np.where((w2 < 0.0)[:, None], [0.0, 0.0, 0.0, 1.0],
@@ -155,8 +155,8 @@ def stereo_projection(pc: np.ndarray, fx: np.ndarray | float, fy: np.ndarray | f
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1.0 / z
     rows = 2 if baseline is None else 3
-    k = np.empty((len(pc), rows))
-    D = np.zeros((len(pc), rows, 3))
+    k = np.empty((len(pc), rows), like=pc)  # like=: jets stay jets (graphopt.autodiff)
+    D = np.zeros((len(pc), rows, 3), like=pc)
     k[:, 0] = fx * x * iz + cx
     k[:, 1] = fy * y * iz + cy
     D[:, 0, 0] = fx * iz
@@ -233,7 +233,7 @@ class EdgeProjectP2SC(EdgeProjectP2MC):
 
 def _cam_poses(cams: np.ndarray) -> np.ndarray:
     """``(m, 3, 4)`` ``[R | t]`` of cameras."""
-    T = np.empty((len(cams), 3, 4))
+    T = np.empty((len(cams), 3, 4), like=cams)  # like=: jets stay jets (graphopt.autodiff)
     T[:, :, :3] = quat_to_rot(cams[:, 3:7])
     T[:, :, 3] = cams[:, :3]
     return T

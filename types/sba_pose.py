@@ -94,10 +94,10 @@ def _stereo(P: np.ndarray, z: np.ndarray, cam: StereoCameraParameters
     """Error ``z − [u, v, u − bf/z]`` ``(m, 3)`` and ``∂e/∂P`` ``(m, 3, 3)``."""
     e2, D2 = _pinhole((P[:, 0], P[:, 1], P[:, 2]), z, cam)
     iz = 1.0 / P[:, 2]
-    e = np.empty((len(P), 3))
+    e = np.empty((len(P), 3), like=P)            # like=: jets stay jets (graphopt.autodiff)
     e[:, :2] = e2
     e[:, 2] = z[:, 2] - (z[:, 0] - e2[:, 0] - cam.bf * iz)
-    D = np.empty((len(P), 3, 3))
+    D = np.empty((len(P), 3, 3), like=P)
     D[:, :2] = D2
     D[:, 2] = D2[:, 0]
     D[:, 2, 2] -= cam.bf * iz * iz
@@ -173,8 +173,8 @@ class _OnlyPose(BaseEdge):
         uv = P[:, :2] * iz[:, None]                  # normalised image coordinates
         pix = uv * cam.focal + cam.centre
         if cls.stereo:
-            e = np.empty((m, 3))
-            np.subtract(z[:, :2], pix, out=e[:, :2])
+            e = np.empty((m, 3), like=P)             # like=: jets stay jets
+            e[:, :2] = z[:, :2] - pix
             e[:, 2] = z[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
         else:
             e = z - pix

@@ -97,9 +97,9 @@ class VertexSim3Expmap(BaseVertex):
             deltas: ``(n, 7)`` tangents ``[ω, υ, σ]``.
         """
         flag = estimates[:, 3, 0]
-        d = np.array(deltas, dtype=float)
-        d[:, 6] *= 1.0 - flag
-        out = sim3_product(sim3_exp(d), estimates)
+        keep = np.ones((len(flag), 7))
+        keep[:, 6] = 1.0 - flag
+        out = sim3_product(sim3_exp(deltas * keep), estimates)   # (a product: jets stay jets)
         out[:, 3, 0] = flag
         return out
 

@@ -26,6 +26,8 @@ are those of the exact log.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from graphopt.lie import hat, so3_exp, so3_log
@@ -46,6 +48,12 @@ __all__ = [
 G2O_EPS = 1e-5
 
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(20)
+
+
+def _like(*arrays: Any) -> Any:
+    """The first operand that is not a plain ndarray (a jet of ``graphopt.autodiff``), else the
+    first: the ``like=`` of the arrays built here, so that errors run on jets too."""
+    return next((a for a in arrays if type(a) is not np.ndarray), arrays[0])
 _TAU = 0.5 * (_NODES + 1.0)          # nodes on [0, 1]
 _W = 0.5 * _WEIGHTS
 
@@ -72,8 +80,8 @@ def sim3_matrix(R: np.ndarray, t: np.ndarray, s: np.ndarray,
         fix_scale: Scalar or ``(n,)`` flags for :class:`~graphopt.types.sim3.VertexSim3Expmap`.
     """
     n = len(R)
-    S = np.zeros((n, 4, 4))
-    S[:, :3, :3] = np.asarray(s, float).reshape(-1)[:, None, None] * R
+    S = np.zeros((n, 4, 4), like=_like(R, t, s))
+    S[:, :3, :3] = np.reshape(s, (-1,))[:, None, None] * R
     S[:, :3, 3] = t
     S[:, 3, 3] = 1.0
     S[:, 3, 0] = np.broadcast_to(np.asarray(fix_scale, float), (n,))
@@ -87,7 +95,7 @@ def sim3_product(A: np.ndarray, B: np.ndarray) -> np.ndarray:
         A: ``(n, 4, 4)``.
         B: ``(n, 4, 4)``.
     """
-    out = np.zeros(np.broadcast_shapes(A.shape, B.shape))
+    out = np.zeros(np.broadcast_shapes(A.shape, B.shape), like=_like(A, B))
     out[:, :3, :3] = A[:, :3, :3] @ B[:, :3, :3]
     out[:, :3, 3] = np.matmul(A[:, :3, :3], B[:, :3, 3, None])[:, :, 0] + A[:, :3, 3]
     out[:, 3, 3] = 1.0
@@ -101,7 +109,7 @@ def sim3_inverse(S: np.ndarray) -> np.ndarray:
         S: ``(n, 4, 4)``.
     """
     R, t, s = sim3_parts(S)
-    out = np.zeros(S.shape)
+    out = np.zeros(S.shape, like=S)
     Rt = np.swapaxes(R, 1, 2) / s[:, None, None]
     out[:, :3, :3] = Rt
     out[:, :3, 3] = -np.matmul(Rt, t[:, :, None])[:, :, 0]
@@ -179,7 +187,7 @@ def sim3_log(S: np.ndarray) -> np.ndarray:
     theta = np.arccos(np.clip(d, -1.0, 1.0))
     A, B, C = _g2o_abc(theta, sigma, s, small_rot)
     W = _w_matrix(hat(omega), A, B, C)
-    out = np.empty((len(S), 7))
+    out = np.empty((len(S), 7), like=_like(S, omega))
     out[:, :3] = omega
     out[:, 3:6] = np.linalg.solve(W, t[:, :, None])[:, :, 0]
     out[:, 6] = sigma

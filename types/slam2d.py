@@ -249,7 +249,7 @@ class EdgeSE2(EdgeFromParts):
         else:
             u, v, c, s = _pose_frame(xi, xj, z[:, 2])
             zx, zy = _rotate_back(z)
-        e = np.empty((len(z), 3))
+        e = np.empty((len(z), 3), like=u)  # like=: jets stay jets (graphopt.autodiff)
         np.subtract(u, zx, out=e[:, 0])
         np.subtract(v, zy, out=e[:, 1])
         e[:, 2] = normalize_theta(xj[:, 2] - xi[:, 2] - z[:, 2])
@@ -301,7 +301,7 @@ class EdgeSE2PointXY(EdgeFromParts):
     ) -> tuple[np.ndarray, ...]:
         d = ctx.derived[0] if ctx.derived is not None else None
         u, v, c, s = _pose_frame(x[0], x[1], cs=None if d is None else (d[:, 0], d[:, 1]))
-        e = np.empty((len(z), 2))
+        e = np.empty((len(z), 2), like=u)
         np.subtract(u, z[:, 0], out=e[:, 0])
         np.subtract(v, z[:, 1], out=e[:, 1])
         return e, c, s, u, v
@@ -346,7 +346,7 @@ class EdgeSE2Prior(EdgeFromParts):
         cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
     ) -> tuple[np.ndarray, ...]:
         u, v, c, s = _pose_frame(z, x[0])
-        e = np.empty((len(z), 3))
+        e = np.empty((len(z), 3), like=u)
         e[:, 0] = u
         e[:, 1] = v
         e[:, 2] = normalize_theta(x[0][:, 2] - z[:, 2])

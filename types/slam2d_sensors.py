@@ -462,8 +462,9 @@ class EdgeSE2LotsOfXY(BaseEdge):
         m, k = len(X), cls.points
         pts = np.stack(x[1:], axis=1)  # (m, k, 2)
         ctx0 = EdgeContext()
-        lin = EdgeSE2PointXY.linearize(
-            (np.repeat(X, k, axis=0), pts.reshape(-1, 2)), measurement.reshape(-1, 2), ctx0)
+        # The errors alone need no Jacobians (and then run on jets: graphopt.autodiff).
+        run = EdgeSE2PointXY.linearize if with_jacobians else EdgeSE2PointXY.evaluate
+        lin = run((np.repeat(X, k, axis=0), pts.reshape(-1, 2)), measurement.reshape(-1, 2), ctx0)
         e = lin.error.reshape(m, 2 * k)
         if not with_jacobians:
             return Linearization(e)

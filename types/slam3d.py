@@ -119,7 +119,7 @@ class VertexSE3(BaseVertex):
             ``(n, 3, 4)`` updated poses.
         """
         R, t = _rt(estimates)
-        out = np.empty_like(estimates)
+        out = np.empty(estimates.shape, like=deltas)  # like=: a jet δ gives a jet
         out[:, :, :3] = orthonormalize(R @ from_compact_quaternion(deltas[:, 3:]),
                                        cls.orthonormalize_tolerance)
         out[:, :, 3] = t + _mv(R, deltas[:, :3])

@@ -325,7 +325,7 @@ class _EdgeSE3Camera(EdgeFromParts):
         with np.errstate(divide="ignore", invalid="ignore"):
             iz = 1.0 / h[:, 2]
         third, dthird = cls._third(h[:, 2])
-        e = np.empty((len(z), 3))
+        e = np.empty((len(z), 3), like=h)  # like=: jets stay jets (graphopt.autodiff)
         e[:, 0] = h[:, 0] * iz - z[:, 0]
         e[:, 1] = h[:, 1] * iz - z[:, 1]
         e[:, 2] = third - z[:, 2]

@@ -1,0 +1,279 @@
+"""Jacobians of a whole edge group from one evaluation of its ``error`` on jets.
+
+The derivative is taken w.r.t. each vertex's tangent increment ``δ`` at ``δ = 0`` — the
+Jacobian of ``e(x ⊞ δ)`` the optimizer needs — by running the vertex type's own ``oplus`` on a
+jet ``δ`` (value 0, derivative the identity over that position's directions). Nothing else is
+asked of a vertex type: exponential maps, angle-axis updates and their small-angle series are
+differentiated as written (a series exact to first order at 0 gives the exact derivative).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from graphopt.autodiff.jet import Jet, JetError
+from graphopt.errors import GraphError
+from graphopt.vertex import VertexVector
+
+__all__ = ["BLOCK_EDGES", "autodiff_linearize", "check_independent_edges", "seeded"]
+
+#: Edges per jet evaluation: one block's tangents (``k × block × …`` values per temporary)
+#: stay in the CPU cache, and the Python cost per operation is paid once per block.
+BLOCK_EDGES = 8192
+
+
+class _VertexType(Protocol):
+    dimension: int
+    __name__: str
+
+    @staticmethod
+    def oplus(estimates: np.ndarray, deltas: np.ndarray) -> np.ndarray: ...
+
+
+class _EdgeType(Protocol):
+    dimension: int
+    vertex_types: Sequence[type[_VertexType]]
+    __name__: str
+
+    @classmethod
+    def evaluate(cls, x: Sequence[Any], measurement: np.ndarray, ctx: Any) -> Any: ...
+
+
+def seeded(vtype: type[_VertexType], x: np.ndarray, lo: int, n: int) -> Jet:
+    """``x ⊞ δ`` as a jet at ``δ = 0``, its derivative w.r.t. directions ``lo…lo+d−1``.
+
+    Args:
+        vtype: The vertex type (its ``oplus`` runs on the jet).
+        x: ``(m, *estimate_shape)`` estimates.
+        lo: The position's first tangent direction.
+        n: Total directions.
+
+    Raises:
+        GraphError: an ``oplus`` that drops the derivative or returns another shape.
+    """
+    m, d = len(x), vtype.dimension
+    if vtype.oplus is VertexVector.oplus and x.shape == (m, d):
+        return Jet.seeded(x, lo, n)  # x + δ: the derivative is the identity
+    # ∂δ/∂δ = I, broadcast over the edges (a read-only view, no m·d² array).
+    delta = Jet.seeded(np.zeros((m, d)), lo, n)
+    out = vtype.oplus(x.copy(), delta)  # type: ignore[arg-type]
+    name = getattr(vtype, "__name__", str(vtype))
+    if type(out) is not Jet:
+        raise GraphError(f"{name}.oplus returned a {type(out).__name__} without derivatives for "
+                         "a jet increment (automatic differentiation needs it to compute with "
+                         "NumPy operations on the increment)")
+    if out.shape != x.shape:
+        raise GraphError(f"{name}.oplus returned shape {out.shape}, expected {x.shape}")
+    # The value at δ = 0 is x itself (oplus(x, 0) may differ from it in the last bit).
+    out.value = x
+    return out
+
+
+def _columns(j: Jet) -> None:
+    """Record each column's support of a 2-D jet (its non-zero derivative directions)."""
+    if j.value.ndim != 2 or j.seed:
+        return
+    nz = np.any(j.tangent != 0.0, axis=1)  # (k, d)
+    cols = []
+    for c in range(j.value.shape[1]):
+        rows = np.flatnonzero(nz[:, c])
+        cols.append((j.lo + int(rows[0]), j.lo + int(rows[-1]) + 1) if len(rows)
+                    else (j.lo, j.lo + 1))
+    j.columns = cols
+
+
+def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) -> Any:
+    """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values)."""
+    if type(j) is not Jet:
+        return None if j is None else j[index]
+    t = j.tangent[:, index] if isinstance(index, slice) else np.take(j.tangent, index, axis=1)
+    out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
+    out.columns = j.columns
+    return out
+
+
+_UNIQUE: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
+
+
+def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)`` with ``x[first][inverse] == x`` exactly: the distinct vertices of
+    the edges. The groupings of the last calls are tried first (the edges of a group keep
+    their vertices between iterations); one is used only if the equality holds."""
+    m = len(x)
+    flat = x.reshape(m, -1)
+    key = (id(vtype), m)
+    for first, inv in _UNIQUE.get(key, []):
+        if np.array_equal(flat[first][inv], flat):
+            return first, inv
+    h = flat @ np.random.default_rng(0).normal(size=flat.shape[1])
+    _, first, inv = np.unique(h, return_index=True, return_inverse=True)
+    if not np.array_equal(flat[first][inv], flat):  # a hash collision: no grouping
+        first, inv = np.arange(m), np.arange(m)
+    if len(_UNIQUE) > 64:  # many group sizes seen: start over (a cache, bounded)
+        _UNIQUE.clear()
+    entries = _UNIQUE.setdefault(key, [])
+    entries.insert(0, (first, inv))
+    del entries[4:]
+    return first, inv
+
+
+class _Position:
+    """One vertex position's ``x ⊞ δ`` (and derived values) as jets, per block of edges.
+
+    ``oplus`` and ``derived`` run once per distinct vertex (a camera seen by thousands of
+    edges is updated once) and the rows are gathered per edge; a Euclidean vertex is a seed.
+    """
+
+    def __init__(self, vtype: type[_VertexType], x: np.ndarray, lo: int, n: int,
+                 derived: bool) -> None:
+        self.vtype, self.x, self.lo, self.n = vtype, x, lo, n
+        self.vector = vtype.oplus is VertexVector.oplus and x.ndim == 2
+        self.inverse: np.ndarray | None = None
+        self.jet: Jet | None = None
+        self.derived: Any = None
+        self.derived_ok = True
+        if not self.vector:
+            first, inv = _unique_rows(vtype, x)
+            if len(first) < len(x):
+                self.inverse = inv
+                self.jet = seeded(vtype, x[first], lo, n)
+            else:
+                self.jet = seeded(vtype, x, lo, n)
+            _columns(self.jet)
+        if derived:
+            self.derived = self._derived(self.jet if self.jet is not None
+                                         else Jet.seeded(x, lo, n))
+
+    def _derived(self, j: Jet) -> Any:
+        try:
+            d = self.vtype.derived(j)  # type: ignore[attr-defined]
+        except JetError:
+            self.derived_ok = False  # derived values are a cache: go without
+            return None
+        if type(d) is Jet:
+            _columns(d)
+        return d
+
+    def block(self, sl: slice) -> tuple[Jet, Any]:
+        """The block's ``x ⊞ δ`` jet and derived values."""
+        if self.vector:
+            return Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
+        index = sl if self.inverse is None else self.inverse[sl]
+        return _gather(self.jet, index, self.x[sl]), _gather(self.derived, index)
+
+
+def autodiff_linearize(
+    edge_type: type[_EdgeType], x: Sequence[np.ndarray], measurement: np.ndarray, ctx: Any
+) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray | None]:
+    """Errors and exact Jacobians of every edge of a group, from ``evaluate`` on jets.
+
+    The edges are evaluated in blocks of :data:`BLOCK_EDGES`. The vertex types' ``derived``
+    values (for types with ``uses_derived``) are recomputed from the jets of ``x ⊞ δ``, so
+    that the error sees the same cache it would in the optimizer, with derivatives; a
+    ``derived`` that does not run on jets is left out, as for numeric differences.
+
+    Args:
+        edge_type: The edge class (``evaluate``/``error``, ``vertex_types``, ``dimension``).
+        x: Per position ``(m, *estimate_shape)`` estimates.
+        measurement: ``(m, *measurement_shape)``.
+        ctx: The :class:`~graphopt.edge.EdgeContext`.
+
+    Returns:
+        ``(e (m, dimension), (J_i (m, dimension, d_i), …), active (m,) or None)``; rows of
+        inactive edges are zero.
+
+    Raises:
+        JetError: a NumPy function without a derivative rule (the caller names the type).
+        GraphError: an ``oplus`` or ``error`` result of the wrong shape or without derivatives.
+    """
+    dims = [vt.dimension for vt in edge_type.vertex_types]
+    n = int(sum(dims))
+    offsets = np.concatenate([[0], np.cumsum(dims)]).astype(int).tolist()
+    m = len(measurement)
+    want = bool(getattr(edge_type, "uses_derived", False)) and ctx is not None
+    pos = [_Position(vt, np.asarray(xi), offsets[i], n, want)
+           for i, (vt, xi) in enumerate(zip(edge_type.vertex_types, x, strict=True))]
+    want = want and all(p.derived_ok for p in pos)
+    dim = edge_type.dimension
+    e = np.empty((m, dim))
+    jac = [np.zeros((m, dim, d)) for d in dims]
+    active: np.ndarray | None = None
+    for s in range(0, max(m, 1), BLOCK_EDGES):
+        sl = slice(s, min(s + BLOCK_EDGES, m))
+        blocks = [p.block(sl) for p in pos]
+        sub = ctx.subset(sl) if ctx is not None and m > BLOCK_EDGES else ctx
+        if sub is not None and (want or getattr(sub, "derived", None) is not None):
+            sub = replace(sub, derived=tuple(b[1] for b in blocks) if want else None)
+        ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
+        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
+        mb = sl.stop - sl.start
+        if tuple(np.shape(eb)) != (mb, dim):
+            raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(eb)}, "
+                             f"expected {(mb, dim)}")
+        if ab is not None:
+            if active is None:
+                active = np.ones(m, dtype=bool)
+            active[sl] = ab
+        if type(eb) is not Jet:  # the error does not depend on the estimates
+            e[sl] = eb
+            continue
+        e[sl] = eb.value
+        t, lo = eb.tangent, eb.lo
+        for i, d in enumerate(dims):
+            a, b = max(offsets[i], lo), min(offsets[i] + d, lo + len(t))
+            if a < b:
+                jac[i][sl, :, a - offsets[i]: b - offsets[i]] = np.moveaxis(
+                    t[a - lo: b - lo], 0, -1)
+    if active is not None and not active.all():
+        for J in jac:
+            J[~active] = 0.0
+    return e, tuple(jac), active
+
+
+def check_independent_edges(
+    edge_type: type[_EdgeType], x: Sequence[np.ndarray], measurement: np.ndarray, ctx: Any,
+    error: np.ndarray, jacobians: tuple[np.ndarray, ...],
+) -> None:
+    """Raise if the first edge's error or Jacobian changes when it is evaluated alone.
+
+    A batched error must treat every edge on its own; one that mixes edges (a mean over the
+    edge axis) would give each edge the derivative of the others' terms. Evaluating one edge
+    again costs little and catches that (once per type, at its first linearisation).
+
+    Args:
+        edge_type: The edge class.
+        x: As in :func:`autodiff_linearize`.
+        measurement: As in :func:`autodiff_linearize`.
+        ctx: As in :func:`autodiff_linearize`.
+        error: The group's errors from the same estimates.
+        jacobians: The group's Jacobians.
+
+    Raises:
+        GraphError: the edge's values differ (naming the type).
+    """
+    if len(measurement) < 2:
+        return
+    sub = ctx.subset(slice(0, 1)) if ctx is not None and hasattr(ctx, "subset") else ctx
+    e1, j1, _ = autodiff_linearize(edge_type, [xi[:1] for xi in x], measurement[:1], sub)
+    scale = max(float(np.max(np.abs(error[:1]), initial=0.0)), 1e-300)
+    bad = not np.allclose(e1, error[:1], rtol=1e-9, atol=1e-12 * scale)
+    for a, b in zip(j1, jacobians, strict=True):
+        s = max(float(np.max(np.abs(b[:1]), initial=0.0)), 1e-300)
+        bad = bad or not np.allclose(a, b[:1], rtol=1e-9, atol=1e-12 * s)
+    if bad:
+        raise GraphError(
+            f"{edge_type.__name__}: the first edge's error or Jacobian changes when it is "
+            "evaluated alone: the batched error mixes edges (a sum, mean or sort over the edge "
+            "axis?), which neither automatic nor numeric differentiation supports; each edge's "
+            "error must depend on its own vertices only")
+
+
+def jet_error_message(edge_type: type, exc: JetError) -> str:
+    """The message of a :class:`JetError` raised inside ``edge_type``'s error."""
+    return (f"{edge_type.__name__}: {exc} (in its error or its vertices' oplus). Write that "
+            "step with the supported NumPy operations (docs/autodiff.md), give the type analytic "
+            "Jacobians, or set differentiation = 'numeric'")
