@@ -284,3 +284,16 @@ def test_edge_set_depth_positive_and_chi2_per_edge() -> None:
     assert es.is_depth_positive().all()
     opt.vertex(0).set_estimate(C.pose() @ np.diag([-1.0, 1.0, -1.0, 1.0]))   # facing away
     assert not es.is_depth_positive().any()
+
+
+def test_pose_jacobian_in_chunks_equals_one_product() -> None:
+    """Above 2,048 edges the monomial product runs in chunks (one BLAS thread each)."""
+    from graphopt.types.projection import pose_jacobian
+
+    rng = np.random.default_rng(5)
+    iz, uv = rng.uniform(0.1, 1.0, 4500), rng.normal(0.0, 0.5, (4500, 2))
+    for bf in (None, C.BF):
+        big = pose_jacobian(iz, uv, CAM, bf)
+        for lo in (0, 2000, 4400):
+            np.testing.assert_array_equal(big[lo:lo + 100],
+                                          pose_jacobian(iz[lo:lo + 100], uv[lo:lo + 100], CAM, bf))

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
@@ -34,6 +33,7 @@ from graphopt.types.projection import (
     _cross_matrix_rows,
     _pinhole,
     camera_params,
+    pose_jacobian,
 )
 from graphopt.types.sim3_lie import log_left_jacobian, se3quat_log, sim3_adjoint
 from graphopt.types.vertices import VertexPointXYZ, VertexSE3Expmap
@@ -109,49 +109,12 @@ def _pose_jacobian(D: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.concatenate([_cross_matrix_rows(D, P), D], axis=2)
 
 
-@lru_cache(maxsize=64)
-def _only_pose_map(fx: float, fy: float, bf: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """``(M (12, 6k), C (6k,))`` with ``J.reshape(m, 6k) = F @ M + C`` for the only-pose edges.
-
-    ``F`` holds the products ``a_i b_j`` (index ``3i + j``) of ``a = [u, v, iz, 1]`` and
-    ``b = [u, v, iz]`` (``u, v`` normalised image coordinates, ``iz = 1/z``): every entry of
-    g2o's Jacobian rows is a combination of them (``k = 2``, or 3 rows with ``bf``)."""
-    k = 2 if bf is None else 3
-    M, C = np.zeros((12, 6 * k)), np.zeros(6 * k)
-    U, V, IZ, ONE = 0, 1, 2, 3               # the factors of a
-    u, v, iz = 0, 1, 2                       # the factors of b
-
-    def put(row: int, col: int, i: int, j: int, coef: float) -> None:
-        M[3 * i + j, 6 * row + col] += coef
-
-    for row, f in [(0, fx)] + ([] if bf is None else [(2, fx)]):
-        # fx·[uv, −(1 + u²), v, −iz, 0, u·iz]
-        put(row, 0, U, v, f)
-        C[6 * row + 1] = -f
-        put(row, 1, U, u, -f)
-        put(row, 2, ONE, v, f)
-        put(row, 3, ONE, iz, -f)
-        put(row, 5, U, iz, f)
-    # fy·[1 + v², −uv, −u, 0, −iz, v·iz]
-    C[6] = fy
-    put(1, 0, V, v, fy)
-    put(1, 1, U, v, -fy)
-    put(1, 2, ONE, u, -fy)
-    put(1, 4, ONE, iz, -fy)
-    put(1, 5, V, iz, fy)
-    if bf is not None:       # u_r = u − bf·iz: row 0 plus bf·[−v·iz, u·iz, 0, 0, 0, −iz²]
-        put(2, 0, V, iz, -bf)
-        put(2, 1, U, iz, bf)
-        put(2, 5, IZ, iz, -bf)
-    return M, C
-
-
 class _OnlyPose(BaseEdge):
     """Unary projection edges on one pose; the world point per edge in ``data["Xw"]``.
 
     The most frequent call of a SLAM system (every frame, every iteration), so written with
     few numpy calls: g2o's closed-form Jacobian rows as one product of per-edge monomials with
-    a constant matrix (:func:`_only_pose_map`), instead of ``∂e/∂P·[−[P]×, I]``.
+    a constant matrix (:func:`~graphopt.types.projection.pose_jacobian`), not ``∂e/∂P·[−[P]×, I]``.
     """
 
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE3Expmap,)
@@ -180,13 +143,7 @@ class _OnlyPose(BaseEdge):
             e = z - pix
         if not jacobian:
             return e, None
-        a = np.empty((m, 4))                         # [u, v, iz, 1]
-        a[:, :2], a[:, 2], a[:, 3] = uv, iz, 1.0
-        F = (a[:, :, None] * a[:, None, :3]).reshape(m, 12)
-        M, C = _only_pose_map(cam.fx, cam.fy, cam.bf if cls.stereo else None)  # type: ignore[attr-defined]
-        J = F @ M
-        J += C
-        return e, J.reshape(m, 3 if cls.stereo else 2, 6)
+        return e, pose_jacobian(iz, uv, cam, cam.bf if cls.stereo else None)  # type: ignore[attr-defined]
 
     @classmethod
     def depth_positive(
