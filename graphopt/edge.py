@@ -10,7 +10,8 @@ Which Jacobians a type's default :meth:`BaseEdge.linearize` uses is its ``differ
 ``error`` on jets, :mod:`graphopt.autodiff`), ``"analytic"``, ``"autodiff"`` or ``"numeric"``
 (central differences).
 
-Instances are the per-object front of g2o's API; the optimizer copies them into arrays.
+Instances are the per-object front of g2o's API (:class:`~graphopt.edge_object.EdgeObject`);
+the optimizer takes them into arrays in bulk.
 """
 
 from __future__ import annotations
@@ -27,9 +28,9 @@ from graphopt.autodiff import (
     check_independent_edges,
     jet_error_message,
 )
+from graphopt.edge_object import EdgeObject
 from graphopt.errors import GraphError
 from graphopt.numeric import numeric_jacobians
-from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
 
 #: The values of ``BaseEdge.differentiation``.
@@ -44,17 +45,6 @@ def _analytic_twin(cls: type) -> type:
     parent = next(c for c in cls.__mro__[1:] if issubclass(c, BaseEdge)
                   and c.has_analytic_jacobians())
     return parent
-
-
-def check_level(level: Any) -> int:
-    """``level`` as an int, or a :class:`GraphError` if it is not a non-negative integer.
-
-    Args:
-        level: An edge level (g2o's ``setLevel``) or the level to initialise.
-    """
-    if isinstance(level, bool | np.bool_) or not isinstance(level, int | np.integer) or level < 0:
-        raise GraphError(f"a level must be a non-negative integer, got {level!r}")
-    return int(level)
 
 
 class Linearization(NamedTuple):
@@ -115,7 +105,7 @@ class EdgeContext:
                            measured=None if self.measured is None else self.measured[index])
 
 
-class BaseEdge:
+class BaseEdge(EdgeObject):
     """Base class of all edge types.
 
     Subclasses set ``dimension`` (error dimension), ``vertex_types`` (one vertex class per
@@ -336,154 +326,3 @@ class BaseEdge:
     def get_measurement_shape(cls) -> tuple[int, ...]:
         """The shape of one measurement."""
         return cls.measurement_shape if cls.measurement_shape is not None else (cls.dimension,)
-
-    # --- per-object front ------------------------------------------------------------------
-
-    def __init__(
-        self,
-        vertices: Sequence[BaseVertex | int] | None = None,
-        measurement: Any = None,
-        information: Any = None,
-        robust_kernel: RobustKernel | None = None,
-        params: Any = None,
-        data: dict[str, Any] | None = None,
-    ) -> None:
-        self._vertices: list[BaseVertex | int | None] = [None] * len(self.vertex_types)
-        if vertices is not None:
-            if len(vertices) != len(self.vertex_types):
-                raise ValueError(
-                    f"{type(self).__name__} takes {len(self.vertex_types)} vertices, "
-                    f"got {len(vertices)}"
-                )
-            self._vertices = list(vertices)
-        self._measurement = None if measurement is None else np.asarray(measurement, float)
-        self._information = None if information is None else np.asarray(information, float)
-        self._robust_kernel = robust_kernel
-        self.params = params
-        self.data = dict(data or {})
-        self._level = 0
-        self._group: Any = None  # the EdgeGroup once added
-        self._uid = -1  # the edge's uid in its group
-        self._graph: Any = None
-
-    @property
-    def _index(self) -> int:
-        """The edge's current index in its group (edges removed before it move it)."""
-        g = self._group
-        if not g.removals:
-            return self._uid
-        return int(g.index_of(np.array([self._uid]))[0])
-
-    def _detach(self) -> None:
-        """Keep the edge's values on the object and leave the group (the edge was removed)."""
-        i = self._index
-        self._measurement = self._group.measurements[i].copy()
-        self._information = self._group.information_of(i)
-        self._robust_kernel = self._group.kernel_of(i)
-        self._level = int(self._group.levels[i])
-        self._group, self._uid, self._graph = None, -1, None
-
-    def set_vertex(self, i: int, vertex: BaseVertex | int) -> None:
-        """Attach the vertex at position ``i``.
-
-        Args:
-            i: Position, ``0 <= i < len(vertex_types)``.
-            vertex: A vertex object or its id.
-        """
-        if not 0 <= i < len(self.vertex_types):
-            raise IndexError(f"{type(self).__name__} has no vertex position {i}")
-        self._vertices[i] = vertex
-
-    def vertex(self, i: int) -> BaseVertex | int | None:
-        """The vertex (or id) at position ``i``.
-
-        Args:
-            i: Position.
-        """
-        return self._vertices[i]
-
-    @property
-    def vertices(self) -> list[BaseVertex | int | None]:
-        """The vertices (or ids) by position."""
-        return list(self._vertices)
-
-    @property
-    def measurement(self) -> np.ndarray | None:
-        """The measurement."""
-        if self._group is not None:
-            return self._group.measurements[self._index].copy()
-        return self._measurement
-
-    def set_measurement(self, z: Any) -> None:
-        """Set the measurement (before the edge is added).
-
-        Args:
-            z: Array of shape ``measurement_shape``.
-        """
-        self._measurement = np.asarray(z, dtype=float)
-
-    @property
-    def information(self) -> np.ndarray:
-        """The information matrix."""
-        if self._group is not None:
-            return self._group.information_of(self._index)
-        if self._information is None:
-            return np.eye(self.dimension)
-        return self._information
-
-    def set_information(self, info: Any) -> None:
-        """Set the information matrix (before the edge is added).
-
-        Args:
-            info: ``(dimension, dimension)`` symmetric positive semi-definite matrix.
-        """
-        self._information = np.asarray(info, dtype=float)
-
-    @property
-    def robust_kernel(self) -> RobustKernel | None:
-        """The robust kernel or ``None``."""
-        if self._group is not None:
-            return self._group.kernel_of(self._index)
-        return self._robust_kernel
-
-    def set_robust_kernel(self, kernel: RobustKernel | None) -> None:
-        """Set the robust kernel.
-
-        Args:
-            kernel: A kernel, or ``None`` for plain least squares.
-        """
-        if self._group is not None:
-            self._group.set_kernel(self._index, kernel)
-        else:
-            self._robust_kernel = kernel
-
-    def level(self) -> int:
-        """The edge's level (g2o's ``level()``): it is active when the optimizer is initialised
-        with this level."""
-        if self._group is not None:
-            self._group.finalize()
-            return int(self._group.levels[self._index])
-        return self._level
-
-    def set_level(self, level: int) -> None:
-        """Set the edge's level (g2o's ``setLevel``; no new structure).
-
-        Args:
-            level: A non-negative integer.
-        """
-        level = check_level(level)
-        if self._group is not None:
-            self._group.set_levels(np.array([self._index]), level)
-        else:
-            self._level = level
-
-    def chi2(self) -> float:
-        """``e' Ω e`` of this edge at the current estimates, without the kernel (g2o's
-        ``chi2()``; evaluated with all edges of its group, once per state)."""
-        if self._group is None:
-            raise ValueError("the edge is not in an optimizer")
-        return float(self._graph.edge_chi2(self._group)[self._index])
-
-    def __repr__(self) -> str:
-        ids = [v.id if isinstance(v, BaseVertex) else v for v in self._vertices]
-        return f"{type(self).__name__}(vertices={ids})"

@@ -55,7 +55,7 @@ class EdgeGroup:
         self._kern: list[np.ndarray] = []
         self._lvl: list[np.ndarray] = []
         self._data: list[dict[str, np.ndarray]] = []
-        self.kernels: list[RobustKernel] = []
+        self._kernels: list[RobustKernel] = []  # see the kernels property
         self._kernel_keys: dict[Any, int] = {}
         self.size = 0
         self.dim = e
@@ -69,7 +69,7 @@ class EdgeGroup:
         self.information: np.ndarray | None = None  # (e, e) shared, or (m, e, e)
         self.info_is_identity = True
         self.info_diagonal: np.ndarray | None = None  # (e,) when the shared matrix is diagonal
-        self.kernel_index = np.zeros(0, dtype=np.int64)
+        self._kidx = np.zeros(0, dtype=np.int64)  # see the kernel_index property
         self.levels = np.zeros(0, dtype=np.int64)
         self.uids = np.zeros(0, dtype=np.int64)
         self.data: dict[str, np.ndarray] = {}
@@ -79,7 +79,9 @@ class EdgeGroup:
         #: The initialised level, the ``(m,)`` mask of the edges at that level (``None``: all
         #: are), and a counter of its changes.
         self.level = 0
-        self.active_edges: np.ndarray | None = None
+        self._active: np.ndarray | None = None
+        self._activity_stale = False  # the mask is recomputed when next read
+        self._kernels_stale = False  # unused kernels are dropped when next read
         self.activity_version = 0
         self._finalized_size = -1
 
@@ -100,17 +102,17 @@ class EdgeGroup:
             raise GraphError(
                 f"{self.etype.__name__}: robust_kernel must be a RobustKernel, got {kernel!r}"
             )
-        key = _kernel_key(kernel)
+        key = kernel_key(kernel)
         slot = self._kernel_keys.get(key)
-        if slot is not None and _kernel_key(self.kernels[slot]) == key:
+        if slot is not None and kernel_key(self._kernels[slot]) == key:
             return slot
-        for i, k in enumerate(self.kernels):  # a kernel changed after it was added
-            if _kernel_key(k) == key:
+        for i, k in enumerate(self._kernels):  # a kernel changed after it was added
+            if kernel_key(k) == key:
                 self._kernel_keys[key] = i
                 return i
-        self.kernels.append(kernel)
-        self._kernel_keys[key] = len(self.kernels) - 1
-        return len(self.kernels) - 1
+        self._kernels.append(kernel)
+        self._kernel_keys[key] = len(self._kernels) - 1
+        return len(self._kernels) - 1
 
     def append(
         self,
@@ -159,7 +161,7 @@ class EdgeGroup:
         self.vertex_ids = _join(self._vids) if self._vids else self.vertex_ids
         self.measurements = _join(self._meas) if self._meas else self.measurements
         if self._kern:
-            self.kernel_index = _join_values(self._kern, self.size)
+            self._kidx = _join_values(self._kern, self.size)
         if self._lvl:
             self.levels = _join_values(self._lvl, self.size)
         if self.size > first_new:  # uids of the edges appended since the last finalize
@@ -189,7 +191,7 @@ class EdgeGroup:
                              f"{self.measured.shape}, expected ({self.size}, k)")
         # Keep one chunk so further appends concatenate onto the consolidated arrays.
         self._vids, self._meas = [self.vertex_ids], [self.measurements]
-        self._kern, self._lvl = [self.kernel_index], [self.levels]
+        self._kern, self._lvl = [self._kidx], [self.levels]
         self._info = [self.information]
         self._data = [self.data] if self._data else []
         self.last_chi2 = np.zeros(self.size)
@@ -238,13 +240,42 @@ class EdgeGroup:
             i: Edge index in the group.
         """
         self.finalize()
-        k = int(self.kernel_index[i])
-        return None if k < 0 else self.kernels[k]
+        k = int(self._kidx[i])
+        return None if k < 0 else self._kernels[k]
 
     # --- editing -----------------------------------------------------------------------------
 
+    @property
+    def kernels(self) -> list[RobustKernel]:
+        """The distinct kernels of the group (those some edge uses)."""
+        if self._kernels_stale:
+            self._compact_kernels()
+        return self._kernels
+
+    @property
+    def kernel_index(self) -> np.ndarray:
+        """``(m,)`` every edge's index in :attr:`kernels` (−1: none)."""
+        if self._kernels_stale:
+            self._compact_kernels()
+        return self._kidx
+
+    @property
+    def active_edges(self) -> np.ndarray | None:
+        """``(m,)`` the edges at the initialised level, ``None`` when all are."""
+        if self._activity_stale:
+            self._activity_stale = False
+            lv = self.levels
+            if lv.strides == (0,) and len(lv):  # one level for all
+                act = None if int(lv[0]) == self.level else np.zeros(self.size, dtype=bool)
+            else:
+                act = lv == self.level
+                act = None if act.all() else act
+            self._active = act
+        return self._active
+
     def set_kernel(self, i: int | slice | np.ndarray, kernel: RobustKernel | None) -> None:
-        """Set the robust kernel of some edges (the structure stays).
+        """Set the robust kernel of some edges (the structure stays; O(edges set), so one edge
+        at a time is fine).
 
         Args:
             i: Edge index (or indices) in the group.
@@ -252,32 +283,35 @@ class EdgeGroup:
         """
         self.finalize()
         slot = self.kernel_slot(kernel)
-        if not self.kernel_index.flags.writeable:  # one broadcast slot so far
-            if int(self.kernel_index[0]) == slot:
+        if not self._kidx.flags.writeable:  # one broadcast slot so far
+            if int(self._kidx[0]) == slot:
                 return
-            self.kernel_index = self.kernel_index.copy()
-        self.kernel_index[i] = slot
-        self._compact_kernels()
+            self._kidx = self._kidx.copy()
+            self._kern = [self._kidx]
+        self._kidx[i] = slot
+        self._kernels_stale = True
         self.activity_version += 1  # evaluations at the old kernels are stale
 
     def _compact_kernels(self) -> None:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
-        used = np.unique(self.kernel_index)
+        self._kernels_stale = False
+        used = np.unique(self._kidx)
         used = used[used >= 0]
-        if len(used) != len(self.kernels):
-            remap = np.full(len(self.kernels) + 1, -1, dtype=np.int64)
+        if len(used) != len(self._kernels):
+            remap = np.full(len(self._kernels) + 1, -1, dtype=np.int64)
             remap[used] = np.arange(len(used))
-            self.kernel_index = remap[self.kernel_index]
-            self.kernels = [self.kernels[int(u)] for u in used]
-            self._kernel_keys = {_kernel_key(k): i for i, k in enumerate(self.kernels)}
-        if len(used) <= 1 and len(self.kernel_index):
-            value = np.int64(self.kernel_index[0])
-            if (self.kernel_index == value).all():
-                self.kernel_index = np.broadcast_to(value, (self.size,))
-        self._kern = [self.kernel_index]
+            self._kidx = remap[self._kidx]
+            self._kernels = [self._kernels[int(u)] for u in used]
+            self._kernel_keys = {kernel_key(k): i for i, k in enumerate(self._kernels)}
+        if len(used) <= 1 and len(self._kidx):
+            value = np.int64(self._kidx[0])
+            if (self._kidx == value).all():
+                self._kidx = np.broadcast_to(value, (self.size,))
+        self._kern = [self._kidx]
 
-    def set_levels(self, i: slice | np.ndarray, levels: int | np.ndarray) -> None:
-        """Set the level of some edges (validated by the caller); the structure stays.
+    def set_levels(self, i: int | slice | np.ndarray, levels: int | np.ndarray) -> None:
+        """Set the level of some edges (validated by the caller); the structure stays (O(edges
+        set): the active mask is recomputed when next read).
 
         Args:
             i: Edge indices in the group.
@@ -286,9 +320,10 @@ class EdgeGroup:
         self.finalize()
         if not self.levels.flags.writeable:
             self.levels = self.levels.copy()
+            self._lvl = [self.levels]
         self.levels[i] = levels
-        self._lvl = [self.levels]
-        self.apply_level(self.level, force=True)
+        self._activity_stale = True
+        self.activity_version += 1
 
     def apply_level(self, level: int, force: bool = False) -> None:
         """Make the edges of ``level`` the active ones.
@@ -300,14 +335,7 @@ class EdgeGroup:
         if level == self.level and not force:
             return
         self.level = level
-        if self.levels.strides == (0,) and len(self.levels):  # one level for all
-            act = None if int(self.levels[0]) == level else np.zeros(self.size, dtype=bool)
-        else:
-            act = self.levels == level
-            act = None if act.all() else act
-        if act is None and self.active_edges is None:
-            return
-        self.active_edges = act
+        self._activity_stale = True
         self.activity_version += 1
 
     def remove(self, index: np.ndarray) -> None:
@@ -324,7 +352,7 @@ class EdgeGroup:
         assert self.information is not None
         if self.information.ndim == 3:
             self.information = self.information[keep]
-        self.kernel_index = np.ascontiguousarray(self.kernel_index[keep])
+        self._kidx = np.ascontiguousarray(self._kidx[keep])
         self.levels = np.ascontiguousarray(self.levels[keep])
         self.uids = self.uids[keep]
         self.data = {key: v[keep] for key, v in self.data.items()}
@@ -336,13 +364,17 @@ class EdgeGroup:
         self._lvl = [self.levels]
         self.removals += 1
         self._finalized_size = -1
-        self.active_edges = None
+        self._active = None
         self.finalize()
         self.activity_version += 1
 
 
-def _kernel_key(kernel: RobustKernel) -> Any:
-    """What makes two kernels interchangeable: their type and parameters (or identity)."""
+def kernel_key(kernel: RobustKernel) -> Any:
+    """What makes two kernels interchangeable: their type and parameters (or identity).
+
+    Args:
+        kernel: A kernel.
+    """
     key = (type(kernel), *kernel.__dict__.values())
     try:
         hash(key)

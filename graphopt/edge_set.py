@@ -12,17 +12,74 @@ batched ``evaluate``) and slice; edits (levels, kernels) change numbers, not the
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from graphopt.edge import BaseEdge
 from graphopt.errors import GraphError
+from graphopt.removal import remove_edges
 from graphopt.robust_kernel import RobustKernel
 from graphopt.storage import EdgeGroup
 
 if TYPE_CHECKING:
     from graphopt.graph import Graph
+
+
+def _per_group(graph: Graph, g: EdgeGroup, what: str,
+               compute: Callable[[EdgeGroup, tuple[np.ndarray, ...]], Any]) -> Any:
+    """``compute(g, x)`` at the current estimates ``x`` of every edge of a group, cached until
+    an estimate or the group changes (one batched call however many edges ask)."""
+    graph.flush()
+    g.finalize()
+    key = (id(g), what)
+    hit = graph._evals.get(key)
+    if hit is not None and hit[0] is g and hit[1] == (g.size, g.removals):
+        # Slots move only when vertices of the group's stores are removed.
+        stores = hit[2]
+        if hit[3] != tuple(st.removals for st, _ in stores):
+            hit = None
+    else:
+        hit = None
+    if hit is None:
+        stores = graph.group_slots(g)
+        hit = (g, (g.size, g.removals), stores, tuple(st.removals for st, _ in stores), None,
+               None)
+    state = tuple(st.version for st, _ in stores)
+    if hit[4] != state:
+        result = compute(g, tuple(st.estimates[slots] for st, slots in stores))
+        hit = (*hit[:4], state, result)
+        graph._evals[key] = hit
+    return hit[5]
+
+
+def _errors(g: EdgeGroup, x: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    out = g.etype.evaluate(x, g.measurements, g.context())
+    e = np.asarray(out.error, dtype=float)
+    if e.shape != (g.size, g.dim):
+        raise GraphError(f"{g.etype.__name__}.evaluate returned an error of shape {e.shape}, "
+                         f"expected {(g.size, g.dim)}")
+    if g.info_is_identity:
+        s = np.einsum("me,me->m", e, e)
+    else:
+        assert g.information is not None
+        oe = e @ g.information if g.information.ndim == 2 else np.einsum(
+            "mij,mj->mi", g.information, e)
+        s = np.einsum("me,me->m", e, oe)
+    e.flags.writeable = False
+    s.flags.writeable = False
+    return e, s
+
+
+def _depth(g: EdgeGroup, x: tuple[np.ndarray, ...]) -> np.ndarray:
+    ok = np.asarray(g.etype.depth_positive(x, g.measurements, g.context()))
+    if ok.shape != (g.size,):
+        raise GraphError(f"{g.etype.__name__}.depth_positive returned shape {ok.shape}, "
+                         f"expected ({g.size},)")
+    ok = ok.astype(bool)
+    ok.flags.writeable = False
+    return ok
 
 
 def group_errors(graph: Graph, g: EdgeGroup) -> tuple[np.ndarray, np.ndarray]:
@@ -43,32 +100,25 @@ def group_errors(graph: Graph, g: EdgeGroup) -> tuple[np.ndarray, np.ndarray]:
     g.finalize()
     if g.size == 0:
         return np.zeros((0, g.dim)), np.zeros(0)
-    hit = graph._evals.get(id(g))
-    slot_key = (g.size, g.removals, tuple((id(s), len(s), s.removals)
-                                          for s in graph.stores.values()))
-    if hit is None or hit[0] is not g or hit[1] != slot_key:
-        hit = (g, slot_key, graph.group_slots(g), None, None)
-    stores = hit[2]
-    state = tuple(st.version for st, _ in stores)
-    if hit[3] != state:
-        x = tuple(st.estimates[slots] for st, slots in stores)
-        out = g.etype.evaluate(x, g.measurements, g.context())
-        e = np.asarray(out.error, dtype=float)
-        if e.shape != (g.size, g.dim):
-            raise GraphError(f"{g.etype.__name__}.evaluate returned an error of shape {e.shape}, "
-                             f"expected {(g.size, g.dim)}")
-        if g.info_is_identity:
-            s = np.einsum("me,me->m", e, e)
-        else:
-            assert g.information is not None
-            oe = e @ g.information if g.information.ndim == 2 else np.einsum(
-                "mij,mj->mi", g.information, e)
-            s = np.einsum("me,me->m", e, oe)
-        e.flags.writeable = False
-        s.flags.writeable = False
-        hit = (g, slot_key, stores, state, (e, s))
-    graph._evals[id(g)] = hit
-    return hit[4]
+    return _per_group(graph, g, "errors", _errors)
+
+
+def group_depth_positive(graph: Graph, g: EdgeGroup) -> np.ndarray:
+    """``(m,)`` the type's ``depth_positive`` of every edge of a group at the current
+    estimates (read-only), cached like :func:`group_errors`.
+
+    Args:
+        graph: The graph holding the group.
+        g: The group.
+
+    Raises:
+        GraphError: the type has no ``depth_positive``, or it returned the wrong shape.
+    """
+    graph.flush()
+    g.finalize()
+    if g.size == 0:
+        return np.zeros(0, dtype=bool)
+    return _per_group(graph, g, "depth", _depth)
 
 
 def _check_levels(levels: Any, m: int, who: str) -> int | np.ndarray:
@@ -182,21 +232,14 @@ class EdgeSet:
 
     def is_depth_positive(self) -> np.ndarray:
         """``(m,)`` whether each edge's point lies in front of its camera(s) (the type's
-        ``depth_positive``, projection types only).
+        ``depth_positive``, projection types only; evaluated for the whole group once per
+        state of the estimates).
 
         Raises:
             GraphError: the type has no ``depth_positive``.
         """
         rows = self._rows()
-        g = self._group
-        if not len(rows):
-            return np.zeros(0, dtype=bool)
-        x = tuple(st.estimates[slots] for st, slots in self._graph.group_slots(g, rows))
-        ok = np.asarray(g.etype.depth_positive(x, g.measurements[rows], g.context().subset(rows)))
-        if ok.shape != (len(rows),):
-            raise GraphError(f"{g.etype.__name__}.depth_positive returned shape {ok.shape}, "
-                             f"expected ({len(rows)},)")
-        return ok.astype(bool, copy=False)
+        return group_depth_positive(self._graph, self._group)[rows].copy()
 
     def levels(self) -> np.ndarray:
         """``(m,)`` every edge's level."""
@@ -238,7 +281,7 @@ class EdgeSet:
         """
         rows = self._rows()
         sel = np.arange(len(self)) if mask is None else self._select(mask, "remove")
-        self._graph.remove_edges(self._group, np.unique(np.atleast_1d(rows[sel])))
+        remove_edges(self._graph, self._group, np.unique(np.atleast_1d(rows[sel])))
         keep = np.ones(len(self), dtype=bool)
         keep[sel] = False
         self._uids = self._uids[keep]

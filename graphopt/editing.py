@@ -16,6 +16,7 @@ from graphopt.edge import BaseEdge
 from graphopt.edge_set import EdgeSet
 from graphopt.errors import GraphError
 from graphopt.graph import Graph
+from graphopt.removal import remove_edges, remove_vertices
 from graphopt.vertex import BaseVertex
 
 
@@ -42,7 +43,7 @@ class GraphEditing:
         self.graph.flush()
         if edge._group is None or edge._graph is not self.graph:
             raise GraphError(f"remove_edge: {edge!r} is not in this optimizer")
-        self.graph.remove_edges(edge._group, np.array([edge._index]))
+        remove_edges(self.graph, edge._group, np.array([edge._index]))
         return True
 
     def remove_vertices(self, ids: Iterable[int] | np.ndarray) -> None:
@@ -56,7 +57,7 @@ class GraphEditing:
             GraphError: an unknown id, or edges still using some of them (naming them).
         """
         self.graph.flush()
-        self.graph.remove_vertices(np.asarray(list(ids) if not isinstance(ids, np.ndarray)
+        remove_vertices(self.graph, np.asarray(list(ids) if not isinstance(ids, np.ndarray)
                                               else ids))
 
     def remove_vertex(self, vertex: BaseVertex | int) -> bool:

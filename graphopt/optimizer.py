@@ -19,7 +19,8 @@ from typing import Any, TextIO
 import numpy as np
 
 from graphopt.algorithms import Algorithm, AlgorithmConfig, make_algorithm
-from graphopt.edge import BaseEdge, check_level
+from graphopt.edge import BaseEdge
+from graphopt.edge_object import check_level
 from graphopt.edge_set import EdgeSet
 from graphopt.editing import GraphEditing
 from graphopt.errors import GraphError

@@ -8,6 +8,8 @@ approximates a derivative (GemanMcClure's ρ'', DCS), the docstring says so.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 Rho = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -32,7 +34,7 @@ class RobustKernel:
             delta: A finite positive number.
         """
         delta = float(delta)
-        if not np.isfinite(delta) or delta <= 0:
+        if not math.isfinite(delta) or delta <= 0:  # math: 10x cheaper per kernel object
             raise ValueError(
                 f"{type(self).__name__}: delta must be positive and finite, got {delta}"
             )

@@ -97,25 +97,19 @@ class VertexStore:
         self._pending.append((ids, estimates, fixed, marg))
         return start
 
-    def remove(self, slots: np.ndarray) -> np.ndarray:
+    def remove(self, slots: np.ndarray) -> None:
         """Remove vertices; the others keep their order and move down to close the gaps.
 
         Args:
             slots: ``(r,)`` distinct slots to remove.
-
-        Returns:
-            ``(n,)`` the new slot of every old slot (−1 for a removed one).
         """
         self._consolidate()
         keep = np.ones(len(self._ids), dtype=bool)
         keep[slots] = False
         self._ids, self._est = self._ids[keep], self._est[keep]
         self._fixed, self._marg = self._fixed[keep], self._marg[keep]
-        new = np.full(len(keep), -1, dtype=np.int64)
-        new[keep] = np.arange(int(keep.sum()))
         self.removals += 1
         self.version += 1
-        return new
 
     def check_estimates(self, estimates: np.ndarray, ids: np.ndarray) -> None:
         """Raise :class:`GraphError` naming the first invalid estimate.

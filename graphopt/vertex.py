@@ -12,6 +12,12 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 
+def _own(value: Any) -> Any:
+    """A copy of an array (a caller may reuse its buffer for the next object), else the value
+    (lists and tuples are converted, and copied, in bulk later)."""
+    return value.copy() if type(value) is np.ndarray else value
+
+
 class _Store(Protocol):
     """What a bound vertex needs of its store (a :class:`~graphopt.storage._Store`)."""
 
@@ -91,12 +97,14 @@ class BaseVertex:
         fixed: bool = False,
         marginalized: bool = False,
     ) -> None:
+        # A thin record: the estimate is converted and checked when the optimizer takes the
+        # vertices into its arrays (in bulk, at the next initialisation or query).
         self._id = None if id is None else int(id)
-        self._estimate = None if estimate is None else np.asarray(estimate, dtype=float)
+        self._estimate = _own(estimate)
         self._fixed = bool(fixed)
         self._marginalized = bool(marginalized)
         self._store: _Store | None = None
-        self._slot = -1
+        self._slot = -1  # -1: not added; -2: added, waiting in the optimizer's buffer
 
     @classmethod
     def _bound(cls, store: _Store, slot: int, vid: int) -> BaseVertex:
@@ -126,7 +134,7 @@ class BaseVertex:
         Args:
             id: Unique integer id.
         """
-        if self._store is not None:
+        if self._store is not None or self._slot == -2:
             raise ValueError(f"vertex {self._id}: the id cannot change after add_vertex")
         self._id = int(id)
 
@@ -137,7 +145,7 @@ class BaseVertex:
             return self._store.estimates[self._slot].copy()
         if self._estimate is None:
             raise ValueError(f"vertex {self._id} ({type(self).__name__}) has no estimate")
-        return self._estimate
+        return np.asarray(self._estimate, dtype=float)
 
     @estimate.setter
     def estimate(self, value: Any) -> None:
@@ -149,11 +157,10 @@ class BaseVertex:
         Args:
             value: New estimate of shape ``estimate_shape``.
         """
-        arr = np.asarray(value, dtype=float)
         if self._store is not None:
-            self._store.set_estimate(self._slot, arr, self._id)
+            self._store.set_estimate(self._slot, np.asarray(value, dtype=float), self._id)
         else:
-            self._estimate = arr
+            self._estimate = _own(value)
 
     def fixed(self) -> bool:
         """Whether the vertex is held constant."""

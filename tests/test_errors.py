@@ -39,8 +39,13 @@ def test_edge_with_missing_vertex() -> None:
                                          r"\(position 1\) does not exist"):
         opt.add_edges(EdgeSE2, np.array([[0, 1], [0, 99]]), np.zeros((2, 3)))
     e = EdgeSE2(vertices=[0, 42], measurement=np.zeros(3))
-    with pytest.raises(GraphError, match="vertex 42"):
-        opt.add_edge(e)
+    opt.add_edge(e)  # objects are checked in bulk, when the optimizer next needs its arrays
+    with pytest.raises(GraphError, match=r"EdgeSE2 on vertices \[0, 42\]: vertex 42 "):
+        opt.initialize_optimization()
+    assert opt.edges() == [] and opt.num_edges() == 0  # the culprit is not added
+    opt.add_vertices(VertexSE2, [42], np.zeros((1, 3)))
+    opt.add_edge(e)  # and can be added again
+    assert opt.num_edges() == 1
     big = np.zeros((100, 2), dtype=int)
     big[57] = [1, 1234]
     with pytest.raises(GraphError, match="vertex 1234"):
@@ -59,9 +64,16 @@ def test_wrong_measurement_shape() -> None:
     with pytest.raises(GraphError, match=r"EdgeSE2.*measurement has shape \(2, 2\), expected "
                                          r"\(2, 3\)"):
         opt.add_edges(EdgeSE2, np.array([[0, 1], [1, 0]]), np.zeros((2, 2)))
+    good = EdgeSE2([1, 0], np.zeros(3))
+    opt.add_edge(good)
+    opt.add_edge(EdgeSE2([0, 1], np.zeros(4)))
     with pytest.raises(GraphError, match=r"EdgeSE2 on vertices \[0, 1\]: measurement has shape "
                                          r"\(4,\), expected \(3,\)"):
-        opt.add_edge(EdgeSE2([0, 1], np.zeros(4)))
+        opt.optimize(1)
+    assert opt.edges() == [good] and opt.num_edges() == 1  # the others stay
+    opt.add_edge(EdgeSE2([0, 1], ["a", 0, 0]))
+    with pytest.raises(GraphError, match=r"\[0, 1\]: measurement is not numeric"):
+        opt.chi2()
 
 
 def test_wrong_information_shape_and_values() -> None:
@@ -69,8 +81,15 @@ def test_wrong_information_shape_and_values() -> None:
     ids = np.array([[0, 1]])
     with pytest.raises(GraphError, match=r"information has shape \(2, 2\), expected \(3, 3\)"):
         opt.add_edges(EdgeSE2, ids, np.zeros((1, 3)), information=np.eye(2))
+    opt.add_edge(EdgeSE2([0, 1], np.zeros(3), information=np.eye(2)))
     with pytest.raises(GraphError, match=r"information has shape \(2, 2\), expected \(3, 3\)"):
-        opt.add_edge(EdgeSE2([0, 1], np.zeros(3), information=np.eye(2)))
+        opt.initialize_optimization()
+    for bad, what in ((np.diag([1.0, -1.0, 1.0]), "positive semi"), (np.diag([np.inf, 1, 1]),
+                                                                     "non-finite")):
+        opt.add_edge(EdgeSE2([1, 0], np.zeros(3)))
+        opt.add_edge(EdgeSE2([0, 1], np.zeros(3), information=bad))
+        with pytest.raises(GraphError, match=rf"EdgeSE2 on vertices \[0, 1\]: .*{what}"):
+            opt.initialize_optimization()
     asym = np.eye(3)
     asym[0, 1] = 0.5
     with pytest.raises(GraphError, match=r"EdgeSE2 on vertices \[0, 1\]: information matrix is "
@@ -98,8 +117,15 @@ def test_non_finite_values() -> None:
     bad[1, 2] = np.nan
     with pytest.raises(GraphError, match=r"vertex 11 \(VertexSE2\): invalid estimate"):
         opt.add_vertices(VertexSE2, [10, 11], bad)
+    opt.add_vertex(VertexSE2(21, [0, 0, 0]))
+    opt.add_vertex(VertexSE2(20, [np.inf, 0, 0]))
     with pytest.raises(GraphError, match=r"vertex 20 \(VertexSE2\): invalid estimate"):
-        opt.add_vertex(VertexSE2(20, [np.inf, 0, 0]))
+        opt.initialize_optimization()
+    assert opt.vertex(20) is None and opt.vertex(21) is not None
+    opt.add_vertex(VertexSE2(22, [0, 0]))
+    with pytest.raises(GraphError, match=r"vertex 22 \(VertexSE2\): estimate has shape \(2,\), "
+                                         r"expected \(3,\)"):
+        opt.vertex_ids()
     with pytest.raises(GraphError, match="non-finite measurement"):
         opt.add_edges(EdgeSE2, np.array([[0, 1]]), np.array([[0, np.inf, 0]]))
     with pytest.raises(GraphError, match=r"vertex 0 \(VertexSE2\): invalid estimate"):
