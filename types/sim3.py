@@ -36,12 +36,12 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.lie import hat
-from graphopt.types.projection import _pinhole, camera_params
+from graphopt.types.projection import _cross_matrix_rows, camera_params, pose_jacobian
 from graphopt.types.sim3_lie import (
     log_left_jacobian,
     sim3_adjoint,
     sim3_exp,
+    sim3_exp_one,
     sim3_inverse,
     sim3_log,
     sim3_parts,
@@ -56,6 +56,19 @@ __all__ = ["EdgeInverseSim3ProjectXYZ", "EdgeSim3", "EdgeSim3ProjectXYZ", "Verte
 def _free_scale(S: np.ndarray) -> np.ndarray:
     """``(n,)`` 1.0 where the scale is free, 0.0 where fixed."""
     return 1.0 - S[:, 3, 0]
+
+
+def _oplus_one(S: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """:meth:`VertexSim3Expmap.oplus` of one vertex (``(1, 4, 4)``, ``(1, 7)``)."""
+    d = delta[0]
+    if S[0, 3, 0] == 1.0:
+        d = d.copy()
+        d[6] = 0.0
+    sR_e, t_e = sim3_exp_one(d)
+    out = S.copy()
+    out[0, :3, :3] = sR_e @ S[0, :3, :3]
+    out[0, :3, 3] = sR_e @ S[0, :3, 3] + t_e
+    return out
 
 
 class VertexSim3Expmap(BaseVertex):
@@ -96,6 +109,8 @@ class VertexSim3Expmap(BaseVertex):
             estimates: ``(n, 4, 4)`` similarities.
             deltas: ``(n, 7)`` tangents ``[ω, υ, σ]``.
         """
+        if len(estimates) == 1 and type(deltas) is np.ndarray and type(estimates) is np.ndarray:
+            return _oplus_one(estimates, deltas)
         flag = estimates[:, 3, 0]
         keep = np.ones((len(flag), 7))
         keep[:, 6] = 1.0 - flag
@@ -219,10 +234,10 @@ class _Sim3Projection(BaseEdge):
     @classmethod
     def _camera_point(cls, x: Sequence[np.ndarray]) -> np.ndarray:
         X, S = x
-        R, t, s = sim3_parts(S)
         if cls.inverse:
+            R, t, s = sim3_parts(S)
             return np.matmul(np.swapaxes(R, 1, 2), (X - t)[:, :, None])[:, :, 0] / s[:, None]
-        return s[:, None] * np.matmul(R, X[:, :, None])[:, :, 0] + t
+        return np.matmul(S[:, :3, :3], X[:, :, None])[:, :, 0] + S[:, :3, 3]
 
     @classmethod
     def error(
@@ -235,9 +250,9 @@ class _Sim3Projection(BaseEdge):
             measurement: ``(m, 2)`` pixels.
             ctx: ``ctx.params``: the camera's :class:`CameraParameters`.
         """
+        cam = camera_params(cls, ctx.params)
         P = cls._camera_point(x)
-        return _pinhole((P[:, 0], P[:, 1], P[:, 2]), measurement,
-                        camera_params(cls, ctx.params))[0]
+        return measurement - (P[:, :2] / P[:, 2:3] * cam.focal + cam.centre)
 
     @classmethod
     def linearize(
@@ -254,28 +269,32 @@ class _Sim3Projection(BaseEdge):
             ``(e (m, 2), (J_point (m, 2, 3), J_sim3 (m, 2, 7)))``.
         """
         X, S = x
-        R, t, s = sim3_parts(S)
-        P = cls._camera_point(x)
-        e, Dp = _pinhole((P[:, 0], P[:, 1], P[:, 2]), measurement,
-                         camera_params(cls, ctx.params))
-        m = len(X)
-        G = np.zeros((m, 3, 7))
-        if cls.inverse:
-            # P = S⁻¹X; S⁻¹ ← S⁻¹exp(−a): dP = Rᵀ([X]× a_ω − a_υ − X a_σ) / s.
-            G[:, :, :3] = hat(X)
-            G[:, :, 3:6] = -np.eye(3)
-            G[:, :, 6] = -X
+        cam = camera_params(cls, ctx.params)
+        if cls.inverse:                          # P = S⁻¹X = Rᵀ(X − t)/s
+            R, t, s = sim3_parts(S)
             M = np.swapaxes(R, 1, 2) / s[:, None, None]
-            J_point = Dp @ M
-            J_sim = J_point @ G
+            P = np.matmul(M, (X - t)[:, :, None])[:, :, 0]
+        else:                                    # P = sRX + t
+            M = S[:, :3, :3]
+            P = np.matmul(M, X[:, :, None])[:, :, 0] + S[:, :3, 3]
+        iz = 1.0 / P[:, 2]
+        uv = P[:, :2] * iz[:, None]
+        e = measurement - (uv * cam.focal + cam.centre)
+        # ∂e/∂P = −f·iz·[[1, 0, −u], [0, 1, −v]], times ∂P/∂X = M row by row.
+        J_point = (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
+                                                                  * cam.focal[:, None])
+        m = len(X)
+        if cls.inverse:
+            # S⁻¹ ← S⁻¹exp(−a): dP = M([X]× a_ω − a_υ − X a_σ).
+            J_sim = np.empty((m, 2, 7))
+            J_sim[:, :, :3] = -_cross_matrix_rows(J_point, X)
+            J_sim[:, :, 3:6] = -J_point
+            J_sim[:, :, 6] = -np.einsum("mij,mj->mi", J_point, X) * _free_scale(S)[:, None]
         else:
-            # P = sRX + t; S ← exp(a)S: dP = −[P]× a_ω + a_υ + P a_σ.
-            G[:, :, :3] = -hat(P)
-            G[:, :, 3:6] = np.eye(3)
-            G[:, :, 6] = P
-            J_point = Dp @ (s[:, None, None] * R)
-            J_sim = Dp @ G
-        J_sim[:, :, 6] *= _free_scale(S)[:, None]
+            # S ← exp(a)S: dP = −[P]× a_ω + a_υ + P a_σ; ∂e/∂P·P = 0 (the image of a point
+            # does not change when the camera frame is scaled), so the σ column is zero.
+            J_sim = np.zeros((m, 2, 7))
+            J_sim[:, :, :6] = pose_jacobian(iz, uv, cam)
         return Linearization(e, (J_point, J_sim))
 
     @classmethod

@@ -26,17 +26,19 @@ are those of the exact log.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
-from graphopt.lie import hat, so3_exp, so3_log
+from graphopt.lie import SMALL_ANGLE2, hat, so3_exp, so3_log
 
 __all__ = [
     "log_left_jacobian",
     "se3quat_log",
     "sim3_adjoint",
     "sim3_exp",
+    "sim3_exp_one",
     "sim3_inverse",
     "sim3_log",
     "sim3_matrix",
@@ -160,6 +162,44 @@ def sim3_exp(xi: np.ndarray) -> np.ndarray:
     A, B, C = _g2o_abc(theta, sigma, s, theta < G2O_EPS)
     W = _w_matrix(hat(w), A, B, C)
     return sim3_matrix(so3_exp(w), np.matmul(W, u[:, :, None])[:, :, 0], s)
+
+
+def sim3_exp_one(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sim3_exp` of one tangent ``(7,)`` in Python floats (one Sim3 vertex, as in
+    ``OptimizeSim3``, is updated every iteration: ~8 µs instead of ~45).
+
+    Returns:
+        ``(sR (3, 3), t (3,))``.
+    """
+    wx, wy, wz, ux, uy, uz, sigma = (float(v) for v in xi)
+    th2 = wx * wx + wy * wy + wz * wz
+    theta = math.sqrt(th2)
+    s = math.exp(sigma)
+    small_rot, small_s = theta < G2O_EPS, abs(sigma) < G2O_EPS
+    if small_s:
+        C = 1.0
+        A, B = (0.5, 1.0 / 6.0) if small_rot else (
+            (1.0 - math.cos(theta)) / th2, (theta - math.sin(theta)) / (th2 * theta))
+    else:
+        C = (s - 1.0) / sigma
+        sg2 = sigma * sigma
+        if small_rot:
+            A = ((sigma - 1.0) * s + 1.0) / sg2
+            B = ((0.5 * sg2 - sigma + 1.0) * s - 1.0) / (sg2 * sigma)
+        else:
+            a, b, c = s * math.sin(theta), s * math.cos(theta), th2 + sg2
+            A = (a * sigma + (1.0 - b) * theta) / (theta * c)
+            B = (C - ((b - 1.0) * sigma + a * theta) / c) / th2
+    # Rodrigues' coefficients, by series below SMALL_ANGLE2 as graphopt.lie.so3_exp.
+    if th2 < SMALL_ANGLE2:
+        ra, rb = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        ra, rb = math.sin(theta) / theta, (1.0 - math.cos(theta)) / th2
+    Om = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    Om2 = Om @ Om
+    R = np.eye(3) + ra * Om + rb * Om2
+    W = A * Om + B * Om2 + C * np.eye(3)
+    return s * R, W @ np.array([ux, uy, uz])
 
 
 def _delta_r(R: np.ndarray) -> np.ndarray:
