@@ -16,6 +16,7 @@ from graphopt.lie import so3_exp
 from graphopt.types import (
     EdgeSE3PointXYZ,
     SlamGraph,
+    VertexPointXY,
     VertexPointXYZ,
     VertexSE3,
     build_graph,
@@ -344,3 +345,28 @@ def test_pose_graphs_default_to_gtsams_schedule_from_the_measured_lambda() -> No
     build_graph(graph, other)
     runs = [o.optimize(1).info[0].chi2 for o in (slam.optimizer, mine, other)]
     assert runs[0] == runs[1] != runs[2]
+
+
+# Poses 0-5 on a line, landmarks L(0)..L(2) numbered 0-2 as GTSAM does (X and L key spaces):
+# landmark 1 shares its number with pose 1. Each landmark is seen from three poses.
+_GTSAM_LANDMARKS = "".join(
+    [f"VERTEX_SE2 {i} {i + 0.1 * (i % 2)} 0.05 0\n" for i in range(6)]
+    + [f"EDGE_SE2 {i} {i + 1} 1 0 0 100 0 0 100 0 400\n" for i in range(5)]
+    + [f"LANDMARK2 {p} {j} {2.0 * j + 0.5 - p} {1.5 + (j == 1)} 50 0 50\n"
+       for j in range(3) for p in (2 * j, 2 * j + 1, min(2 * j + 2, 5))])
+
+
+def test_gtsam_landmark_numbers_equal_to_pose_numbers(tmp_path: Path) -> None:
+    path = tmp_path / "gtsam_landmarks.g2o"
+    path.write_text(_GTSAM_LANDMARKS)
+    graph = read_graph(path)
+    assert graph.separate_landmarks
+    slam = build_graph(graph, guess=True)
+    assert slam.point_id_offset == 6
+    assert sum("point j is vertex j+6" in n for n in slam.notes) == 1
+    np.testing.assert_array_equal(slam.vertex_ids["VERTEX_XY"], [6, 7, 8])
+    result = slam.optimizer.optimize(20)
+    assert result.final_chi2 < 1e-12  # the measurements are consistent
+    est = slam.optimizer.estimates_of(VertexPointXY)
+    # Pose 0 (fixed) is at y = 0.05.
+    np.testing.assert_allclose(est, [[0.5, 1.55], [2.5, 2.55], [4.5, 1.55]], atol=1e-6)

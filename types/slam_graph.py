@@ -43,22 +43,24 @@ import numpy as np
 
 from graphopt.algorithms import LevenbergConfig
 from graphopt.errors import GraphError
+from graphopt.io.g2o_layouts import ends
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
 from graphopt.optimizer import SparseOptimizer
 from graphopt.types import slam_guess as sg
+from graphopt.types import slam_tags as st
 from graphopt.types.isometry3 import pose_from_qt, pose_to_qt
-from graphopt.types.slam2d import EdgeSE2, EdgeSE2PointXY, VertexPointXY, VertexSE2
-from graphopt.types.slam3d import EdgeSE3, EdgeSE3PointXYZ, ParameterSE3Offset, VertexSE3
-from graphopt.types.vertices import VertexPointXYZ
-from graphopt.vertex import BaseVertex
+from graphopt.types.slam2d import EdgeSE2, EdgeSE2PointXY
+from graphopt.types.slam3d import EdgeSE3, EdgeSE3PointXYZ, ParameterSE3Offset
+from graphopt.types.slam_vertices import TAG_ORDER as _TAG_ORDER
+from graphopt.types.slam_vertices import VERTEX_TYPES
+from graphopt.types.slam_vertices import VertexTable as _Vertices
+from graphopt.types.slam_vertices import to_estimates as _to_estimates
+from graphopt.types.slam_vertices import vtype as _vtype
+from graphopt.types.slam_vertices import where as _where
 
 __all__ = ["POSE_GRAPH_INITIAL_LAMBDA", "SlamGraph", "build_graph", "graph_file",
            "pose_graph_levenberg"]
 
-VERTEX_TYPES: dict[str, type[BaseVertex]] = {
-    "VERTEX_SE2": VertexSE2, "VERTEX_XY": VertexPointXY,
-    "VERTEX_SE3:QUAT": VertexSE3, "VERTEX_TRACKXYZ": VertexPointXYZ,
-}
 #: Edge tag → (edge type, vertex tag of each position).
 EDGE_TYPES = {
     "EDGE_SE2": (EdgeSE2, ("VERTEX_SE2", "VERTEX_SE2")),
@@ -89,7 +91,9 @@ def pose_graph_levenberg(schedule: str = "gtsam") -> LevenbergConfig:
 
 _POSE_EDGES = {"VERTEX_SE2": "EDGE_SE2", "VERTEX_SE3:QUAT": "EDGE_SE3:QUAT"}
 _POINT_EDGES = {"VERTEX_XY": "EDGE_SE2_XY", "VERTEX_TRACKXYZ": "EDGE_SE3_TRACKXYZ"}
-_TAG_ORDER = list(VERTEX_TYPES)
+def _ends(tag: str) -> tuple[str, ...]:
+    """The vertex tag at each position of an edge tag (g2o's order)."""
+    return EDGE_TYPES[tag][1] if tag in EDGE_TYPES else ends(tag)
 
 
 @dataclass
@@ -111,6 +115,7 @@ class SlamGraph:
         equiv: ``(k, 2)`` TORO ``EQUIV`` pairs (recorded, not applied).
         guessed: ``(g,)`` optimizer ids whose estimate came from the initial guess.
         notes: One-line remarks on the decisions above.
+        parameters: The other parameter lines (id → ``(tag, values)``), as read.
     """
 
     optimizer: SparseOptimizer
@@ -126,21 +131,13 @@ class SlamGraph:
     equiv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     guessed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     notes: list[str] = field(default_factory=list)
-
-
-def _where(path: str, lines: np.ndarray, i: int) -> str:
-    line = int(lines[i]) if len(lines) > i else 0
-    return f"{path}:{line}" if line > 0 else path
-
-
-def _to_estimates(tag: str, values: np.ndarray) -> np.ndarray:
-    return pose_from_qt(values) if tag == "VERTEX_SE3:QUAT" else np.asarray(values, float)
+    parameters: dict[int, tuple[str, np.ndarray]] = field(default_factory=dict)
 
 
 def _check_tags(graph: GraphFile) -> None:
-    for kind, tags, known in (("vertex", graph.vertices, VERTEX_TYPES),
-                              ("edge", graph.edges, EDGE_TYPES)):
-        bad = [t for t in tags if t not in known]
+    for kind, tags, known in (("vertex", graph.vertices, [*VERTEX_TYPES, *st.VERTEX_TAGS]),
+                              ("edge", graph.edges, [*EDGE_TYPES, *st.EDGE_TAGS])):
+        bad = [t for t in tags if t not in known and not st.known(t)]
         if bad:
             raise GraphError(f"{graph.path}: {kind} tag {bad[0]} is not supported by the SLAM "
                              f"types (supported: {', '.join(known)})")
@@ -152,81 +149,27 @@ def _point_offset(graph: GraphFile) -> int:
     pose, point = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for tag, block in graph.vertices.items():
         (point if tag in _POINT_EDGES else pose).append(np.asarray(block.ids, np.int64))
+    if graph.separate_landmarks:
+        # GTSAM's LANDMARK2 numbers landmarks as L(j), apart from the poses X(i): the ids
+        # the edges name count too (such files rarely have vertex lines).
+        for tag, block in graph.edges.items():
+            for c, vtag in enumerate(_ends(tag)):
+                (point if vtag in _POINT_EDGES else pose).append(block.ids[:, c])
     pose_ids, point_ids = np.concatenate(pose), np.concatenate(point)
     if not len(point_ids) or not np.isin(point_ids, pose_ids).any():
         return 0
     for tag, block in graph.edges.items():
-        for c, vtag in enumerate(EDGE_TYPES[tag][1]):
+        for c, vtag in enumerate(_ends(tag)):
             if vtag not in _POINT_EDGES:
                 pose_ids = np.concatenate([pose_ids, block.ids[:, c]])
     return int(pose_ids.max()) + 1 - min(int(point_ids.min()), 0)
-
-
-class _Vertices:
-    """The vertex table being built: per tag, ids, estimates and line numbers."""
-
-    def __init__(self, graph: GraphFile, shift: int) -> None:
-        self.path = graph.path
-        self.ids: dict[str, np.ndarray] = {}
-        self.est: dict[str, np.ndarray] = {}
-        self.lines: dict[str, np.ndarray] = {}
-        for tag in _TAG_ORDER:
-            block = graph.vertices.get(tag)
-            if block is None or not len(block.ids):
-                continue
-            ids = np.asarray(block.ids, np.int64) + (shift if tag in _POINT_EDGES else 0)
-            self._check_values(tag, block)
-            self.ids[tag], self.lines[tag] = ids, np.asarray(block.lines, np.int64)
-            self.est[tag] = _to_estimates(tag, np.asarray(block.values, float))
-        self._check_duplicates()
-
-    def _check_values(self, tag: str, block: VertexBlock) -> None:
-        bad = ~np.isfinite(block.values).all(axis=1)
-        if tag == "VERTEX_SE3:QUAT" and not bad.any():
-            bad = np.abs((block.values[:, 3:] ** 2).sum(axis=1) - 1.0) > 1e-4
-            what = "has a quaternion that is not of unit length"
-        else:
-            what = "has non-finite values"
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise GraphError(f"{_where(self.path, block.lines, i)}: {tag} {int(block.ids[i])} "
-                             f"{what}")
-
-    def _check_duplicates(self) -> None:
-        tags = list(self.ids)
-        ids = np.concatenate([self.ids[t] for t in tags]) if tags else np.zeros(0, np.int64)
-        uniq, first, counts = np.unique(ids, return_index=True, return_counts=True)
-        if np.any(counts > 1):
-            dup = int(uniq[counts > 1][0])
-            where = [f"{_where(self.path, self.lines[t], int(i))} ({t})" for t in tags
-                     for i in np.flatnonzero(self.ids[t] == dup)]
-            raise GraphError(f"{self.path}: vertex id {dup} is defined twice: "
-                             + " and ".join(where[:2]))
-
-    def table(self) -> tuple[np.ndarray, np.ndarray]:
-        """All ids, sorted, and the index into :data:`_TAG_ORDER` of each one's tag."""
-        tags = [t for t in _TAG_ORDER if t in self.ids]
-        ids = np.concatenate([self.ids[t] for t in tags] or [np.zeros(0, np.int64)])
-        codes = np.concatenate([np.full(len(self.ids[t]), _TAG_ORDER.index(t)) for t in tags]
-                               or [np.zeros(0, np.int64)])
-        order = np.argsort(ids, kind="stable")
-        return ids[order], codes[order]
-
-    def add_missing(self, tag: str, ids: np.ndarray) -> None:
-        """Vertices named by edges only: estimates left NaN until the guess fills them."""
-        shape = VERTEX_TYPES[tag].estimate_shape
-        self.ids[tag] = np.concatenate([self.ids.get(tag, np.zeros(0, np.int64)), ids])
-        self.lines[tag] = np.concatenate([self.lines.get(tag, np.zeros(0, np.int64)),
-                                          np.zeros(len(ids), np.int64)])
-        self.est[tag] = np.concatenate([self.est.get(tag, np.zeros((0, *shape))),
-                                        np.full((len(ids), *shape), np.nan)])
 
 
 def _edge_ids(graph: GraphFile, shift: int) -> dict[str, np.ndarray]:
     out = {}
     for tag, block in graph.edges.items():
         ids = np.asarray(block.ids, np.int64).copy()
-        for c, vtag in enumerate(EDGE_TYPES[tag][1]):
+        for c, vtag in enumerate(_ends(tag)):
             if vtag in _POINT_EDGES:
                 ids[:, c] += shift
         out[tag] = ids
@@ -238,7 +181,7 @@ def _resolve_vertices(graph: GraphFile, verts: _Vertices, eids: dict[str, np.nda
     """Check every edge's vertices (existence and type); add the missing ones if guessing."""
     for tag, ids in eids.items():
         block = graph.edges[tag]
-        for c, vtag in enumerate(EDGE_TYPES[tag][1]):
+        for c, vtag in enumerate(_ends(tag)):
             known, codes = verts.table()
             col = ids[:, c]
             pos = np.searchsorted(known, col).clip(0, max(len(known) - 1, 0))
@@ -447,18 +390,24 @@ def build_graph(graph: GraphFile, optimizer: SparseOptimizer | None = None,
         if tag in verts.ids:
             ids = verts.ids[tag]
             try:
-                opt.add_vertices(VERTEX_TYPES[tag], ids, verts.est[tag], np.isin(ids, fixed_arr))
+                opt.add_vertices(_vtype(tag), ids, verts.est[tag], np.isin(ids, fixed_arr))
             except GraphError as exc:
                 raise GraphError(f"{graph.path}: {tag}: {exc}") from None
+    objects = {**offsets, **st.parameters(graph)}
+    kinds = {**dict.fromkeys(offsets, "PARAMS_SE3OFFSET"),
+             **{pid: tag for pid, (tag, _) in graph.parameters.items()}}
     for tag in graph.edges:
-        _add_edges(opt, graph, tag, eids[tag], offsets)
+        if tag not in EDGE_TYPES:
+            st.add_edges(opt, graph, tag, eids[tag], objects, kinds)
+        else:
+            _add_edges(opt, graph, tag, eids[tag], offsets)
     return SlamGraph(
         optimizer=opt, path=graph.path, vertex_ids=dict(verts.ids),
         vertex_lines=dict(verts.lines), edges=dict(graph.edges),
         vertex_counts={t: len(v) for t, v in verts.ids.items()},
         edge_counts={t: len(b.ids) for t, b in graph.edges.items()}, fixed=fixed,
         point_id_offset=shift, offsets=offsets, equiv=np.asarray(graph.equiv, np.int64),
-        guessed=guessed, notes=notes)
+        guessed=guessed, notes=notes, parameters=dict(graph.parameters))
 
 
 def graph_file(slam: SlamGraph) -> GraphFile:
@@ -477,15 +426,17 @@ def graph_file(slam: SlamGraph) -> GraphFile:
     vertices = {}
     fixed = []
     for tag, ids in slam.vertex_ids.items():
-        store = opt.graph.stores[VERTEX_TYPES[tag]]
+        store = opt.graph.stores[_vtype(tag)]
         rows = _index_of(store.ids, ids)
         est = store.estimates[rows]
-        values = pose_to_qt(est) if tag == "VERTEX_SE3:QUAT" else est.copy()
+        values = (pose_to_qt(est) if tag == "VERTEX_SE3:QUAT" else
+                  st.values(tag, est) if tag in st.VERTEX_TAGS else est.copy())
         file_ids = ids - (slam.point_id_offset if tag in _POINT_EDGES else 0)
         vertices[tag] = VertexBlock(file_ids, values, slam.vertex_lines[tag].copy())
         fixed.append(file_ids[store.fixed[rows]])
     offsets = {pid: p.to_qt() for pid, p in slam.offsets.items()}
     return GraphFile(
         path="<generated>", vertices=vertices, edges=dict(slam.edges), offsets=offsets,
+        parameters=dict(slam.parameters),
         fixed=np.concatenate(fixed) if fixed else np.zeros(0, np.int64),
         equiv=slam.equiv.copy(), notes=list(slam.notes))

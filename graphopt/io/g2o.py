@@ -6,6 +6,10 @@ its canonical g2o tag (see :mod:`graphopt.io.g2o_records`):
 - g2o: ``VERTEX_SE2``, ``EDGE_SE2``, ``VERTEX_XY``, ``EDGE_SE2_XY``, ``VERTEX_SE3:QUAT``,
   ``EDGE_SE3:QUAT``, ``VERTEX_TRACKXYZ``, ``EDGE_SE3_TRACKXYZ``, ``PARAMS_SE3OFFSET``, ``FIX``.
 - GTSAM: ``LANDMARK2 pose landmark x y Ixx Ixy Iyy`` → ``EDGE_SE2_XY`` (same columns).
+- g2o's other slam2d, slam3d, sba, sim3, sclam2d and icp tags, as the g2opy 2.3.0 wheel writes
+  them (:mod:`graphopt.io.g2o_layouts`): parameters go to :attr:`GraphFile.parameters`, vertex and
+  edge lines to blocks under their own tag (sized ``LOTSOF`` lines under ``TAG#k``), ids in
+  g2o's order, the information from its upper triangle.
 - TORO: ``VERTEX2``/``EDGE2`` → ``VERTEX_SE2``/``EDGE_SE2``; ``VERTEX3``/``EDGE3`` (roll, pitch,
   yaw with ``R = Rz(yaw) Ry(pitch) Rx(roll)``) → ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``;
   ``EQUIV a b`` → :attr:`GraphFile.equiv` (merging is the builder's job).
@@ -40,25 +44,16 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
+from graphopt.io import g2o_layouts as gl
 from graphopt.io.atomic import atomic_path
+from graphopt.io.g2o_lines import GraphFormatError, parse_ids, positive_definite, symmetric
 from graphopt.io.g2o_records import EdgeBlock, GraphFile, VertexBlock
-from graphopt.io.text import WHITESPACE, FileFormatError, read_bytes, token_layout
+from graphopt.io.text import WHITESPACE, read_bytes, token_layout
 from graphopt.linear.indexing import concat_ranges
 
 __all__ = ["GraphFormatError", "read_graph", "write_g2o"]
-
-
-class GraphFormatError(FileFormatError):
-    """A graph file that cannot be read; the message is one line naming the file and line.
-
-    Args:
-        path: The file.
-        message: What is wrong.
-        line: 1-based line number, if the problem is on a line.
-    """
-
-    kind = "graph file"
 
 
 # Tag → (canonical tag, allowed numbers of values after the tag (empty: one or more), layout).
@@ -80,7 +75,12 @@ _TAGS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "FIX": ("FIX", (), "one or more vertex ids"),
     "EQUIV": ("EQUIV", (2,), "id id"),
 }
+_POSE_GRAPH_TAGS = tuple(_TAGS)  # named one by one in an unknown tag's error
+_TAGS.update({tag: (tag, (lay.count, *gl.CLASSIC.get(tag, ())), lay.text)
+              for tag, lay in gl.LAYOUTS.items()})
+_TAGS.update({tag: (tag, (), "n id_1..id_n d z_1..z_d N I_1..I_N") for tag in gl.DYNAMIC})
 _VERTEX_TAGS = ("VERTEX_SE2", "VERTEX_XY", "VERTEX_SE3:QUAT", "VERTEX_TRACKXYZ")
+_ALL_VERTEX_TAGS = (*_VERTEX_TAGS, *(t for t, lay in gl.LAYOUTS.items() if lay.kind == "vertex"))
 # Canonical edge tag → (vertex tags of its two ends, measurement columns, information size).
 _EDGES = {
     "EDGE_SE2": (("VERTEX_SE2", "VERTEX_SE2"), 3, 3),
@@ -88,30 +88,9 @@ _EDGES = {
     "EDGE_SE3:QUAT": (("VERTEX_SE3:QUAT", "VERTEX_SE3:QUAT"), 7, 6),
     "EDGE_SE3_TRACKXYZ": (("VERTEX_SE3:QUAT", "VERTEX_TRACKXYZ"), 3, 3),
 }
+_ALL_EDGE_TAGS = (*_EDGES, *(t for t, lay in gl.LAYOUTS.items() if lay.kind == "edge"))
 _TORO_EDGE2 = ([0, 0, 1, 2, 0, 1], [0, 1, 1, 2, 2, 2])  # I11 I12 I22 I33 I13 I23
 _RPY_TO_QVEC = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])  # error scale: rpy ≈ 2 q_vec
-_MAX_ID = 2.0**53  # ids are read as doubles: exact below this
-
-
-def _symmetric(values: np.ndarray, rows: Sequence[int], cols: Sequence[int]) -> np.ndarray:
-    """``(m, d, d)`` symmetric matrices with ``values[:, k]`` at ``(rows[k], cols[k])``."""
-    d = max(cols) + 1
-    out = np.zeros((len(values), d, d))
-    out[:, rows, cols] = values
-    out[:, cols, rows] = values
-    return out
-
-
-def _positive_definite(info: np.ndarray) -> np.ndarray:
-    """``(m,)`` whether each symmetric matrix is positive definite (all Cholesky pivots > 0)."""
-    a = np.array(info, dtype=float)
-    ok = np.ones(len(a), dtype=bool)
-    for k in range(a.shape[-1]):
-        pivot = a[:, k, k]
-        ok &= pivot > 0
-        col = a[:, k + 1:, k] / np.where(ok, pivot, 1.0)[:, None]
-        a[:, k + 1:, k + 1:] -= col[:, :, None] * a[:, None, k, k + 1:]
-    return ok
 
 
 def _rpy_to_quat(rpy: np.ndarray) -> np.ndarray:
@@ -131,7 +110,17 @@ def _rpy_to_quat(rpy: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-_TAG_WIDTH = 32  # no known tag is longer
+_TAG_WIDTH = max(map(len, _TAGS))  # no known tag is longer (g2o's longest: 42 characters)
+
+
+def _tag_codes(tags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(tags, return_inverse=True)`` through runs of equal tags (files come in long
+    runs of one tag: sorting only the runs' tags is much quicker than sorting every line's)."""
+    new = np.ones(len(tags), dtype=bool)
+    new[1:] = tags[1:] != tags[:-1]
+    runs = np.flatnonzero(new)
+    names, run_code = np.unique(tags[runs], return_inverse=True)
+    return names, np.repeat(run_code.ravel(), np.diff(np.append(runs, len(tags))))
 
 
 def _scan(path: Path, data: bytes, skip_unknown: bool
@@ -147,14 +136,15 @@ def _scan(path: Path, data: bytes, skip_unknown: bool
     first[1:] = token_line[1:] != token_line[:-1]
     line_of = np.cumsum(first) - 1  # token → index of its (non-blank) line
     heads, numbers = starts[first], token_line[first]
-    window = np.minimum(heads[:, None] + np.arange(_TAG_WIDTH + 1), max(len(a) - 1, 0))
-    chars = a[window] if len(a) else np.zeros((0, _TAG_WIDTH + 1), np.uint8)
-    space = WHITESPACE[chars] | (heads[:, None] + np.arange(_TAG_WIDTH + 1) >= len(a))
+    # each line's first _TAG_WIDTH + 1 bytes (past the end: spaces), gathered without an index
+    # matrix: rows of a strided window view
+    padded = np.concatenate([a, np.full(_TAG_WIDTH + 1, 32, np.uint8)])
+    chars = sliding_window_view(padded, _TAG_WIDTH + 1)[heads]
+    space = WHITESPACE[chars]
     space[:, -1] = True
     width = np.argmax(space, axis=1)
     chars = np.where(np.arange(_TAG_WIDTH + 1) < width[:, None], chars, 0)[:, :_TAG_WIDTH]
-    names, code = np.unique(np.ascontiguousarray(chars).view(f"S{_TAG_WIDTH}").ravel(),
-                            return_inverse=True)
+    names, code = _tag_codes(np.ascontiguousarray(chars).view(f"S{_TAG_WIDTH}").ravel())
     tags = [n.decode("utf-8", errors="replace") for n in names]
     known = np.array([t in _TAGS for t in tags], dtype=bool)
     keep = known[code] if len(code) else first[:0]
@@ -163,8 +153,9 @@ def _scan(path: Path, data: bytes, skip_unknown: bool
         k = int(np.argmax(unknown[code]))  # the first line with an unknown tag
         shown = tags[code[k]] + ("..." if width[k] >= _TAG_WIDTH else "")
         raise GraphFormatError(
-            path, f"unknown tag {shown!r} (known: {' '.join(_TAGS)}; --skip-unknown / "
-            f"skip_unknown=True skips such lines)", numbers[k])
+            path, f"unknown tag {shown!r} (known: {' '.join(_POSE_GRAPH_TAGS)}, "
+            f"g2o's other slam2d, slam3d, sba, sim3, sclam2d and icp tags, {len(_TAGS)} in all "
+            "(docs/slam.md §2); --skip-unknown / skip_unknown=True skips such lines)", numbers[k])
     skipped = {tags[u]: int(np.count_nonzero(code == u)) for u in np.flatnonzero(unknown)}
     counts = np.bincount(line_of, minlength=len(heads)) - 1
     bad = np.zeros(len(heads), dtype=bool)
@@ -181,9 +172,13 @@ def _scan(path: Path, data: bytes, skip_unknown: bool
     # Blank every tag and every skipped or comment line, then parse what is left in one call.
     newlines = np.flatnonzero(a == 10)
     line_end = np.append(newlines, len(a))[np.searchsorted(newlines, heads)]
-    size = np.where(keep, width, line_end - heads)
-    blanked = a.copy()
-    blanked[concat_ranges(heads, size)] = 32
+    blanked = padded.copy()
+    rows = sliding_window_view(blanked, _TAG_WIDTH, writeable=True)  # writes reach blanked
+    for w in np.unique(width[keep]).tolist():  # the tags: one assignment per tag width
+        rows[heads[keep & (width == w)], :w] = 32
+    other = ~keep  # comment and skipped lines: whole lines
+    blanked[concat_ranges(heads[other], (line_end - heads)[other])] = 32
+    blanked = blanked[:len(a)]
     numeric = keep[line_of] & ~first
     values = _numbers(path, blanked.tobytes(), numbers[line_of[numeric]])
     value_code = code[line_of[numeric]]
@@ -223,34 +218,23 @@ def _table(path: Path, tag: str, values: np.ndarray, counts: np.ndarray, numbers
           ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Value count → ``(values (n, count), line numbers (n,))`` for one tag's lines."""
     allowed = _TAGS[tag][1]
-    if not allowed:  # FIX: any number of ids per line, one row per id
+    if tag == "FIX":  # any number of ids per line, one row per id
         return {1: (values[:, None], np.repeat(numbers, counts))}
     offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     out = {}
-    for count in allowed:
+    for count in allowed or np.unique(counts).tolist():  # (sized lines: per count)
         sel = counts == count
         if sel.any():
             out[count] = (values[offsets[sel][:, None] + np.arange(count)], numbers[sel])
     return out
 
 
-def _ids(path: Path, tag: str, values: np.ndarray, lines: np.ndarray) -> np.ndarray:
-    """Id columns as int64; an error on a negative, fractional or huge one."""
-    bad = (values < 0) | (values != np.floor(values)) | (values >= _MAX_ID)
-    if bad.any():
-        k = int(np.flatnonzero(bad.any(axis=1))[0])
-        v = values[k][bad[k]][0]
-        raise GraphFormatError(path, f"{tag}: id {v:g} is not a non-negative integer",
-                               int(lines[k]))
-    return values.astype(np.int64)
-
-
 def _edge2_information(path: Path, values: np.ndarray, lines: np.ndarray,
                        notes: list[str]) -> np.ndarray:
     """EDGE2 information in whichever order (TORO's or g2o's) makes all of it positive definite."""
-    orders = {"TORO's (I11 I12 I22 I33 I13 I23)": _symmetric(values, *_TORO_EDGE2),
-              "g2o's (I11 I12 I13 I22 I23 I33)": _symmetric(values, *np.triu_indices(3))}
-    fits = {name: _positive_definite(info) for name, info in orders.items()}
+    orders = {"TORO's (I11 I12 I22 I33 I13 I23)": symmetric(values, *_TORO_EDGE2),
+              "g2o's (I11 I12 I13 I22 I23 I33)": symmetric(values, *np.triu_indices(3))}
+    fits = {name: positive_definite(info) for name, info in orders.items()}
     score = {name: int(ok.sum()) for name, ok in fits.items()}
     (toro, g2o), m = orders, len(values)
     name = toro if score[toro] >= score[g2o] else g2o
@@ -271,22 +255,26 @@ def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]
     """Append one tag's rows, converted to the canonical tag, to ``pieces`` (offsets: ``out``)."""
     canonical = _TAGS[tag][0]
     for count, (v, lines) in rows.items():
-        if tag in ("FIX", "EQUIV"):
-            pieces[tag].append((_ids(path, tag, v, lines), lines))
+        if tag in gl.LAYOUTS:
+            gl.convert(path, tag, v, lines, out, pieces)
+        elif tag in gl.DYNAMIC:
+            gl.convert_dynamic(path, tag, v, lines, pieces)
+        elif tag in ("FIX", "EQUIV"):
+            pieces[tag].append((parse_ids(path, tag, v, lines), lines))
         elif tag == "PARAMS_SE3OFFSET":
-            for pid, values, line in zip(_ids(path, tag, v[:, :1], lines)[:, 0].tolist(),
+            for pid, values, line in zip(parse_ids(path, tag, v[:, :1], lines)[:, 0].tolist(),
                                          v[:, 1:], lines.tolist(), strict=True):
-                if pid in out.offsets:
+                if pid in out.offsets or pid in out.parameters:
                     raise GraphFormatError(path, f"duplicate PARAMS_SE3OFFSET id {pid}", line)
                 out.offsets[pid] = values
         elif canonical in _VERTEX_TAGS:
             values = v[:, 1:]
             if tag == "VERTEX3":
                 values = np.column_stack([values[:, :3], _rpy_to_quat(values[:, 3:])])
-            pieces[canonical].append((_ids(path, tag, v[:, :1], lines)[:, 0], values, lines))
+            pieces[canonical].append((parse_ids(path, tag, v[:, :1], lines)[:, 0], values, lines))
         else:
             nid = 3 if tag == "EDGE_SE3_TRACKXYZ" else 2
-            ids = _ids(path, tag, v[:, :nid], lines)
+            ids = parse_ids(path, tag, v[:, :nid], lines)
             _, cols, dim = _EDGES[canonical]
             cols = 6 if tag == "EDGE3" else cols
             meas, tail = v[:, nid:nid + cols], v[:, nid + cols:]
@@ -294,15 +282,15 @@ def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]
                 info = _edge2_information(path, tail, lines, out.notes)
             elif tag == "EDGE3":
                 meas = np.column_stack([meas[:, :3], _rpy_to_quat(meas[:, 3:])])
-                info = _symmetric(tail, *np.triu_indices(6)) if count == 29 else np.eye(6)[None]
+                info = symmetric(tail, *np.triu_indices(6)) if count == 29 else np.eye(6)[None]
                 info = info * _RPY_TO_QVEC[:, None] * _RPY_TO_QVEC + np.zeros((len(v), 1, 1))
             else:
-                info = _symmetric(tail, *np.triu_indices(dim))
+                info = symmetric(tail, *np.triu_indices(dim))
             loops = np.flatnonzero(ids[:, 0] == ids[:, 1])
             if len(loops) and canonical in ("EDGE_SE2", "EDGE_SE3:QUAT"):
                 raise GraphFormatError(path, f"{tag}: edge from vertex {ids[loops[0], 0]} to "
                                              "itself", lines[loops[0]])
-            bad = np.flatnonzero(~_positive_definite(info))
+            bad = np.flatnonzero(~positive_definite(info))
             if len(bad):
                 raise GraphFormatError(path, f"{tag}: information matrix is not positive "
                                              "definite", lines[bad[0]])
@@ -313,6 +301,7 @@ def _convert(path: Path, tag: str, rows: dict[int, tuple[np.ndarray, np.ndarray]
             f"errors (rotation block x4, mixed x2; chi2 is g2o's); {len(rows.get(8, [[]])[-1])} "
             f"of {sum(len(r[1]) for r in rows.values())} EDGE3 lines had none: identity in rpy")
     elif tag == "LANDMARK2":
+        out.separate_landmarks = True
         out.notes.append("LANDMARK2 (GTSAM: pose landmark x y Ixx Ixy Iyy) read as EDGE_SE2_XY")
 
 
@@ -336,14 +325,21 @@ def _check_references(path: Path, graph: GraphFile, fix_lines: np.ndarray,
             raise GraphFormatError(
                 path, f"duplicate {tag} id {ids[k]} (first defined on line {first})", lines[k])
     for tag, edges in graph.edges.items():
-        for end, vtag in enumerate(_EDGES[tag][0]):
+        ends = _EDGES[tag][0] if tag in _EDGES else gl.ends(tag)
+        for end, vtag in enumerate(ends):
             if vtag not in graph.vertices:
                 continue
             missing = ~np.isin(edges.ids[:, end], graph.vertices[vtag].ids)
             if (k := _earliest(missing, edges.lines)) is not None:
                 raise GraphFormatError(path, f"{tag} names vertex {edges.ids[k, end]}, which has "
                                              f"no {vtag} line in this file", edges.lines[k])
-        if edges.params is not None:
+        if tag not in _EDGES:
+            pids = gl.edge_params(edges)
+            absent = ~np.isin(pids, [*graph.offsets, *graph.parameters])
+            if (k := _earliest(absent.any(axis=1), edges.lines)) is not None:
+                raise GraphFormatError(path, f"{tag} names parameter {pids[k][absent[k]][0]}, "
+                                             "which no PARAMS_ line defines", edges.lines[k])
+        elif edges.params is not None:
             missing = ~np.isin(edges.params, list(graph.offsets))
             if (k := _earliest(missing, edges.lines)) is not None:
                 raise GraphFormatError(path, f"{tag} names parameter {edges.params[k]}, which no "
@@ -359,13 +355,18 @@ def _check_references(path: Path, graph: GraphFile, fix_lines: np.ndarray,
                                          "the file never defines", lines[k])
 
 
-def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> GraphFile:
+def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False,
+               dialect: str = "g2opy") -> GraphFile:
     """Read a g2o, TORO or GTSAM graph file, every line converted to its canonical g2o tag.
 
     Args:
         path: The file (plain, ``.gz`` or ``.bz2``; detected from the content).
         skip_unknown: Skip lines with unknown tags (counted per tag in
             :attr:`GraphFile.skipped` and noted) instead of failing on the first.
+        dialect: ``"g2opy"`` (the official wheel's lines, default) or ``"classic"`` (g2o's C++
+            ``read``, which stores ``VERTEX_SE3:EXPMAP`` and ``EDGE_SE3:EXPMAP`` inverted; the
+            records are the same either way). The tags where they differ otherwise are told
+            apart by their value counts.
 
     Returns:
         The contents; blocks keep the file's line order and line numbers.
@@ -378,13 +379,16 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
             vertex, an edge from a vertex to itself. One line naming the file and line.
     """
     path = Path(path)
+    gl.to_dialect(GraphFile(str(path)), dialect)  # a bad dialect fails before reading
     groups, skipped = _scan(path, read_bytes(path, GraphFormatError), skip_unknown)
     if not groups:
         raise GraphFormatError(path, "no vertex or edge lines" + (
             f" (skipped {sum(skipped.values())} lines with unknown tags)" if skipped else ""))
     graph = GraphFile(path=str(path), skipped=skipped)
-    pieces: dict[str, list[tuple]] = {t: [] for t in (*_VERTEX_TAGS, *_EDGES, "FIX", "EQUIV")}
-    for tag, group in groups.items():
+    pieces: dict[str, list[tuple]] = {t: [] for t in (*_ALL_VERTEX_TAGS, *_ALL_EDGE_TAGS, "FIX",
+                                                      "EQUIV")}
+    # tags in the order of their first line: a duplicate parameter id names its later line
+    for tag, group in sorted(groups.items(), key=lambda kv: int(kv[1][2][0])):
         _convert(path, tag, _table(path, tag, *group), graph, pieces)
     merged = {}
     for tag, parts in pieces.items():  # each canonical tag's lines in file order
@@ -392,10 +396,12 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
             merged[tag] = [np.zeros((0, 2), np.int64), np.zeros(0, np.int64)]
             continue
         parts = [np.concatenate(p) for p in zip(*parts, strict=True)]
-        order = np.argsort(parts[3 if tag in _EDGES else -1], kind="stable")
+        order = np.argsort(parts[3 if len(parts) == 5 else -1], kind="stable")
         merged[tag] = [p[order] for p in parts]
-        if tag in _VERTEX_TAGS:
+        if tag in _ALL_VERTEX_TAGS:
             graph.vertices[tag] = VertexBlock(*merged[tag])
+        elif tag in gl.LAYOUTS or "#" in tag:
+            graph.edges[tag] = EdgeBlock(*merged[tag])
         elif tag in _EDGES:
             ids, meas, info, lines, extra = merged[tag]
             graph.edges[tag] = EdgeBlock(ids, meas, info, lines, extra[:, 0] if extra.shape[1]
@@ -403,6 +409,7 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
     (fixed, fix_lines), (equiv, equiv_lines) = merged["FIX"], merged["EQUIV"]
     graph.fixed, graph.equiv = fixed[:, 0].astype(np.int64), equiv.astype(np.int64)
     _check_references(path, graph, fix_lines, equiv_lines)
+    graph = gl.to_dialect(graph, dialect)
     if skipped:
         graph.notes.append("skipped lines with unknown tags: " + ", ".join(
             f"{t} x{n}" for t, n in sorted(skipped.items())))
@@ -414,18 +421,22 @@ def read_graph(path: str | os.PathLike[str], skip_unknown: bool = False) -> Grap
 # --------------------------------------------------------------------------------------------
 
 
-def _lines_of(tag: str, columns: list[np.ndarray], n_ids: int) -> str:
-    """``tag id… v…`` lines, ids as integers and values with ``%.17g``."""
+def _lines_of(tag: str, columns: list[np.ndarray], n_ids: int,
+              sizes: Sequence[int] = ()) -> str:
+    """``tag id… v…`` lines: the first ``n_ids`` columns and those at ``sizes`` as integers,
+    the other values with ``%.17g``."""
     if len(columns[0]) == 0:
         return ""
     table = np.column_stack([np.asarray(c, dtype=float).reshape(len(c), -1) for c in columns])
     if not np.isfinite(table).all():
         raise ValueError(f"write_g2o: {tag} contains NaN or inf")
-    fmt = " ".join([tag] + ["%d"] * n_ids + ["%.17g"] * (table.shape[1] - n_ids))
+    kinds = ["%d" if c < n_ids or c in sizes else "%.17g" for c in range(table.shape[1])]
+    fmt = " ".join([tag, *kinds])
     return "\n".join(fmt % tuple(row) for row in table.tolist()) + "\n"
 
 
-def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool = False) -> None:
+def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool = False,
+              dialect: str = "g2opy") -> None:
     """Write ``graph`` as a g2o file (canonical tags, ``%.17g``), atomically.
 
     Parameters come first, then vertices, edges and ``FIX`` lines. A ``.gz``/``.bz2`` suffix
@@ -435,12 +446,14 @@ def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool =
         path: Destination; never the file ``graph`` was read from.
         graph: The contents (canonical tags only).
         drop_equiv: Leave out ``EQUIV`` pairs (g2o has no such line) instead of refusing.
+        dialect: ``"g2opy"`` (default) or ``"classic"`` (see :func:`read_graph`).
 
     Raises:
         ValueError: ``path`` is ``graph``'s input file, a block has an unknown tag or NaN/inf,
             or the graph has ``EQUIV`` pairs and ``drop_equiv`` is false. ``path`` is then
             untouched and no temporary file is left.
     """
+    graph = gl.to_dialect(graph, dialect)
     source, target = Path(graph.path), Path(path)
     same = source.exists() and target.exists() and os.path.samefile(target, source)
     if same or target.resolve() == source.resolve():
@@ -448,7 +461,9 @@ def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool =
     if len(graph.equiv) and not drop_equiv:
         raise ValueError(f"write_g2o: {len(graph.equiv)} EQUIV pairs, which g2o cannot store; "
                          "merge them first or pass drop_equiv=True")
-    unknown = (set(graph.vertices) - set(_VERTEX_TAGS)) | (set(graph.edges) - set(_EDGES))
+    unknown = ((set(graph.vertices) - set(_ALL_VERTEX_TAGS))
+               | {t for t in graph.edges if t not in _ALL_EDGE_TAGS
+                  and t.split("#")[0] not in gl.DYNAMIC})
     if unknown:
         raise ValueError(f"write_g2o: no g2o line for {', '.join(sorted(unknown))}")
     track = graph.edges.get("EDGE_SE3_TRACKXYZ")
@@ -460,14 +475,17 @@ def write_g2o(path: str | os.PathLike[str], graph: GraphFile, drop_equiv: bool =
     with atomic_path(path) as tmp, opener(tmp, "wt", encoding="ascii") as f:
         for pid, offset in sorted(graph.offsets.items()):
             f.write(_lines_of("PARAMS_SE3OFFSET", [np.array([pid]), np.reshape(offset, (1, 7))], 1))
+        gl.write(f, graph, "param", _lines_of)
         for tag in _VERTEX_TAGS:
             if tag in graph.vertices:
                 block = graph.vertices[tag]
                 f.write(_lines_of(tag, [block.ids, block.values], 1))
+        gl.write(f, graph, "vertex", _lines_of)
         for tag, (_, _, dim) in _EDGES.items():
             if tag in graph.edges:
                 e = graph.edges[tag]
                 ids = [e.ids] + ([e.params] if e.params is not None else [])
                 upper = e.information[:, *np.triu_indices(dim)]
                 f.write(_lines_of(tag, [*ids, e.measurements, upper], len(ids) + 1))
+        gl.write(f, graph, "edge", _lines_of)
         f.write(_lines_of("FIX", [np.asarray(graph.fixed)], 1))

@@ -1,0 +1,256 @@
+"""Edges of one g2o class and parameters as arrays: what ``initialize_optimization`` hands to
+graphopt (one ``add_edges`` call per batch, the edges of the active level) and what the edges'
+own getters read (``chi2``, ``error``, ``is_depth_positive`` for every edge of the batch at once,
+once per state; ``set_level`` and ``set_robust_kernel`` as one entry of an array)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from graphopt.edge import EdgeContext
+from graphopt.edge_group import EdgeGroup
+from graphopt.errors import GraphError
+
+from .edges import BaseEdge
+from .solvers import RobustKernelBase, graphopt_kernel
+from .vertices import Bank
+
+__all__ = ["Batch", "stack_information", "stack_measurements"]
+
+
+def kernel_key(kernel: Any) -> Any:
+    """Edges whose kernels have equal keys share one graphopt kernel."""
+    if kernel is None:
+        return None
+    if isinstance(kernel, RobustKernelBase):
+        return (type(kernel), kernel._delta)
+    return ("object", id(kernel))
+
+
+class Batch:
+    """All edges of one g2o edge class with equal parameters.
+
+    Args:
+        owner: The g2o optimizer.
+        cls: The g2o edge class.
+        gtype: graphopt's edge type.
+        params: graphopt's parameter object for the group.
+        records: The edge records, in order.
+        vids: ``(m, k)`` vertex ids in graphopt's position order.
+        banks: The bank of each graphopt position.
+        meas: ``(m, *measurement_shape)``.
+        info: ``None`` (identity), ``(e, e)`` or ``(m, e, e)``.
+        data: Per-edge arrays.
+    """
+
+    def __init__(self, owner: Any, cls: type, gtype: type, params: Any, records: list[Any],
+                 vids: np.ndarray, banks: list[Bank], meas: np.ndarray, info: np.ndarray | None,
+                 data: dict[str, np.ndarray]) -> None:
+        self.owner, self.cls, self.gtype, self.params = owner, cls, gtype, params
+        self.records, self.vids, self.banks = records, vids, banks
+        self.meas, self.info, self.data = meas, info, data
+        m = len(records)
+        self.slots = []
+        for p, b in enumerate(banks):  # a vertex of another type at this position
+            slots, ok = b.slots_of(vids[:, p])
+            self.slots.append(slots)
+            bad = ~ok
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
+                                 f"{int(vids[i, p])} is not a {b.gtype.__name__} like the "
+                                 "other edges' vertices at its position")
+        self.levels = np.fromiter((r._level for r in records), dtype=np.int64, count=m)
+        self.kernels: list[Any] = []  # graphopt kernels by code
+        self._codes: dict[Any, int] = {}
+        kernels = [r._kernel for r in records]
+        first = kernels[0] if m else None
+        if all(k is first for k in kernels):  # one object (or None) for all: one code
+            self.kcodes = np.full(m, self.code(first), dtype=np.int64)
+        else:
+            self.kcodes = np.fromiter((self.code(k) for k in kernels), dtype=np.int64, count=m)
+        self.group: EdgeGroup | None = None
+        self.rows = np.zeros(0, np.int64)  # the edges' indices in the group
+        self.kernels_dirty = self.levels_dirty = False
+        self.measured = gtype.measurement_derived(meas) if m else None
+        self._cache: tuple[Any, ...] | None = None
+        for i, r in enumerate(records):
+            r._batch, r._idx = self, i
+
+    # --- kernels and levels ------------------------------------------------------------------
+
+    def code(self, kernel: Any) -> int:
+        """The batch's code of a kernel (-1: none)."""
+        key = kernel_key(kernel)
+        if key is None:
+            return -1
+        c = self._codes.get(key)
+        if c is None:
+            c = self._codes[key] = len(self.kernels)
+            self.kernels.append(graphopt_kernel(kernel))
+        return c
+
+    def set_kernel(self, i: int, kernel: Any) -> None:
+        """Edge ``i``'s kernel; it reaches the optimizer's group before the group's next use.
+
+        Args:
+            i: Index in the batch.
+            kernel: A g2o kernel or ``None``.
+        """
+        self.kcodes[i] = self.code(kernel)
+        if self.group is not None and not self.kernels_dirty:
+            self.kernels_dirty = True
+            self.owner._batch_changed(self)
+
+    def set_level(self, i: int, level: int) -> None:
+        """Edge ``i``'s level; it reaches the optimizer at the next ``initialize_optimization``
+        (g2o selects the active edges there).
+
+        Args:
+            i: Index in the batch.
+            level: The level (non-negative).
+        """
+        if level < 0:
+            raise GraphError(f"{self.cls.__name__}: level must be a non-negative integer, got "
+                             f"{level}")
+        self.levels[i] = level
+        if self.group is not None and not self.levels_dirty:
+            self.levels_dirty = True
+            self.owner._batch_changed(self)
+
+    def sync(self, levels: bool) -> None:
+        """Write the kernels (and the levels) into the optimizer's group: one assignment per
+        distinct kernel, one for all levels. The structure stays.
+
+        Args:
+            levels: Also the levels (only ``initialize_optimization`` does).
+        """
+        if self.group is None:
+            return
+        if self.kernels_dirty:
+            self.kernels_dirty = False
+            for c in np.unique(self.kcodes).tolist():
+                self.group.set_kernel(self.rows[self.kcodes == c],
+                                      None if c < 0 else self.kernels[c])
+        if levels and self.levels_dirty:
+            self.levels_dirty = False
+            self.group.set_levels(self.rows, self.levels)
+
+    def add_to(self, core: Any) -> None:
+        """Add every edge to the graphopt optimizer ``core`` (one ``add_edges``), with its
+        level and kernel.
+
+        Args:
+            core: A :class:`graphopt.SparseOptimizer` holding the banks' stores.
+        """
+        if not len(self.records):
+            return
+        es = core.add_edges(self.gtype, self.vids, self.meas, self.info, None, self.params,
+                            self.data or None)
+        self.group, self.rows = es.group, es._rows()
+        if self.levels.any():
+            self.group.set_levels(self.rows, self.levels)
+        if (self.kcodes >= 0).any():
+            self.kernels_dirty = True
+        self.levels_dirty = False
+        self.sync(levels=False)
+
+    # --- evaluation --------------------------------------------------------------------------
+
+    def _state(self) -> tuple[Any, ...]:
+        return tuple((id(b.store), b.store.version if b.store is not None else -1)
+                     for b in self.banks)
+
+    def _evaluate(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        state = self._state()
+        if self._cache is None or self._cache[0] != state:
+            x = [b.estimates()[s] for b, s in zip(self.banks, self.slots, strict=True)]
+            ctx = EdgeContext(self.params, self.data, measured=self.measured)
+            e = np.asarray(self.gtype.error(x, self.meas, ctx), dtype=float)
+            if self.info is None:
+                chi2 = np.einsum("mi,mi->m", e, e)
+            elif self.info.ndim == 2:
+                chi2 = np.einsum("mi,ij,mj->m", e, self.info, e)
+            else:
+                chi2 = np.einsum("mi,mij,mj->m", e, self.info, e)
+            self._cache = (state, e, chi2, x, None)
+        return self._cache[1], self._cache[2], self._cache[3]
+
+    def errors(self) -> np.ndarray:
+        """``(m, e)`` errors at the current estimates."""
+        return self._evaluate()[0]
+
+    def chi2(self) -> np.ndarray:
+        """``(m,)`` ``eᵀΩe`` at the current estimates (no kernel)."""
+        return self._evaluate()[1]
+
+    def depth_positive(self) -> np.ndarray:
+        """``(m,)`` whether each edge's point is in front of its camera."""
+        self._evaluate()
+        assert self._cache is not None
+        if self._cache[4] is None:
+            x = self._cache[3]
+            if self.cls._depth is not BaseEdge._depth:  # the g2o class's own test
+                ok = self.cls._depth(x, self.data, self.params)
+            else:  # graphopt's type's (the Sim3 projections, ...)
+                ctx = EdgeContext(self.params, self.data, measured=self.measured)
+                ok = np.asarray(self.gtype.depth_positive(x, self.meas, ctx), dtype=bool)
+            self._cache = (*self._cache[:4], ok)
+        return self._cache[4]
+
+    def information_of(self, i: int) -> np.ndarray:
+        """Edge ``i``'s information matrix.
+
+        Args:
+            i: Index in the batch.
+        """
+        if self.info is None:
+            return np.eye(self.gtype.dimension)
+        return (self.info if self.info.ndim == 2 else self.info[i]).copy()
+
+
+def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
+    """``(m, *measurement_shape)`` measurements of a batch's records; a bad one is named.
+
+    Args:
+        cls: The g2o edge class.
+        recs: Its records.
+    """
+    raws = [e._meas for e in recs]
+    try:
+        if any(r is None for r in raws):
+            raise ValueError
+        return cls._measurements(raws)
+    except (TypeError, ValueError):
+        for e in recs:
+            try:
+                if e._meas is None:
+                    raise ValueError("no measurement set")
+                cls._measurements([e._meas])
+            except (TypeError, ValueError) as exc:
+                raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
+                                 f"bad measurement ({exc})") from None
+        raise
+
+
+def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
+    """The information matrices of a batch's records: ``None`` (all identity, unset), one
+    ``(d, d)`` shared by all, or ``(m, d, d)``.
+
+    Args:
+        cls: The g2o edge class.
+        recs: Its records.
+        d: The error dimension.
+    """
+    infos = [e._info for e in recs]
+    if all(i is None for i in infos):
+        return None
+    eye = np.eye(d)
+    for e, i in zip(recs, infos, strict=True):
+        if i is not None and i.shape != (d, d):
+            raise GraphError(f"{cls.__name__} on vertices {[v._id for v in e._v]}: "
+                             f"information has shape {i.shape}, expected {(d, d)}")
+    arr = np.stack([eye if i is None else i for i in infos])
+    return arr[0].copy() if bool((arr == arr[0]).all()) else arr

@@ -1,0 +1,273 @@
+"""g2o's edge classes as thin records, and the g2o types graphopt does not support.
+
+An edge is its vertices, measurement, information, kernel, level and parameter ids until
+``initialize_optimization``; then it is an index into a *batch* (all edges of its class and
+parameters, as arrays) and its getters read the batch: ``chi2()`` and ``error()`` evaluate the
+whole batch once per state and index it, ``set_level`` and ``set_robust_kernel`` write one
+entry. Each class maps g2o's vertex order onto the graphopt type's (``_perm``: graphopt position
+``p`` takes g2o vertex ``_perm[p]``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .vertices import BaseVertex
+
+__all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
+
+
+class BaseEdge:
+    """A g2o edge record."""
+
+    __slots__ = ("_v", "_meas", "_info", "_kernel", "_level", "_pids", "_id", "_opt",
+                 "_batch", "_idx", "__weakref__")
+    _k = 2
+    _dim = 2
+    _gname = ""
+    _perm: tuple[int, ...] = (0, 1)
+    _mshape: tuple[int, ...] = (2,)
+    #: g2o vertex position → graphopt vertex type name, where it differs from the vertex class's.
+    _vertex_as: dict[int, str] = {}
+    #: Parameter slots (``set_parameter_id``) and what they hold.
+    _nparams = 0
+    #: graphopt.types parameter class built from ``_params_key()`` (intrinsics on the edge).
+    _param_type = ""
+
+    def __init__(self) -> None:
+        self._v: list[BaseVertex | None] = [None] * self._k
+        self._meas: Any = None
+        self._info: Any = None
+        self._kernel: Any = None
+        self._level = 0
+        self._pids = [0] * self._nparams
+        self._id = -1
+        self._opt: Any = None
+        self._batch: Any = None
+        self._idx = -1
+
+    # --- building ----------------------------------------------------------------------------
+
+    def set_vertex(self, i: int, vertex: BaseVertex | None) -> None:
+        """Connect vertex ``i``.
+
+        Args:
+            i: Position (g2o's order).
+            vertex: The vertex.
+        """
+        self._v[i] = vertex
+        if self._batch is not None:
+            self._structure_changed()
+
+    def vertex(self, i: int) -> BaseVertex | None:
+        """Vertex ``i``.
+
+        Args:
+            i: Position.
+        """
+        return self._v[i]
+
+    def vertices(self) -> list[BaseVertex | None]:
+        """The vertices in g2o's order."""
+        return list(self._v)
+
+    def resize(self, k: int) -> None:
+        """Accepted for g2o's multi-edges (the vertex count is the type's).
+
+        Args:
+            k: Must equal the type's vertex count.
+        """
+        if int(k) != self._k:
+            raise ValueError(f"{type(self).__name__} has {self._k} vertices, not {k}")
+
+    def set_measurement(self, measurement: Any) -> None:
+        """Set the measurement (copied).
+
+        Args:
+            measurement: A vector (list, tuple, array) or the type's geometry object.
+        """
+        self._meas = measurement.copy() if type(measurement) is np.ndarray else measurement
+        if self._batch is not None:
+            self._structure_changed()
+
+    def measurement(self) -> Any:
+        """The measurement."""
+        if self._batch is not None:
+            return self._from_measurement(self._batch.meas[self._idx])
+        return self._meas
+
+    def set_information(self, information: Any) -> None:
+        """Set the information matrix (copied).
+
+        Args:
+            information: ``(d, d)`` (nested lists accepted).
+        """
+        self._info = (information.copy() if type(information) is np.ndarray
+                      and information.dtype == np.float64 else np.array(information, dtype=float))
+        if self._batch is not None:
+            self._structure_changed()
+
+    def information(self) -> np.ndarray:
+        """The information matrix (identity when unset)."""
+        if self._batch is not None:
+            return self._batch.information_of(self._idx)
+        return self._info if self._info is not None else np.eye(self._dim)
+
+    def set_robust_kernel(self, kernel: Any) -> None:
+        """Set (or with ``None`` drop) the robust kernel; after initialisation the change reaches
+        the optimizer's arrays at once.
+
+        Args:
+            kernel: A ``RobustKernel*`` object or ``None``.
+        """
+        self._kernel = kernel
+        if self._batch is not None:
+            self._batch.set_kernel(self._idx, kernel)
+
+    def robust_kernel(self) -> Any:
+        """The robust kernel or ``None``."""
+        return self._kernel
+
+    def set_level(self, level: int) -> None:
+        """Set the level (``initialize_optimization(level)`` takes the edges of that level).
+
+        Args:
+            level: An integer.
+        """
+        self._level = int(level)
+        if self._batch is not None:
+            self._batch.set_level(self._idx, self._level)
+
+    def level(self) -> int:
+        """The level."""
+        return self._level
+
+    def set_parameter_id(self, slot: int, pid: int) -> None:
+        """Name the parameter (``optimizer.add_parameter``) of a slot.
+
+        Args:
+            slot: The parameter slot (0).
+            pid: The parameter's id.
+        """
+        if not 0 <= int(slot) < max(self._nparams, 1):
+            raise ValueError(f"{type(self).__name__} has {self._nparams} parameter slots")
+        if self._nparams:
+            self._pids[int(slot)] = int(pid)
+        self._structure_changed()
+
+    def set_id(self, eid: int) -> None:
+        """Set the edge's id.
+
+        Args:
+            eid: The id.
+        """
+        self._id = int(eid)
+
+    def id(self) -> int:
+        """The id (-1 when unset)."""
+        return self._id
+
+    def dimension(self) -> int:
+        """The error's dimension."""
+        return self._dim
+
+    def _structure_changed(self) -> None:
+        if self._batch is not None:
+            self._opt._structure_changed()
+            self._batch = None
+
+    # --- evaluation (batched) ----------------------------------------------------------------
+
+    def compute_error(self) -> None:
+        """Compute the error at the current estimates (evaluated lazily, for the whole batch)."""
+        self._need_batch()
+
+    def chi2(self) -> float:
+        """``eᵀΩe`` at the current estimates, without the kernel (g2o's ``chi2()``)."""
+        return float(self._need_batch().chi2()[self._idx])
+
+    def error(self) -> np.ndarray:
+        """The error at the current estimates."""
+        return self._need_batch().errors()[self._idx].copy()
+
+    def is_depth_positive(self) -> bool:
+        """Whether the observed point is in front of the camera(s)."""
+        return bool(self._need_batch().depth_positive()[self._idx])
+
+    def _need_batch(self) -> Any:
+        if self._batch is None:
+            if self._opt is None:
+                raise RuntimeError(f"{type(self).__name__}: add the edge to an optimizer first")
+            self._opt._prepare()
+        return self._batch
+
+    # --- conversion (overridden per type) ----------------------------------------------------
+
+    def _params_key(self) -> tuple[Any, ...]:
+        return tuple(self._pids)
+
+    @classmethod
+    def _core_name(cls, key: tuple[Any, ...]) -> str:
+        """graphopt's type (name in graphopt.types) for the batch of this parameter key."""
+        return cls._gname
+
+    @classmethod
+    def _core_type(cls, key: tuple[Any, ...]) -> type:
+        """graphopt's type for the batch of this parameter key."""
+        from .vertices import core_type
+
+        return core_type(cls._core_name(key))
+
+    @classmethod
+    def _measurements(cls, raws: list[Any]) -> np.ndarray:
+        m = len(raws)
+        arr = np.array(raws, dtype=float)
+        return arr.reshape(m, *cls._mshape)
+
+    @classmethod
+    def _from_measurement(cls, row: np.ndarray) -> Any:
+        return row.copy()
+
+    @classmethod
+    def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
+        """Per-edge arrays graphopt's type reads (``Xw`` of the pose-only edges)."""
+        return {}
+
+    @staticmethod
+    def _depth(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any) -> np.ndarray:
+        """``(m,)`` depth tests of a batch (this default defers to graphopt's type)."""
+        raise NotImplementedError
+
+
+#: Names of the official wheel that graphopt.g2o does not provide (its machinery, simulators,
+#: helpers): constructing one raises ``NotImplementedError`` naming it.
+UNSUPPORTED: tuple[str, ...] = (
+    "AbstractOptimizationAlgorithmCreator", "Affine", "AffineCompact", "EstimatePropagator",
+    "EstimatePropagatorCost", "EstimatePropagatorCostBase", "EstimatePropagatorCostOdometry",
+    "Factory", "FactoryTypeInfo", "G2OBatchStatistics", "HyperDijkstra", "HyperGraph",
+    "HyperGraphAction", "IoFileFilter", "IoWrapper", "Isometry2d", "JacobianWorkspace",
+    "MotionMeasurement", "OdomConvert", "OptimizableGraph", "OptimizationAlgorithmProperty",
+    "OptimizationAlgorithmWithHessian", "ParameterContainer", "Projective",
+    "RegisterOptimizationAlgorithmProxy", "RobustKernelScaleDelta", "Rotation2d", "Simulator",
+    "Simulator2D", "Simulator2DConfig", "Simulator3D", "Simulator3DConfig", "SimulatorConfig",
+    "Solver", "SparseBlockMatrixX", "SparseOptimizerTerminateAction", "TransformTraits",
+    "UniformCostFunction", "VariableVectorXEdge", "VectorXVertex", "VertexIntrinsicsEstimate",
+    "World",
+)
+
+
+def unsupported(name: str) -> type:
+    """A class whose construction raises ``NotImplementedError`` naming the g2o type.
+
+    Args:
+        name: The g2o type's name.
+    """
+
+    def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
+        raise NotImplementedError(
+            f"graphopt.g2o: g2o's {name} is not supported; see docs/g2o_api.md for what is")
+
+    return type(name, (), {"__init__": __init__, "__module__": "graphopt.g2o",
+                           "__doc__": f"g2o's {name}: not supported by graphopt."})

@@ -1,0 +1,482 @@
+"""g2o's ``SparseOptimizer`` in front of graphopt's.
+
+``add_vertex``/``add_edge`` file records (a dict insertion each). ``initialize_optimization``
+turns them into arrays — one *bank* per graphopt vertex type, one *batch* per g2o edge class and
+parameters — and builds a graphopt :class:`~graphopt.SparseOptimizer` with the edges of the
+requested level (one ``add_vertices`` per bank, one ``add_edges`` per batch; graphopt validates
+there, in bulk, naming the offending ids). A later ``initialize_optimization`` after level
+changes rebuilds the graphopt optimizer from the arrays without touching the records; records
+added or edited after it are filed again.
+
+g2o's semantics: ``optimize(n)`` runs ``n`` iterations unless no step is found
+(``StoppingConfig.iterations_only``) and returns the count; LM is g2o's (τ = 1e-5, Nielsen's λ
+rule, ``set_user_lambda_init``); ``set_verbose`` prints g2o's iteration lines; the force-stop
+flag is read after every iteration.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import sys
+from typing import Any
+
+import numpy as np
+
+from graphopt.algorithms import LevenbergConfig
+from graphopt.errors import GraphError
+from graphopt.optimizer import SparseOptimizer as CoreOptimizer
+from graphopt.stopping import StoppingConfig
+
+from .batch import Batch, stack_information, stack_measurements
+from .edges import BaseEdge
+from .params import Parameter
+from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
+from .vertices import Bank, BaseVertex, core_type
+
+__all__ = ["SparseOptimizer"]
+
+
+class SparseOptimizer:
+    """g2o's ``SparseOptimizer`` (both bindings' method names)."""
+
+    def __init__(self) -> None:
+        self._vertices: dict[int, BaseVertex] = {}
+        self._edges: dict[BaseEdge, None] = {}
+        self._parameters: dict[int, Parameter] = {}
+        self._algorithm: OptimizationAlgorithm = OptimizationAlgorithmLevenberg()
+        self._verbose = False
+        self._flag: Any = None
+        self._core: CoreOptimizer | None = None
+        self._banks: dict[type, Bank] = {}
+        self._batches: list[Batch] = []
+        self._records_dirty = True
+        self._level = 0
+        self._core_params: dict[Any, Any] = {}
+        self._changed: list[Batch] = []
+        self._cum_time = 0.0
+
+    # --- configuration -----------------------------------------------------------------------
+
+    def set_algorithm(self, algorithm: OptimizationAlgorithm) -> None:
+        """Select the algorithm (and through it the linear solver).
+
+        Args:
+            algorithm: ``OptimizationAlgorithmLevenberg(...)`` etc.
+        """
+        if not isinstance(algorithm, OptimizationAlgorithm):
+            raise TypeError(f"set_algorithm: expected an OptimizationAlgorithm*, got "
+                            f"{type(algorithm).__name__}")
+        self._algorithm = algorithm
+        if self._core is not None:
+            self._core.set_algorithm(algorithm.config)
+            self._core.set_solver(algorithm.solver)
+
+    def algorithm(self) -> OptimizationAlgorithm:
+        """The algorithm."""
+        return self._algorithm
+
+    def set_verbose(self, verbose: bool) -> None:
+        """Print g2o's iteration lines (stderr).
+
+        Args:
+            verbose: On or off.
+        """
+        self._verbose = bool(verbose)
+        if self._core is not None:
+            self._core.verbose = self._verbose
+
+    def verbose(self) -> bool:
+        """Whether iteration lines are printed."""
+        return self._verbose
+
+    def set_force_stop_flag(self, flag: Any) -> None:
+        """A flag (``g2o.Flag``, or anything with a truth value) read after every iteration.
+
+        Args:
+            flag: The flag, or ``None``.
+        """
+        self._flag = flag
+
+    def force_stop_flag(self) -> Any:
+        """The force-stop flag, or ``None``."""
+        return self._flag
+
+    def add_parameter(self, parameter: Parameter) -> bool:
+        """Register a parameter under its id.
+
+        Args:
+            parameter: ``CameraParameters``, ``ParameterSE3Offset``...
+        """
+        pid = parameter.id()
+        if pid in self._parameters:
+            return False
+        self._parameters[pid] = parameter
+        self._structure_changed()
+        return True
+
+    def parameter(self, pid: int) -> Parameter | None:
+        """The parameter with this id.
+
+        Args:
+            pid: The id.
+        """
+        return self._parameters.get(int(pid))
+
+    # --- the graph ---------------------------------------------------------------------------
+
+    def add_vertex(self, vertex: BaseVertex) -> bool:
+        """File a vertex (False if its id is taken).
+
+        Args:
+            vertex: The vertex record.
+        """
+        try:
+            vid = vertex._id
+        except AttributeError:
+            raise TypeError(f"add_vertex: expected a g2o vertex, got {type(vertex).__name__}"
+                            ) from None
+        if vid in self._vertices or vertex._opt is not None:
+            return False
+        self._vertices[vid] = vertex
+        vertex._opt = self
+        self._records_dirty = True
+        return True
+
+    def add_edge(self, edge: BaseEdge) -> bool:
+        """File an edge (False, as g2o, if it is already in a graph, a vertex is missing or
+        one vertex is named twice).
+
+        Args:
+            edge: The edge record.
+        """
+        try:
+            vs = edge._v
+        except AttributeError:
+            raise TypeError(f"add_edge: expected a g2o edge, got {type(edge).__name__}"
+                            ) from None
+        if edge._opt is not None or None in vs or (len(vs) == 2 and vs[0] is vs[1]) or (
+                len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
+            return False
+        self._edges[edge] = None
+        edge._opt = self
+        self._records_dirty = True
+        return True
+
+    def vertex(self, vid: int) -> BaseVertex | None:
+        """The vertex with this id, or ``None``.
+
+        Args:
+            vid: The id.
+        """
+        return self._vertices.get(vid)
+
+    def vertices(self) -> dict[int, BaseVertex]:
+        """``{id: vertex}``."""
+        return dict(self._vertices)
+
+    def edges(self) -> list[BaseEdge]:
+        """All edges, in the order they were added."""
+        return list(self._edges)
+
+    def remove_edge(self, edge: BaseEdge) -> bool:
+        """Remove an edge.
+
+        Args:
+            edge: The edge.
+        """
+        if edge._opt is not self:
+            return False
+        del self._edges[edge]
+        edge._opt, edge._batch = None, None
+        self._records_dirty = True
+        return True
+
+    def remove_vertex(self, vertex: BaseVertex) -> bool:
+        """Remove a vertex and its edges (as g2o does).
+
+        Args:
+            vertex: The vertex.
+        """
+        if vertex._opt is not self:
+            return False
+        for e in [e for e in self._edges if any(v is vertex for v in e._v)]:
+            self.remove_edge(e)
+        del self._vertices[vertex._id]
+        self._capture(vertex)
+        vertex._opt, vertex._bank = None, None
+        self._records_dirty = True
+        return True
+
+    def clear(self) -> None:
+        """Remove everything."""
+        for v in list(self._vertices.values()):
+            self.remove_vertex(v)
+        self._core = None
+
+    # --- notifications from records ----------------------------------------------------------
+
+    def _structure_changed(self) -> None:
+        self._records_dirty = True
+
+    # --- building ----------------------------------------------------------------------------
+
+    @staticmethod
+    def _capture(v: BaseVertex) -> None:
+        """Keep a bound vertex's current estimate in the record (its bank is being dropped)."""
+        if v._bank is not None:
+            v._est = v._from_row(v._bank.estimates()[v._slot])
+
+    def _core_param(self, cls: type, key: tuple[Any, ...]) -> Any:
+        """graphopt's parameter object of an edge batch (one object per key: graphopt groups
+        edges by parameter object)."""
+        full = (cls._gname, key)
+        if full not in self._core_params:
+            if cls._nparams == 0 and cls._param_type:  # intrinsics on the edge (fx, fy, ...)
+                value: Any = core_type(cls._param_type)(*key)
+            elif cls._nparams == 0:
+                value = None
+            else:
+                cores = []
+                for pid in key:
+                    p = self._parameters.get(pid)
+                    if p is None:
+                        raise GraphError(f"{cls.__name__}: parameter {pid} was never added "
+                                         "(optimizer.add_parameter)")
+                    cores.append(p._core())
+                value = cores[0] if len(cores) == 1 else tuple(cores)
+            self._core_params[full] = value
+        return self._core_params[full]
+
+    def _file_vertices(self) -> None:
+        for e in self._edges:  # vertices that an edge type reads differently (inverse depth)
+            for pos, name in type(e)._vertex_as.items():
+                e._v[pos]._as = name
+        buckets: dict[str, list[BaseVertex]] = {}
+        for v in self._vertices.values():
+            buckets.setdefault(v._as or v._gname, []).append(v)
+        banks = {}
+        for name, recs in buckets.items():
+            gtype = core_type(name)
+            cls = type(recs[0])
+            est = np.empty((len(recs), *gtype.estimate_shape))
+            raws, where = [], []
+            for i, v in enumerate(recs):
+                b = v._bank
+                if b is not None:
+                    est[i] = b.estimates()[v._slot]
+                else:
+                    raws.append(v._est if v._est is not None else v._default())
+                    where.append(i)
+            if raws:
+                conv = cls._to_array(raws, [recs[i]._id for i in where])
+                cls._finish(conv, [recs[i] for i in where])
+                est[where] = conv
+            banks[gtype] = Bank(gtype, recs, est)
+        self._banks = banks
+
+    def _file_edges(self) -> None:
+        buckets: dict[tuple[Any, ...], list[BaseEdge]] = {}
+        for e in self._edges:
+            key = (type(e), e._params_key())
+            b = buckets.get(key)
+            if b is None:
+                buckets[key] = b = []
+            b.append(e)
+        batches = []
+        known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
+        for (cls, pkey), recs in buckets.items():
+            gtype = cls._core_type(pkey)
+            k = len(recs[0]._v)  # the class's count, or the edges' own (EdgeSE2LotsOfXY)
+            perm = cls._perm if len(cls._perm) == k else tuple(range(k))
+            vids = np.fromiter((v._id for e in recs for v in e._v), dtype=np.int64,
+                               count=k * len(recs)).reshape(-1, k)
+            missing = ~np.isin(vids, known)
+            if missing.any():
+                i, g = (int(a[0]) for a in np.nonzero(missing))
+                raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
+                                 f"{int(vids[i, g])} (position {g}) was not added to the "
+                                 "optimizer")
+            vids = vids[:, list(perm)]
+            banks = [self._vertices[int(vids[0, p])]._bank for p in range(k)]
+            meas = stack_measurements(cls, recs)
+            info = stack_information(cls, recs, gtype.dimension)
+            batches.append(Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids,
+                                 banks, meas, info, cls._data(recs)))
+        self._batches = batches
+
+    def _build_core(self) -> None:
+        alg = self._algorithm
+        core = CoreOptimizer(alg.config, alg.solver, verbose=self._verbose,
+                             stopping=StoppingConfig.iterations_only())
+        for gtype, bank in self._banks.items():
+            core.add_vertices(gtype, bank.ids, bank.estimates(), bank.user_fixed, bank.marg)
+        for gtype, bank in self._banks.items():
+            bank.store = core.graph.stores[gtype]
+        for b in self._batches:
+            b.add_to(core)
+        self._core = core
+        self._changed = []
+
+    def _batch_changed(self, batch: Batch) -> None:
+        self._changed.append(batch)
+
+    def _prepare(self, levels: bool = False) -> CoreOptimizer:
+        if self._records_dirty or self._core is None:
+            # Filing creates many small containers while the program holds many records: the
+            # cyclic collector would rescan them all, several times (3x the filing time measured
+            # on 25,000 edges); nothing made here forms cycles that outlive it.
+            enabled = gc.isenabled()
+            gc.disable()
+            try:
+                if self._records_dirty:
+                    self._core_params = {}  # parameters may have changed since
+                    for v in self._vertices.values():
+                        v._as = None
+                    self._file_vertices()
+                    self._file_edges()
+                    self._records_dirty = False
+                self._build_core()
+            finally:
+                if enabled:
+                    gc.enable()
+        if self._changed:
+            keep = []
+            for b in self._changed:
+                b.sync(levels)
+                if b.levels_dirty:
+                    keep.append(b)
+            self._changed = keep
+        assert self._core is not None
+        return self._core
+
+    def initialize_optimization(self, level: int = 0) -> bool:
+        """Take the edges of ``level`` (and their vertices) for the next ``optimize`` calls;
+        levels, kernels, estimates and flags changed since the last call are written into the
+        optimizer's arrays, and its structure is reused unless vertices or edges were added or
+        removed.
+
+        Args:
+            level: The edge level.
+
+        Returns:
+            True.
+        """
+        self._level = int(level)
+        self._prepare(levels=True).initialize_optimization(self._level)
+        return True
+
+    # --- optimising --------------------------------------------------------------------------
+
+    def optimize(self, iterations: int, online: bool = False) -> int:
+        """Run ``iterations`` iterations (fewer only if no step is found or the force-stop flag
+        is set).
+
+        Args:
+            iterations: The count.
+            online: Ignored (g2o's incremental mode).
+
+        Returns:
+            The number of iterations run.
+        """
+        core = self._prepare()
+        if self._flag is not None and bool(self._flag):
+            return 0
+        core.verbose = False  # g2o's lines come from _print_line (λ after its update)
+        core.stopping = StoppingConfig.iterations_only(max(int(iterations), 1))
+        core._callbacks["post_iteration"] = [self._after_iteration]
+        self._cum_time = 0.0
+        result = core.optimize(int(iterations))
+        return len(result.info)
+
+    def _after_iteration(self, core: CoreOptimizer, info: Any) -> None:
+        if self._verbose:
+            self._print_line(core, info)
+        if self._flag is not None and bool(self._flag):
+            core.stop()
+
+    def _print_line(self, core: CoreOptimizer, info: Any) -> None:
+        """g2o's iteration line; LM's ``lambda`` is the value after the iteration's update,
+        as g2o prints it."""
+        self._cum_time += info.seconds
+        p = core.problem
+        schur = 1 if p is not None and p.system.schur else 0
+        alg = core.algorithm
+        fields = (f"\t lambda= {alg.lam:f}\t levenbergIter= {info.trials}"
+                  if isinstance(alg.config, LevenbergConfig) else alg.line_fields(info))
+        print(f"iteration= {info.iteration}\t chi2= {info.chi2:f}\t time= {info.seconds:g}"
+              f"\t cumTime= {self._cum_time:g}\t edges= {core.active_edge_count()}"
+              f"\t schur= {schur}{fields}", file=sys.stderr)
+
+    def compute_active_errors(self) -> None:
+        """Evaluate the active edges at the current estimates."""
+        self._prepare().compute_active_errors()
+
+    def active_chi2(self) -> float:
+        """Σ eᵀΩe over the active edges (no kernel), at the last evaluation."""
+        return self._prepare().chi2()
+
+    def active_robust_chi2(self) -> float:
+        """Σ ρ(eᵀΩe) over the active edges, at the last evaluation."""
+        return self._prepare().active_robust_chi2()
+
+    def chi2(self) -> float:
+        """Σ eᵀΩe over the active edges (g2o's ``chi2``)."""
+        return self.active_chi2()
+
+    def active_edges(self) -> list[BaseEdge]:
+        """The edges of the current level."""
+        self._prepare()
+        return [r for b in self._batches for r, lv in zip(b.records, b.levels.tolist(),
+                                                             strict=True) if lv == self._level]
+
+    def active_vertices(self) -> list[BaseVertex]:
+        """The vertices of the active edges."""
+        ids = {v._id for e in self.active_edges() for v in e._v}
+        return [self._vertices[i] for i in ids]
+
+    def set_estimates_of(self, vtype: type[BaseVertex], estimates: Any) -> None:
+        """graphopt's bulk reset (not in g2o): all estimates of a vertex class at once.
+
+        Args:
+            vtype: The g2o vertex class.
+            estimates: ``(n, *shape)`` in the bank's slot order (the order added).
+        """
+        self._prepare()
+        bank = self._banks[core_type(vtype._gname)]
+        assert bank.store is not None
+        est = np.array(estimates, dtype=float)
+        bank.store.check_estimates(est, bank.ids)
+        bank.store.estimates = est
+
+    # --- files -------------------------------------------------------------------------------
+
+    def load(self, filename: str | os.PathLike[str], *args: Any) -> bool:
+        """Read a g2o, TORO or GTSAM file (see :mod:`graphopt.io.g2o`) into this optimizer.
+
+        Args:
+            filename: The file.
+            args: g2o's format argument (ignored: the format is detected).
+        """
+        from .files import load
+
+        load(self, filename)
+        return True
+
+    def save(self, filename: str | os.PathLike[str], *args: Any) -> bool:
+        """Write the graph with the current estimates as a g2o file (atomically).
+
+        Args:
+            filename: The file.
+            args: g2o's format and level arguments (ignored).
+        """
+        from .files import save
+
+        save(self, filename)
+        return True
+
+    @property
+    def core(self) -> CoreOptimizer:
+        """graphopt's optimizer behind this one (built on demand)."""
+        return self._prepare()
+
