@@ -168,6 +168,9 @@ def sim3_exp_one(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sim3_exp` of one tangent ``(7,)`` in Python floats (one Sim3 vertex, as in
     ``OptimizeSim3``, is updated every iteration: ~8 µs instead of ~45).
 
+    Args:
+        xi: ``(7,)`` tangent ``[ω, υ, σ]``.
+
     Returns:
         ``(sR (3, 3), t (3,))``.
     """
