@@ -30,7 +30,6 @@ from graphopt.errors import GraphError
 from graphopt.lie import transform_inverse, transform_points
 from graphopt.types.projection import (
     CameraParameters,
-    _cross_matrix_rows,
     _pinhole,
     camera_params,
     pose_jacobian,
@@ -102,11 +101,6 @@ def _stereo(P: np.ndarray, z: np.ndarray, cam: StereoCameraParameters
     D[:, 2] = D2[:, 0]
     D[:, 2, 2] -= cam.bf * iz * iz
     return e, D
-
-
-def _pose_jacobian(D: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """``D·[−[P]×, I]``: the pose block for a left perturbation ``[ω, υ]``."""
-    return np.concatenate([_cross_matrix_rows(D, P), D], axis=2)
 
 
 class _OnlyPose(BaseEdge):
@@ -293,9 +287,22 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
             ctx: ``params``.
         """
         T, X = x
+        cam = camera_params(cls, ctx.params, StereoCameraParameters)
         P = transform_points(T, X)
-        e, D = _stereo(P, measurement, camera_params(cls, ctx.params, StereoCameraParameters))
-        return Linearization(e, (_pose_jacobian(D, P), D @ T[:, :3, :3]))
+        m = len(P)
+        iz = 1.0 / P[:, 2]
+        uv = P[:, :2] * iz[:, None]
+        pix = uv * cam.focal + cam.centre
+        e = np.empty((m, 3))
+        e[:, :2] = measurement[:, :2] - pix
+        e[:, 2] = measurement[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
+        # ∂e/∂P·R: rows −f_r·iz·(R_r − uv_r·R_2), the third the first − bf·iz²·R_2.
+        R = T[:, :3, :3]
+        J_point = np.empty((m, 3, 3))
+        J_point[:, :2] = (R[:, :2] - uv[:, :, None] * R[:, 2:3]) * (-iz[:, None, None]
+                                                                   * cam.focal[:, None])
+        J_point[:, 2] = J_point[:, 0] - (cam.bf * iz * iz)[:, None] * R[:, 2]  # type: ignore[attr-defined]
+        return Linearization(e, (pose_jacobian(iz, uv, cam, cam.bf), J_point))  # type: ignore[attr-defined]
 
     @classmethod
     def depth_positive(
