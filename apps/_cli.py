@@ -239,27 +239,84 @@ def write_png_image(path: str | os.PathLike[str], image: Any) -> None:
 
 
 class RunRecording:
-    """A rerun recording of an app run.
+    """A rerun recording of an app run, laid out by :func:`graphopt.recording_view.run_blueprint`.
 
     The file appears only on :meth:`close` (see :class:`graphopt.recording.Recorder`);
     :meth:`timed` measures the time spent logging, which the apps keep out of the optimisation
-    time they report.
+    time they report. :meth:`log_metrics` logs the cost (also as log10) and the iteration's
+    seconds; :meth:`log_summary` the summary document.
 
     Args:
         path: Destination ``.rrd`` file.
         prog: The app's name (rerun application id).
         camera_xyz: Camera axis convention (``"RDF"`` or ``"RUB"``).
         world_xyz: World axis convention (a ``rerun.ViewCoordinates`` name).
+        blueprint: Keyword arguments of :func:`~graphopt.recording_view.run_blueprint`.
     """
 
     def __init__(
-        self, path: str, prog: str, *, camera_xyz: str, world_xyz: str = "RIGHT_HAND_Z_UP"
+        self, path: str, prog: str, *, camera_xyz: str, world_xyz: str = "RIGHT_HAND_Z_UP",
+        blueprint: Mapping[str, Any] | None = None,
     ) -> None:
         from graphopt.recording import Recorder  # rerun is heavy: only import it when recording
+        from graphopt.recording_view import run_blueprint
 
         self.rec = Recorder(path, application_id=prog, camera_xyz=camera_xyz,
                             world_xyz=world_xyz)
+        self.blueprint = dict(blueprint or {})
         self.seconds = 0.0
+        #: The last iteration logged (the frame the run's end is shown at), and the last step
+        #: (online runs; None otherwise).
+        self.iteration = 0
+        self.step: int | None = None
+        try:
+            self.rec.send_blueprint(run_blueprint(**self.blueprint))
+            self.rec.name_series("log10_chi2", "log10 chi2", (215, 35, 35))
+            self.rec.name_series("chi2", "chi2", (215, 35, 35))
+            self.rec.name_series("iteration_seconds", "seconds", (40, 90, 220))
+        except BaseException:
+            self.rec.abort()
+            raise
+
+    def log_metrics(self, iteration: int, chi2: float, seconds: float | None = None,
+                    step: int | None = None) -> None:
+        """Log the cost (``metrics/chi2`` and ``metrics/log10_chi2``) and the iteration's
+        seconds (``metrics/iteration_seconds``) at ``iteration`` (and ``step``).
+
+        Args:
+            iteration: Iteration number (0 = before optimisation).
+            chi2: The cost after it.
+            seconds: The iteration's wall time (None at iteration 0).
+            step: The ``step`` timeline's value (online runs), or None.
+        """
+        self.iteration = max(self.iteration, int(iteration))
+        if step is not None:
+            self.step = int(step)
+            self.rec.set_step(step)
+        self.rec.set_iteration(iteration)
+        self.rec.log_cost(chi2)
+        if seconds is not None:
+            self.rec.log_scalar("iteration_seconds", seconds)
+
+    def hide(self, paths: Sequence[str]) -> None:
+        """Send the blueprint again with these entities hidden at first (the viewer uses the
+        last blueprint sent).
+
+        Args:
+            paths: Entity paths, e.g. ``["world/after/outliers"]``.
+        """
+        from graphopt.recording_view import run_blueprint
+
+        self.blueprint["hidden"] = [*self.blueprint.get("hidden", ()), *paths]
+        self.rec.send_blueprint(run_blueprint(**self.blueprint))
+
+    def log_summary(self, markdown: str) -> None:
+        """Log the summary document (static: shown at every iteration).
+
+        Args:
+            markdown: The text, e.g. from :func:`graphopt.recording_view.summary_markdown`.
+        """
+        self.rec.log_document(markdown)
 
     @contextlib.contextmanager
     def timed(self) -> Iterator[Any]:

@@ -37,10 +37,10 @@ import numpy as np
 from graphopt import GraphError, LevenbergConfig, SparseOptimizer, make_kernel
 from graphopt.apps import _cli
 from graphopt.apps.bal_preprocess import normalize, perturb
+from graphopt.apps.bal_report import BALRecording, recording_markdown
 from graphopt.apps.bal_scene import ground_truth_errors, synthetic_scene
 from graphopt.io.bal import BALFormatError, BALProblem, read_bal
 from graphopt.io.ply import write_scene_ply
-from graphopt.lie import make_transform, so3_exp
 from graphopt.types.bal import EdgeBALProjection, VertexCameraBAL, reprojection_errors
 from graphopt.types.vertices import VertexPointXYZ
 
@@ -95,11 +95,6 @@ def _check_options(args: argparse.Namespace) -> None:
         raise _cli.AppError(f"--perturb sigmas must be finite and >= 0, got {args.perturb}")
     _cli.check_outputs({"--ply-before": args.ply_before, "--ply-after": args.ply_after,
                         "--rrd": args.rrd, "--json": args.json}, inputs=[args.input])
-
-
-def _cameras_to_poses(cams: np.ndarray) -> np.ndarray:
-    """``(c, 4, 4)`` world-to-camera transforms of BAL cameras."""
-    return make_transform(so3_exp(cams[:, :3]), cams[:, 3:6])
 
 
 #: Observations projected per pass when computing costs (bounds the temporary arrays).
@@ -188,44 +183,6 @@ def _first_bad_observation(problem: BALProblem, source: str) -> str:
             f"{int(problem.point_index[i])})")
 
 
-class _BALRecording(_cli.RunRecording):
-    """Points, camera frusta (BAL cameras look down −z) and the cost per iteration.
-
-    Args:
-        path: Destination ``.rrd`` file.
-        problem: The problem (observations give each camera's image extent).
-        scene_scale: Typical camera-to-scene distance (frustum depth is 5 % of it).
-    """
-
-    def __init__(self, path: str, problem: BALProblem, scene_scale: float) -> None:
-        super().__init__(path, PROG, camera_xyz="RUB")
-        # Image size is not in BAL files: use the extent of each camera's observations.
-        ext = np.zeros((problem.num_cameras, 2))
-        np.maximum.at(ext, problem.camera_index, np.abs(problem.observations))
-        self.resolution = np.maximum(2.0 * ext, 2.0)
-        self.plane = 0.05 * scene_scale
-
-    def log_state(self, iteration: int, cams: np.ndarray, pts: np.ndarray, cost: float) -> None:
-        """Log the estimates and the cost at an iteration.
-
-        Args:
-            iteration: Iteration number (0 = before optimisation).
-            cams: ``(c, 9)`` cameras.
-            pts: ``(n, 3)`` points.
-            cost: ``½Σ‖r‖²``.
-        """
-        self.rec.set_iteration(iteration)
-        self.rec.log_points(pts)
-        self.rec.log_cameras(
-            _cameras_to_poses(cams),
-            focal=np.abs(cams[:, 6]),
-            resolution=self.resolution,
-            principal_point=self.resolution / 2.0,
-            image_plane_distance=self.plane,
-        )
-        self.rec.log_scalar("cost", cost)
-
-
 def _load(args: argparse.Namespace, progress: _Progress
           ) -> tuple[BALProblem, BALProblem | None, str]:
     """The problem to solve (read or synthetic, then normalised/perturbed), its ground truth
@@ -278,21 +235,19 @@ def _build_optimizer(
     return opt, solver, solver_text
 
 
-def _start_recording(
-    path: str, opt: SparseOptimizer, problem: BALProblem, initial_cost: float
-) -> _BALRecording:
+def _start_recording(path: str, opt: SparseOptimizer, problem: BALProblem) -> BALRecording:
     """Open the recording, log the start and every iteration (timed, see ``_cli.RunRecording``)."""
     centers = problem.camera_centers()
     scale = float(np.median(np.linalg.norm(centers - np.median(problem.points, 0), axis=1)))
-    recording = _BALRecording(path, problem, scale if scale > 0 else 1.0)
-    recording.log_state(0, problem.cameras, problem.points, initial_cost)
+    recording = BALRecording(path, PROG, problem, scale if scale > 0 else 1.0)
+    with recording.timed():
+        opt.compute_active_errors()
+        recording.log_start(problem.cameras, problem.points, opt.active_robust_chi2())
 
     def on_iteration(o: SparseOptimizer, info: Any) -> None:
         with recording.timed():  # the recording's work is kept out of the reported seconds
-            cams = o.estimates_of(VertexCameraBAL)
-            pts = o.estimates_of(VertexPointXYZ)
-            recording.log_state(info.iteration + 1, cams, pts,
-                                _residual_stats(problem, cams, pts)[0])
+            recording.log_state(info.iteration + 1, o.estimates_of(VertexCameraBAL),
+                                o.estimates_of(VertexPointXYZ), info.chi2, info.seconds)
 
     opt.add_callback("post_iteration", on_iteration)
     return recording
@@ -359,7 +314,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if problem.num_cameras < 2**31 and problem.num_points < 2**31:
         problem.camera_index = problem.camera_index.astype(np.int32)
         problem.point_index = problem.point_index.astype(np.int32)
-    recording = _start_recording(args.rrd, opt, problem, initial_cost) if args.rrd else None
+    recording = _start_recording(args.rrd, opt, problem) if args.rrd else None
     res = _cli.optimize_recorded(opt, args.iterations, recording)
     est = BALProblem(opt.estimates_of(VertexCameraBAL), opt.estimates_of(VertexPointXYZ),
                      problem.camera_index, problem.point_index, problem.observations)
@@ -404,6 +359,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         summary["ground_truth"] = ground_truth_errors(est, truth)
 
     if recording is not None:
+        with recording.timed():
+            recording.finish(opt, est.points)
+            recording.log_summary(recording_markdown(PROG, summary, recording))
         recording.close()
     if args.ply_after:
         _write_ply(args.ply_after, est, args.ply_drop_far)
@@ -411,11 +369,48 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         _cli.write_json(args.json, summary)
     if not args.quiet:
         print(format_summary(summary))
-        if res.stop_reason in ("failed", "singular"):
-            print(f"{PROG}: warning: no step was possible because the normal equations are "
-                  "singular (bundle adjustment has a 7-dimensional gauge freedom); use "
-                  "--algorithm lm or dogleg, which damp it", file=sys.stderr)
+        warning = stop_warning(args.algorithm, str(res.stop_reason), int(res.iterations),
+                               args.lm_damping)
+        if warning:
+            print(f"{PROG}: warning: {warning}", file=sys.stderr)
     return summary
+
+
+def stop_warning(algorithm: str, stop_reason: str, iterations: int,
+                 lm_damping: str = "diagonal") -> str | None:
+    """What to tell the user when the run ended because no step could be computed.
+
+    Only ``failed`` and ``singular`` runs get a warning, and its advice fits the algorithm
+    that ran: Gauss–Newton is told to use a damped algorithm; Levenberg–Marquardt with
+    ``lambda*diag(H)`` damping to damp every parameter (a parameter no observation constrains
+    has a zero diagonal, which that damping leaves at zero); the others to check the input.
+
+    Args:
+        algorithm: ``"gn"``, ``"lm"`` or ``"dogleg"``.
+        stop_reason: The run's stop reason.
+        iterations: Iterations done (the failed one included).
+        lm_damping: LM's damping (``"diagonal"`` or ``"identity"``).
+
+    Returns:
+        The warning (without the program's prefix), or None.
+    """
+    if stop_reason not in ("failed", "singular"):
+        return None
+    when = ("no step was possible" if iterations <= 1
+            else f"the run stopped at iteration {iterations} without a step")
+    if algorithm == "gn":
+        cause = ("the normal equations are singular (bundle adjustment has a 7-dimensional "
+                 "gauge freedom)" if stop_reason == "singular" else
+                 "the normal equations were not positive definite or the step made the cost "
+                 "non-finite")
+        return f"{when}: {cause}; use --algorithm lm or dogleg, which damp the system"
+    name = {"lm": "Levenberg-Marquardt", "dogleg": "dogleg"}.get(algorithm, algorithm)
+    text = (f"{when}: every damped solve of {name} met normal equations that are not positive "
+            "definite")
+    if algorithm == "lm" and lm_damping == "diagonal":
+        return (text + "; a parameter that no observation constrains keeps a zero diagonal "
+                "under lambda*diag(H): try --lm-damping identity, or check the input")
+    return text + "; check the input for non-finite or extreme values"
 
 
 def format_summary(s: dict[str, Any]) -> str:

@@ -26,7 +26,12 @@ from typing import Any
 from graphopt import GraphError, NotPositiveDefiniteError
 from graphopt.apps import _cli
 from graphopt.apps.direct_ba_problem import PARAMETRIZATIONS, build_problem
-from graphopt.apps.direct_ba_report import DirectBARecording, truth_report, write_png
+from graphopt.apps.direct_ba_report import (
+    DirectBARecording,
+    recording_markdown,
+    truth_report,
+    write_png,
+)
 from graphopt.apps.direct_ba_scene import synthetic_scene
 from graphopt.io.directba import DirectBAFormatError, load_directba
 
@@ -115,11 +120,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     recording = None
     if args.rrd:
         recording = DirectBARecording(args.rrd, problem, PROG)
-        recording.log_state(0, opt.active_robust_chi2(), first=True)
+        with recording.timed():
+            recording.log_state(0, opt.active_robust_chi2(), first=True)
 
         def on_iteration(o: Any, info: Any) -> None:
             with recording.timed():  # kept out of the reported seconds
-                recording.log_state(info.iteration + 1, info.chi2)
+                recording.log_state(info.iteration + 1, info.chi2, seconds=info.seconds)
 
         opt.add_callback("post_iteration", on_iteration)
     try:
@@ -154,7 +160,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if data.true_poses is not None:
         summary.update(truth_report(problem))
     if recording is not None:
-        recording.rec.log_text(f"chi2 {res.initial_chi2:.6g} -> {res.final_chi2:.6g}")
+        recording.finish()  # the last evaluation (compute_active_errors above) is the final one
+        recording.log_summary(recording_markdown(PROG, summary, recording, solver_text))
         recording.close()
     if args.png:
         write_png(args.png, problem, before, (problem.poses(), problem.points()))

@@ -5,14 +5,24 @@ cameras and points before/after, and the rerun recording.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from graphopt.apps._cli import RunRecording, write_png_image
 from graphopt.apps.direct_ba_problem import DirectBAProblem
 from graphopt.lie import so3_log, transform_inverse
+from graphopt.recording_view import (
+    BEFORE,
+    MANY_OUTLIERS,
+    OUTLIER,
+    TRUTH,
+    ErrorScale,
+    outlier_mask,
+    summary_markdown,
+)
 
-__all__ = ["DirectBARecording", "pose_errors", "truth_report", "write_png"]
+__all__ = ["DirectBARecording", "pose_errors", "recording_markdown", "truth_report", "write_png"]
 
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,12 +67,6 @@ def truth_report(problem: DirectBAProblem) -> dict[str, float]:
             np.linalg.norm(scale * a - b, axis=1)[1:].mean())
         out[f"{when}_point_error_m_median"] = float(np.median(np.linalg.norm(X - truth, axis=1)))
     return out
-
-
-def _intensity_colors(patches: np.ndarray) -> np.ndarray:
-    """Grey ``(N, 3)`` uint8 colours from the mean intensity of each patch."""
-    g = np.clip(patches.mean(axis=1), 0, 255).astype(np.uint8)
-    return np.stack([g, g, g], axis=1)
 
 
 #: Length in pixels of the largest (magnified) camera shift arrow; points use their 90th
@@ -172,7 +176,16 @@ def write_png(path: str | Path, problem: DirectBAProblem, before: tuple[np.ndarr
 
 
 class DirectBARecording(RunRecording):
-    """The run as a rerun recording: frusta with images, points, chi2 per iteration.
+    """The run as a rerun recording.
+
+    3-D (``world``, camera-like axes: x right, y down, z forward): ``world/before/points`` and
+    ``world/before/cameras`` (centres) in grey, once; at every iteration ``world/after/points``
+    coloured by each point's RMS photometric residual over its active patches and
+    ``world/after/cameras/{k}`` (frusta); ``world/after/outliers`` (points with a patch the
+    kernel down-weights at the end) at the last iteration. 2-D, one view per image:
+    ``images/{k}/image`` once and ``images/{k}/patches`` (the patches' projections coloured by
+    their RMS residual, on the same scale) at every iteration, ``images/{k}/outliers`` at the
+    last. ``metrics/…`` and ``summary``.
 
     Args:
         path: Destination ``.rrd`` file.
@@ -181,39 +194,157 @@ class DirectBARecording(RunRecording):
     """
 
     def __init__(self, path: str, problem: DirectBAProblem, prog: str) -> None:
-        # The data's world frame is camera-like (x right, y down, z forward).
-        super().__init__(path, prog, camera_xyz="RDF", world_xyz="RDF")
-        self.problem = problem
         data = problem.data
+        n, h, w = data.images.shape
+        views = [(f"images/{k}", f"image {k}") for k in range(n)]
+        # The data's world frame is camera-like (x right, y down, z forward).
+        super().__init__(path, prog, camera_xyz="RDF", world_xyz="RDF",
+                         blueprint={"world_name": "cameras and points", "images": views,
+                                    "image_size": (w, h)})
+        self.problem = problem
         fx, fy, cx, cy = data.intrinsics
-        n = len(data.poses)
+        self.intrinsics = (fx, fy, cx, cy)
         # Per-camera (n, 2) arrays: Recorder reads a 1-D focal as one value per camera.
         self.cam = {"focal": np.tile([fx, fy], (n, 1)),
                     "principal_point": np.tile([cx, cy], (n, 1)),
-                    "resolution": np.tile([data.images.shape[2], data.images.shape[1]], (n, 1))}
-        self.colors = _intensity_colors(data.patches[problem.point_index])
+                    "resolution": np.tile([w, h], (n, 1))}
+        self.patch_pixels = data.patch * data.patch
+        # Structure once: each photometric edge's image and point row (in point_index order).
+        groups = [g for g in problem.optimizer.edge_groups() if "image" in g.data]
+        self.groups = groups
+        self.image = np.concatenate([g.data["image"] for g in groups]).astype(np.intp)
+        vid = np.concatenate([g.vertex_ids[:, -1] for g in groups]) - n
+        self.point = np.searchsorted(problem.point_index, vid).astype(np.intp)
+        #: Per logged iteration, (per-edge RMS residual, per-point RMS residual).
+        self.errors: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self.scale: ErrorScale | None = None
+        self.outliers = 0
+        self.outliers_hidden = False
 
-    def log_state(self, iteration: int, chi2: float, first: bool = False) -> None:
+    def _residuals(self) -> tuple[np.ndarray, np.ndarray]:
+        """RMS residual per pixel of each edge's patch, and of each point over its active
+        patches (an inactive edge, projected off its image, has a zero error), at the optimizer's
+        last evaluation."""
+        chi2 = np.concatenate([g.last_chi2 for g in self.groups])
+        edge = np.sqrt(np.maximum(chi2, 0.0) / self.patch_pixels)
+        npts = len(self.problem.point_index)
+        total = np.bincount(self.point, chi2, minlength=npts)
+        count = np.bincount(self.point, chi2 > 0, minlength=npts)
+        with np.errstate(all="ignore"):
+            return edge, np.sqrt(total / (count * self.patch_pixels))
+
+    def _pixels(self, poses: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``(m, 2)`` projection of each edge's point into its image."""
+        fx, fy, cx, cy = self.intrinsics
+        T = poses[self.image]
+        pc = np.einsum("mij,mj->mi", T[:, :3, :3], points[self.point]) + T[:, :3, 3]
+        with np.errstate(all="ignore"):
+            uv = np.column_stack([fx * pc[:, 0] / pc[:, 2] + cx, fy * pc[:, 1] / pc[:, 2] + cy])
+        return np.nan_to_num(uv, nan=-1e4, posinf=-1e4, neginf=-1e4)
+
+    def log_state(self, iteration: int, chi2: float, first: bool = False,
+                  seconds: float | None = None) -> None:
         """Log the current estimates and chi2.
 
         Args:
             iteration: Iteration number (0 = before optimisation).
             chi2: The robust chi2 at this iteration.
             first: Also log the images and the start (and true) trajectories, once.
+            seconds: The iteration's wall time (None at iteration 0).
         """
         rec, p = self.rec, self.problem
-        rec.set_iteration(iteration)
-        poses, points = p.poses(), p.points()
-        images = None
+        self.log_metrics(iteration, chi2, seconds)
+        poses, points = p.poses(), np.nan_to_num(p.points())
         if first:
-            images = [np.clip(im, 0, 255).astype(np.uint8) for im in p.data.images]
-            # The start stays visible at every later iteration, for comparison.
-            rec.log_points(points, [150, 150, 150], entity="world/initial/points")
-            rec.log_trajectory(transform_inverse(poses)[:, :3, 3],
-                               entity="world/initial/trajectory")
+            for k, im in enumerate(p.data.images):
+                rec.log_image(np.clip(im, 0, 255).astype(np.uint8), entity=f"images/{k}/image")
+            rec.log_points(points, BEFORE, entity="world/before/points", radius=-1.0,
+                           static=True)
+            rec.log_points(transform_inverse(poses)[:, :3, 3], BEFORE,
+                           entity="world/before/cameras", radius=-3.0, static=True)
             if p.data.true_poses is not None:
                 rec.log_trajectory(transform_inverse(p.data.true_poses)[:, :3, 3],
-                                   entity="world/truth/trajectory")
-        rec.log_cameras(poses, images=images, **self.cam)
-        rec.log_points(points, self.colors)
-        rec.log_scalar("chi2", chi2)
+                                   entity="world/truth/trajectory", color=TRUTH,
+                                   radius=-0.75, static=True)
+        rec.log_cameras(poses, entity="world/after/cameras", trajectory=False, **self.cam)
+        rec.log_points(points, entity="world/after/points", radius=-1.5)
+        uv = self._pixels(poses, points)
+        for k in range(len(poses)):
+            rec.log_points2d(uv[self.image == k], entity=f"images/{k}/patches", radius=-1.0)
+        edge, point = self._residuals()
+        self.errors.append((int(iteration), edge.astype(np.float32), point.astype(np.float32)))
+
+    def finish(self) -> None:
+        """Colour every logged iteration on the final residuals' scale and log the outliers
+        (the optimizer's last evaluation must be at the final estimate)."""
+        edge, _ = self._residuals()
+        self.scale = ErrorScale.from_final(edge[edge > 0], "RMS photometric residual per "
+                                           "pixel of a patch (points: over their patches)",
+                                           "grey levels")
+        n = len(self.problem.data.images)
+        for iteration, e, pt in self.errors:
+            self.rec.set_iteration(iteration)
+            self.rec.log_colors(self.scale.colors(pt), entity="world/after/points")
+            colors = self.scale.colors(e)
+            for k in range(n):
+                self.rec.log_colors(colors[self.image == k], entity=f"images/{k}/patches",
+                                    kind="points2d")
+        self.errors = []
+        self.rec.set_iteration(self.iteration)
+        out = np.concatenate([outlier_mask(g) for g in self.groups])
+        self.outliers = int(out.sum())
+        self.outliers_hidden = self.outliers > MANY_OUTLIERS * len(out)
+        if self.outliers_hidden:
+            self.hide(["world/after/outliers", *[f"images/{k}/outliers" for k in range(n)]])
+        if out.any():
+            p = self.problem
+            points = np.nan_to_num(p.points())
+            self.rec.log_points(points[np.unique(self.point[out])], OUTLIER,
+                                entity="world/after/outliers", radius=-2.5)
+            uv = self._pixels(p.poses(), points)
+            for k in range(n):
+                pick = out & (self.image == k)
+                self.rec.log_points2d(uv[pick], OUTLIER, entity=f"images/{k}/outliers",
+                                      radius=-0.75)
+
+
+def recording_markdown(prog: str, s: dict[str, Any], rec: DirectBARecording,
+                       solver_text: str) -> str:
+    """The recording's summary document.
+
+    Args:
+        prog: The app's name.
+        s: The app's summary dictionary.
+        rec: The recording (its colour scale and outliers).
+        solver_text: How to name the linear solver.
+    """
+    rows = [
+        ("input", f"`{s['input']}`"),
+        ("size", f"{s['poses']} images, {s['points']} points ({s['parametrization']})"),
+        ("edges", f"{s['edges']} patches {s['patch']}x{s['patch']}; active "
+                  f"{s['active_edges']} → {s['active_edges_final']}"),
+        ("algorithm", s["algorithm"]),
+        ("linear solver", solver_text),
+        ("robust kernel", s["robust_kernel"] or "none"),
+        ("stop", f"{s['stop_reason']} after {s['iterations']} iterations"),
+        ("chi2", f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g} (robust, Σ ρ(e'e))"),
+        ("seconds", f"{s['seconds']:.3f} ({s['seconds_per_iteration']:.4f} per iteration, "
+                    "without the recording)"),
+    ]
+    if "final_rotation_error_deg_mean" in s:
+        rows.append(("vs truth", f"rotation {s['initial_rotation_error_deg_mean']:.3g} → "
+                                 f"{s['final_rotation_error_deg_mean']:.3g} deg (mean), points "
+                                 f"{s['initial_point_error_m_median']:.3g} → "
+                                 f"{s['final_point_error_m_median']:.3g} (median)"))
+    notes = [] if rec.scale is None else [rec.scale.legend()]
+    share = rec.outliers / max(s["edges"], 1)
+    notes.append(
+        "**Entities**: `world/before` the start (grey; toggle it with its eye in the blueprint "
+        "panel), `world/after` the estimate at the selected iteration, `images/{k}` each image "
+        "with its patches' projections"
+        + (f"; `outliers` ({rec.outliers} patches, {100 * share:.0f} % of the edges, that the "
+           "kernel down-weights at the end: ρ' < 1 beyond its width) in magenta"
+           + (", hidden at first: the kernel is narrower than most residuals (show them with "
+              "their eye)" if rec.outliers_hidden else "") if rec.outliers else "")
+        + ". Scrub the `iteration` timeline to replay the run.")
+    return summary_markdown(prog, rows, notes)

@@ -35,7 +35,13 @@ from graphopt import (
     make_kernel,
 )
 from graphopt.apps import _cli
-from graphopt.apps.g2o_report import GraphView, SlamRecording, graph_view, write_png
+from graphopt.apps.g2o_report import (
+    GraphView,
+    SlamRecording,
+    graph_view,
+    recording_markdown,
+    write_png,
+)
 from graphopt.apps.slam_scene import manhattan_world, trajectory_error
 from graphopt.io.g2o import GraphFormatError, read_graph, write_g2o
 from graphopt.io.g2o_records import GraphFile
@@ -178,11 +184,12 @@ def _start_recording(path: str, opt: SparseOptimizer, view: GraphView, chi2: flo
     iteration."""
     recording = SlamRecording(path, PROG, view)
     xyz = None if truth is None else np.column_stack([truth[:, :2], np.zeros(len(truth))])
-    recording.log_state(0, chi2, closures=True, truth=xyz)
+    with recording.timed():
+        recording.log_state(0, chi2, truth=xyz)
 
     def on_iteration(o: SparseOptimizer, info: Any) -> None:
         with recording.timed():  # the recording's work is kept out of the reported seconds
-            recording.log_state(info.iteration + 1, info.chi2)
+            recording.log_state(info.iteration + 1, info.chi2, seconds=info.seconds)
 
     opt.add_callback("post_iteration", on_iteration)
     return recording
@@ -238,10 +245,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise _cli.AppError("the optimisation produced non-finite estimates")
     seconds = res.seconds - (recording.seconds if recording is not None else 0.0)
     final_chi2 = _g2o_chi2(opt)
-    if recording is not None:
-        with recording.timed():
-            recording.log_state(res.iterations, res.final_chi2, closures=True)
-        recording.close()
 
     summary: dict[str, Any] = {
         "input": source,
@@ -285,6 +288,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         write_png(args.png, view, before, (view.poses(), view.landmarks()), truth=xyz,
                   units=units, titles=(f"before: chi2 {initial_chi2:.6g}",
                                        f"after {tail}: chi2 {final_chi2:.6g}"))
+    if recording is not None:
+        recording.finish()  # after _g2o_chi2: the last evaluation is at the final estimate
+        recording.log_summary(recording_markdown(PROG, summary, recording, solver_text))
+        recording.close()
     if args.json:
         _cli.write_json(args.json, summary)
     _say(args, format_summary(summary, solver_text))

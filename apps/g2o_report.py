@@ -13,14 +13,23 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from graphopt.apps._cli import RunRecording, write_png_image
 from graphopt.optimizer import SparseOptimizer
+from graphopt.recording_view import (
+    BEFORE,
+    OUTLIER,
+    TRUTH,
+    ErrorScale,
+    outlier_mask,
+    summary_markdown,
+)
 from graphopt.types.slam_graph import VERTEX_TYPES, SlamGraph
 
-__all__ = ["GraphView", "SlamRecording", "graph_view", "write_png"]
+__all__ = ["GraphView", "SlamRecording", "graph_view", "recording_markdown", "write_png"]
 
 _POSE_TAGS = ("VERTEX_SE2", "VERTEX_SE3:QUAT")
 _POINT_TAGS = ("VERTEX_XY", "VERTEX_TRACKXYZ")
@@ -277,46 +286,202 @@ def write_png(
 class SlamRecording(RunRecording):
     """The optimisation as a rerun recording on the ``iteration`` timeline.
 
-    ``world/trajectory`` (line strip) and ``world/landmarks`` (points) at every iteration,
-    ``world/loop_closures`` (segments) at the start and the end, ``world/initial/trajectory``
-    and ``world/truth/trajectory`` (generated graphs) once, and ``metrics/chi2``.
+    ``world/before/trajectory`` and ``world/before/landmarks``: the start in grey, logged once;
+    at every iteration ``world/after/trajectory`` (the odometry edges, consecutive poses, as
+    segments), ``world/after/loop_closures`` (the other pose-pose edges) and
+    ``world/after/landmarks``, coloured by each edge's chi2 ``e'Ωe`` (landmarks: the mean over
+    their edges) on the final run's scale; ``world/after/outliers`` (edges the robust kernel
+    down-weights at the end) at the last iteration; ``world/truth/trajectory`` (generated
+    graphs) once; ``metrics/…`` and ``summary``.
 
     Args:
         path: Destination ``.rrd`` file.
         prog: The app's name (rerun application id).
         view: The graph's view.
+        timeline: The time panel's timeline: ``"step"`` for an online run (pass ``step`` to
+            :meth:`log_state`; each step's iterations may restart at 0).
     """
 
-    def __init__(self, path: str, prog: str, view: GraphView) -> None:
-        super().__init__(path, prog, camera_xyz="RDF")
-        self.view = view
+    def __init__(self, path: str, prog: str, view: GraphView, timeline: str = "iteration"
+                 ) -> None:
+        poses = view.poses()
+        eye = None
+        if view.dimension == 2 and len(poses):  # a planar graph: look straight down on it
+            lo, hi = poses.min(0), poses.max(0)
+            c = (lo + hi) / 2.0
+            span = float(max((hi - lo)[:2].max(), 1e-9))
+            eye = ((c[0], c[1], 1.1 * span), (c[0], c[1], 0.0), (0.0, 1.0, 0.0))
+        super().__init__(path, prog, camera_xyz="RDF",
+                         blueprint={"world_name": "poses and edges", "eye": eye,
+                                    "timeline": timeline})
+        #: Per logged iteration, (step, iteration, pose-pose chi2, landmark mean chi2, the
+        #: odometry mask of the pose-pose edges), coloured at the end.
+        self.errors: list[tuple[int | None, int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.scale: ErrorScale | None = None
+        self.outliers = 0
+        self.relayout(view)
 
-    def log_state(self, iteration: int, chi2: float, *, closures: bool = False,
-                  truth: np.ndarray | None = None) -> None:
-        """Log the current estimates and chi2.
+    def relayout(self, view: GraphView) -> None:
+        """Lay out the graph's edges again (an online run's graph grew since the last step).
+
+        Args:
+            view: The view of the graph as it is now (:func:`graph_view`).
+        """
+        self.view = view
+        opt = view.optimizer
+        marks = [np.sort(opt.ids_of(VERTEX_TYPES[t])) for t, _ in view.parts
+                 if t in _POINT_TAGS]
+        self.landmark_ids = np.concatenate(marks) if marks else np.zeros(0, np.int64)
+        # Structure once per layout: per group of pose-pose or pose-landmark edges, the rows it
+        # joins.
+        self.groups: list[tuple[Any, np.ndarray, np.ndarray, bool]] = []
+        for g in opt.edge_groups():
+            name = g.etype.__name__
+            if name in ("EdgeSE2", "EdgeSE3") and len(view.pose_ids):
+                a, b = _rows(view.pose_ids, g.vertex_ids[:, 0]), _rows(view.pose_ids,
+                                                                      g.vertex_ids[:, 1])
+                self.groups.append((g, a, b, False))
+            elif name in ("EdgeSE2PointXY", "EdgeSE3PointXYZ") and len(self.landmark_ids):
+                self.groups.append((g, _rows(view.pose_ids, g.vertex_ids[:, 0]),
+                                    _rows(self.landmark_ids, g.vertex_ids[:, 1]), True))
+        pp = [(a, b) for _, a, b, mark in self.groups if not mark]
+        a = np.concatenate([x for x, _ in pp]) if pp else np.zeros(0, np.intp)
+        b = np.concatenate([y for _, y in pp]) if pp else np.zeros(0, np.intp)
+        self.odometry = np.abs(a - b) == 1
+        self.pairs = np.column_stack([a, b])
+
+    def _chi2(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per pose-pose edge chi2 and per landmark mean chi2 at the last evaluation."""
+        pp = [g.last_chi2 for g, _, _, mark in self.groups if not mark]
+        edges = np.concatenate(pp) if pp else np.zeros(0)
+        total = np.zeros(len(self.landmark_ids))
+        count = np.zeros(len(self.landmark_ids))
+        for g, _, b, mark in self.groups:
+            if mark:
+                total += np.bincount(b, g.last_chi2, minlength=len(total))
+                count += np.bincount(b, minlength=len(total))
+        with np.errstate(all="ignore"):
+            return edges, total / count
+
+    def log_state(self, iteration: int, chi2: float, *, seconds: float | None = None,
+                  truth: np.ndarray | None = None, step: int | None = None) -> None:
+        """Log the current estimates (at the optimizer's last evaluation) and chi2.
+
+        Online runs call it with ``step`` (the ``step`` timeline) for every iteration of every
+        step, and :meth:`relayout` first when the graph grew.
 
         Args:
             iteration: Iteration number (0 = before optimisation).
             chi2: chi2 at this iteration.
-            closures: Also log the loop closures at the current positions.
+            seconds: The iteration's wall time (None at iteration 0).
             truth: True pose positions to log (once, at the start).
+            step: The step (online runs), or None.
         """
         rec, view = self.rec, self.view
-        rec.set_iteration(iteration)
+        self.log_metrics(iteration, chi2, seconds, step)
         poses, marks = view.poses(), view.landmarks()
-        if iteration == 0:
-            rec.log_trajectory(poses, entity="world/initial/trajectory", color=_RGB_BEFORE)
+        if not self.errors:  # the first state: the start
+            rec.log_trajectory(poses, entity="world/before/trajectory", color=BEFORE,
+                               radius=-0.75, static=True)
+            if len(marks):
+                rec.log_points(marks, BEFORE, entity="world/before/landmarks", radius=-1.5,
+                               static=True)
             if truth is not None:
-                rec.log_trajectory(truth, entity="world/truth/trajectory", color=_RGB_TRUTH)
-        rec.log_trajectory(poses, entity="world/trajectory", color=_RGB_AFTER)
+                rec.log_trajectory(truth, entity="world/truth/trajectory", color=TRUTH,
+                                   radius=-0.75, static=True)
+        poses = np.nan_to_num(poses)  # segments must stay aligned with their colours
+        odo, closing = self.pairs[self.odometry], self.pairs[~self.odometry]
+        rec.log_segments(poses[odo[:, 0]], poses[odo[:, 1]], entity="world/after/trajectory",
+                         radius=-1.25)
+        if len(closing):
+            rec.log_segments(poses[closing[:, 0]], poses[closing[:, 1]],
+                             entity="world/after/loop_closures", radius=-0.75)
         if len(marks):
-            rec.log_points(marks, np.array(_RGB_AFTER, np.uint8), entity="world/landmarks")
-        if closures and len(view.closures):
-            c = view.closures
-            rec.log_segments(poses[c[:, 0]], poses[c[:, 1]], entity="world/loop_closures",
-                             color=_RGB_CLOSURE)
-        rec.log_scalar("chi2", chi2)
+            rec.log_points(np.nan_to_num(marks), entity="world/after/landmarks", radius=-2.0)
+        edges, landmarks = self._chi2()
+        self.errors.append((step, int(iteration), edges.astype(np.float32),
+                            landmarks.astype(np.float32), self.odometry))
+
+    def finish(self) -> None:
+        """Colour every logged iteration on the final chi2's scale and log the outliers
+        (the optimizer's last evaluation must be at the final estimate)."""
+        final_edges, _ = self._chi2()
+        every = [final_edges] + [g.last_chi2 for g, _, _, mark in self.groups if mark]
+        self.scale = ErrorScale.from_final(
+            np.concatenate(every), "chi2 e'Ωe of each edge"
+            + (" (landmarks: the mean of their edges)" if len(self.landmark_ids) else ""))
+        for step, iteration, edges, landmarks, odometry in self.errors:
+            if step is not None:
+                self.rec.set_step(step)
+            self.rec.set_iteration(iteration)
+            colors = self.scale.colors(edges)
+            self.rec.log_colors(colors[odometry], entity="world/after/trajectory",
+                                kind="lines")
+            if (~odometry).any():
+                self.rec.log_colors(colors[~odometry], entity="world/after/loop_closures",
+                                    kind="lines")
+            if len(landmarks):
+                self.rec.log_colors(self.scale.colors(landmarks), entity="world/after/landmarks")
+        self.errors = []
+        if self.step is not None:
+            self.rec.set_step(self.step)
+        self.rec.set_iteration(self.iteration)
+        poses, marks = self.view.poses(), self.view.landmarks()
+        starts, ends = [], []
+        for g, a, b, mark in self.groups:
+            out = outlier_mask(g)
+            starts.append(poses[a[out]])
+            ends.append((marks if mark else poses)[b[out]])
+            self.outliers += int(out.sum())
+        if self.outliers:
+            self.rec.log_segments(np.concatenate(starts), np.concatenate(ends),
+                                  entity="world/after/outliers", color=OUTLIER, radius=-2.5)
 
 
-_RGB_BEFORE, _RGB_AFTER, _RGB_TRUTH = (215, 40, 40), (20, 100, 190), (150, 150, 150)
-_RGB_CLOSURE = (190, 210, 235)
+def _rows(sorted_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Rows of ``ids`` in ``sorted_ids`` (every id must be there)."""
+    return np.searchsorted(sorted_ids, ids).astype(np.intp)
+
+
+def recording_markdown(prog: str, s: dict[str, Any], rec: SlamRecording,
+                       solver_text: str) -> str:
+    """The recording's summary document.
+
+    Args:
+        prog: The app's name.
+        s: The app's summary dictionary.
+        rec: The recording (its colour scale and outliers).
+        solver_text: How to name the linear solver.
+    """
+    counts = ", ".join(f"{t} {n}" for t, n in s["edge_types"].items())
+    robust = (f"; with the kernel {s['initial_robust_chi2']:.6g} → "
+              f"{s['final_robust_chi2']:.6g}" if s["robust_kernel"] else "")
+    rows = [
+        ("input", f"`{s['input']}`"),
+        ("size", f"{s['vertices']} vertices, {s['edges']} edges ({counts}), "
+                 f"{s['loop_closures']} loop closures"),
+        ("algorithm", s["algorithm"] + (f" ({s['lm_schedule']} schedule)"
+                                        if s.get("lm_schedule") else "")),
+        ("linear solver", solver_text),
+        ("robust kernel", s["robust_kernel"] or "none"),
+        ("stop", f"{s['stop_reason']} after {s['iterations']} iterations"),
+        ("chi2", f"{s['initial_chi2']:.6g} → {s['final_chi2']:.6g} (g2o's Σ e'Ωe{robust})"),
+        ("seconds", f"{s['seconds']:.3f} ({s['seconds_per_iteration']:.4f} per iteration, "
+                    "without the recording)"),
+    ]
+    g = s.get("ground_truth")
+    if g is not None:
+        rows.append(("vs ground truth", f"position RMS {g['initial']['rms_position']:.4g} → "
+                                        f"{g['final']['rms_position']:.4g}"))
+    notes = [] if rec.scale is None else [rec.scale.legend()]
+    notes.append(
+        "**Entities**: `world/before` the start (grey; toggle it with its eye in the blueprint "
+        "panel), `world/after` the estimate at the selected iteration: `trajectory` (odometry "
+        "edges), `loop_closures`"
+        + (", `landmarks`" if len(rec.landmark_ids) else "")
+        + (f", `outliers` ({rec.outliers} edges the kernel down-weights at the end: ρ' < 1 "
+           "beyond its width) in magenta" if rec.outliers else "")
+        + ("; `world/truth` the true trajectory (green)" if g is not None else "")
+        + ". Scrub the `iteration` timeline to replay the run.")
+    return summary_markdown(prog, rows, notes)
+

@@ -11,11 +11,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
 from graphopt.errors import NotPositiveDefiniteError, SingularSystemError
 from graphopt.problem import Problem, Step
 from graphopt.result import IterationInfo, StopReason
+from graphopt.step_ops import axpy as _axpy
+from graphopt.step_ops import dot as _dot
+from graphopt.step_ops import predicted_decrease as _predicted_decrease
 from graphopt.stopping import StoppingConfig
 
 
@@ -110,16 +111,6 @@ def _never() -> bool:
 
 #: No stopping test (``iterate`` called without a config).
 _NO_TESTS = StoppingConfig.iterations_only()
-
-
-def _dot(a: Step, b: Step) -> float:
-    return float(a[0] @ b[0] + sum(float(np.vdot(x, y)) for x, y in zip(a[1], b[1], strict=True)))
-
-
-def _axpy(alpha: float, a: Step, beta: float, b: Step) -> Step:
-    return alpha * a[0] + beta * b[0], [
-        alpha * x + beta * y for x, y in zip(a[1], b[1], strict=True)
-    ]
 
 
 class _Tests:
@@ -340,8 +331,7 @@ class LevenbergMarquardt(Algorithm):
                                      stop=StopReason.PARAMETER_TOLERANCE)
             new_chi = self._trial(p, step)
             # Predicted decrease of chi2 = Δ'(λDΔ + b) (g2o adds 1e-3 against a zero divisor).
-            dstep = (damp[0] * step[0], [d * x for d, x in zip(damp[1], step[1], strict=True)])
-            scale = _dot(step, _axpy(self.lam, dstep, 1.0, b)) + 1e-3
+            scale = _predicted_decrease(step, damp, self.lam, b) + 1e-3
             rho = (chi - new_chi) / scale
             stop = StopReason.FUNCTION_TOLERANCE if tests.function(chi, new_chi) else None
             if rho > 0 and math.isfinite(new_chi):

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graphopt.activity import IdleAnchors
+from graphopt.allocator import tune as tune_allocator
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linearizer import Evaluation, Linearizer, Positions
@@ -97,6 +98,7 @@ class Problem:
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
                  positions: Positions, solver: LinearSolver,
                  schur: SchurConfig | None = None) -> None:
+        tune_allocator()  # no page faults for the arrays every iteration allocates again
         self.stores = stores
         self.linearizer = Linearizer(stores, groups, positions)
         self.system = LinearSystem(stores, groups, positions, schur,
@@ -119,10 +121,15 @@ class Problem:
             vc = index.vclass_of_store[si]
             vslots = index.vclasses[vc].slots if vc >= 0 else np.zeros(0, dtype=np.int64)
             self._updates.append(_StoreUpdate(uslots, upos, vc, vslots))
+        # The stores a step changes: push, pop and apply leave the others (fixed points) alone,
+        # so that their gathered copies stay valid from one state to the next.
+        self._free = [i for i, up in enumerate(self._updates)
+                      if len(up.uslots) or up.vclass >= 0]
 
     def reset_timing(self) -> None:
-        """Start a new :class:`Timing` (one per iteration)."""
-        self.timing = Timing()
+        """Start a new :class:`Timing` (one per iteration; the same object, zeroed)."""
+        t = self.timing
+        t.linearize = t.schur = t.solve = 0.0
 
     # --- linearisation -----------------------------------------------------------------------
 
@@ -228,7 +235,7 @@ class Problem:
             self.timing.solve += t2 - t1
         dv = self.system.back_substitute(asm, du, vinv)
         self.timing.schur += time.perf_counter() - t2
-        if not (np.all(np.isfinite(du)) and all(np.all(np.isfinite(x)) for x in dv)):
+        if not (np.isfinite(du).all() and all(np.isfinite(x).all() for x in dv)):
             raise NotPositiveDefiniteError("the step is not finite")
         return du, dv
 
@@ -274,13 +281,13 @@ class Problem:
         return max(parts, default=0.0)
 
     def push(self) -> None:
-        """Save the estimates of every store (g2o's ``push``)."""
-        self._saved = [st.estimates.copy() for st in self.stores]
+        """Save the estimates of every store with free vertices (g2o's ``push``)."""
+        self._saved = [self.stores[i].estimates.copy() for i in self._free]
 
     def pop(self) -> None:
         """Restore the estimates saved by :meth:`push` (g2o's ``pop``)."""
-        for st, est in zip(self.stores, self._saved, strict=True):
-            st.estimates = est
+        for i, est in zip(self._free, self._saved, strict=True):
+            self.stores[i].estimates = est
         self._saved = []
 
     def apply(self, step: Step) -> None:
@@ -298,12 +305,13 @@ class Problem:
         """
         du, dv = step
         new = []
-        for st, up in zip(self.stores, self._updates, strict=True):
+        for i in self._free:
+            st, up = self.stores[i], self._updates[i]
             est = st.estimates.copy()
             if len(up.uslots):
                 est[up.uslots] = checked_oplus(st.vtype, est[up.uslots], du[up.upos])
             if up.vclass >= 0:
                 est[up.vslots] = checked_oplus(st.vtype, est[up.vslots], dv[up.vclass])
             new.append(est)
-        for st, est in zip(self.stores, new, strict=True):
-            st.estimates = est
+        for i, est in zip(self._free, new, strict=True):
+            self.stores[i].estimates = est

@@ -23,6 +23,8 @@ class RobustKernel:
     """
 
     name = "none"
+    #: ``ρ' ≥ 0`` everywhere (the optimizer then need not clip the weights at 0).
+    nonnegative_weight = False
 
     def __init__(self, delta: float = 1.0) -> None:
         self.set_delta(delta)
@@ -48,6 +50,23 @@ class RobustKernel:
         """
         raise NotImplementedError
 
+    def cost(self, s: np.ndarray) -> np.ndarray:
+        """``ρ(s)`` alone (what a trial step's chi2 needs); kernels may compute it cheaper.
+
+        Args:
+            s: Array of ``e'Ωe`` values (non-negative).
+        """
+        return self.robustify(s)[0]
+
+    def cost_and_weight(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(ρ(s), ρ'(s))`` (what a linearisation needs); kernels may compute them cheaper.
+
+        Args:
+            s: Array of ``e'Ωe`` values (non-negative).
+        """
+        r0, r1, _ = self.robustify(s)
+        return r0, r1
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(delta={self.delta:g})"
 
@@ -60,6 +79,7 @@ class RobustKernelHuber(RobustKernel):
     """
 
     name = "huber"
+    nonnegative_weight = True
 
     def robustify(self, s: np.ndarray) -> Rho:
         """See :meth:`RobustKernel.robustify`.
@@ -74,6 +94,26 @@ class RobustKernelHuber(RobustKernel):
         rho1 = np.where(inside, 1.0, d / r)
         rho2 = np.where(inside, 0.0, -0.5 * d / (r * r * r))
         return rho0, rho1, rho2
+
+    def cost(self, s: np.ndarray) -> np.ndarray:
+        """See :meth:`RobustKernel.cost` (the same values as :meth:`robustify`'s ρ).
+
+        Args:
+            s: Squared errors.
+        """
+        d = self.delta
+        return np.where(s <= d * d, s, 2.0 * d * np.sqrt(s) - d * d)
+
+    def cost_and_weight(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """See :meth:`RobustKernel.cost_and_weight` (:meth:`robustify`'s values, in fewer
+        calls: ``δ / max(√s, δ)`` is ``δ/√s`` outside and exactly 1 inside).
+
+        Args:
+            s: Squared errors.
+        """
+        d = self.delta
+        r = np.sqrt(s)
+        return np.where(s <= d * d, s, 2.0 * d * r - d * d), d / np.maximum(r, d)
 
 
 class RobustKernelPseudoHuber(RobustKernel):

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Set up graphopt on a fresh Debian machine: system SuiteSparse (if permitted), a virtual
-# environment in .venv, and the package with its test extras. Safe to run again: when neither
+# Set up graphopt on a fresh Debian machine: system SuiteSparse and Chromium (if permitted), a
+# virtual environment in .venv, and the package with its test and browser extras. Safe to run again: when neither
 # pyproject.toml, this script nor the checkout's location changed since the last complete set-up
 # (a stamp inside .venv records them) and .venv still imports graphopt, it only says so.
 #
@@ -19,6 +19,10 @@ say() { echo "bootstrap: $*"; }
 # times slower than OpenBLAS, which registers itself as that library's provider.
 have_suitesparse() { [ -f /usr/include/suitesparse/cholmod.h ]; }
 have_openblas() { compgen -G "/usr/lib/*/openblas-pthread/libblas.so.3" >/dev/null; }
+# The browser test (tests/test_recording_browser.py) opens the apps' recordings in rerun's web
+# viewer in Debian's Chromium, driven by Playwright (the `browser` extra); Playwright's own
+# browser download is not used.
+have_chromium() { [ -x /usr/bin/chromium ]; }
 
 # What the installation depends on. The stamp is written only after a complete set-up.
 stamp() {
@@ -27,6 +31,7 @@ stamp() {
     echo "bootstrap $(sha256sum scripts/bootstrap.sh | cut -d' ' -f1)"
     echo "suitesparse $(have_suitesparse && echo yes || echo no)"
     echo "openblas $(have_openblas && echo yes || echo no)"
+    echo "chromium $(have_chromium && echo yes || echo no)"
 }
 
 # -P: never put the checkout on sys.path, where types/ would shadow the standard library.
@@ -55,16 +60,17 @@ rm -f "$STAMP"  # written again only after a complete set-up
 packages=""
 have_suitesparse || packages="libsuitesparse-dev"
 have_openblas || packages="$packages libopenblas0-pthread"
+have_chromium || packages="$packages chromium"
 packages=${packages# }
 if [ -n "$packages" ] && command -v apt-get >/dev/null 2>&1; then
     sudo=""
     [ "$(id -u)" = 0 ] || { command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null && sudo="sudo"; }
     if [ "$(id -u)" = 0 ] || [ -n "$sudo" ]; then
-        say "installing $packages (CHOLMOD and an optimised BLAS for it)"
+        say "installing $packages (CHOLMOD, an optimised BLAS for it, the browser test's Chromium)"
         ($sudo apt-get update -qq && $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null) \
-            || say "could not install $packages; graphopt falls back to another linear solver or a slower BLAS"
+            || say "could not install $packages; graphopt falls back to another linear solver or a slower BLAS, the browser test skips"
     else
-        say "$packages missing and cannot be installed without root; CHOLMOD may be unavailable or slower"
+        say "$packages missing and cannot be installed without root; CHOLMOD may be unavailable or slower, the browser test skips"
     fi
 fi
 
@@ -77,7 +83,7 @@ else
     : >"$LOG"
 fi
 say "installing graphopt (editable) with its test tools into $VENV"
-run_logged "installing graphopt" "$VENV/bin/python" -P -m pip install -e ".[test]"
+run_logged "installing graphopt" "$VENV/bin/python" -P -m pip install -e ".[test,browser]"
 if have_suitesparse; then
     say "installing scikit-sparse for CHOLMOD (its first build compiles)"
     echo "### installing scikit-sparse" >>"$LOG"

@@ -8,7 +8,7 @@ import scipy.sparse as sp
 
 import graphopt.linear.block_ops as bo
 from graphopt.errors import NotPositiveDefiniteError
-from graphopt.linear.block_ops import batched_cholesky_inverses
+from graphopt.linear.block_ops import batched_cholesky_inverses, block_products
 
 
 @pytest.mark.parametrize("d", [1, 2, 3, 4, 6])
@@ -87,3 +87,14 @@ def test_gathered_gram_sums_block_products_per_target() -> None:
     assert 0 not in gram.targets  # no terms, no output
     assert any(c[4] for c in gram.chunks)  # target 3's chunk gathers once
     assert all(m <= 16 for _, _, m, *_ in gram.chunks)
+
+
+@pytest.mark.parametrize(("p", "q", "k"), [(3, 3, 6), (3, 3, 1), (2, 4, 9), (1, 1, 1)])
+def test_block_products_match_matmul(p: int, q: int, k: int) -> None:
+    rng = np.random.default_rng(p * 100 + q * 10 + k)
+    A, B = rng.normal(size=(37, p, q)), rng.normal(size=(37, q, k))
+    np.testing.assert_allclose(block_products(A, B), np.matmul(A, B), rtol=1e-14, atol=1e-14)
+    # Non-contiguous inputs (a transposed view) and an empty batch.
+    At = np.swapaxes(rng.normal(size=(37, q, p)), 1, 2)
+    np.testing.assert_allclose(block_products(At, B), np.matmul(At, B), rtol=1e-14, atol=1e-14)
+    assert block_products(A[:0], B[:0]).shape == (0, p, k)

@@ -243,9 +243,10 @@ def test_rrd_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         res = subprocess.run([str(rerun), "rrd", "print", str(rrd)], capture_output=True,
                              text=True, timeout=120, cwd=tmp_path)
         assert res.returncode == 0, res.stderr
-        for entity in ("/world/trajectory", "/world/initial/trajectory",
-                       "/world/truth/trajectory", "/world/loop_closures", "/metrics/chi2"):
-            assert entity in res.stdout, entity
+        for entity in ("/world/after/trajectory", "/world/before/trajectory",
+                       "/world/truth/trajectory", "/world/after/loop_closures",
+                       "/metrics/log10_chi2", "/summary"):
+            assert entity in res.stdout, entity  # the layout: tests/test_recording.py
 
 
 # --- errors ----------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from custom_types import (
 )
 from graphs import TRUE_ABC, build_pose_graph, curve_data, fit_curve
 
+import graphopt.linearizer
 from graphopt import (
     BaseEdge,
     EdgeContext,
@@ -190,7 +191,9 @@ def test_reduced_linearisation_checks_its_output() -> None:
         opt.optimize(1)
 
 
-def test_linearize_on_trial_reuses_the_accepted_linearisation() -> None:
+def test_linearize_on_trial_reuses_the_accepted_linearisation(monkeypatch) -> None:
+    # Small groups of analytic types linearise on trial anyway: not the baseline wanted here.
+    monkeypatch.setattr(graphopt.linearizer, "TRIAL_LINEARIZE_EDGES", 0)
     calls = {"lin": 0, "err": 0}
 
     class Counting(EdgeCurve):
@@ -318,3 +321,20 @@ def test_solve_with_diagonal_damping_matches_a_dense_reference() -> None:
     step = p.solve(asm, 0.3, d)[0]
     np.testing.assert_allclose(step, np.linalg.solve(hd + 0.3 * np.diag(d[0]), asm.bu),
                                rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", [None, RobustKernelHuber(0.05)])
+def test_trial_linearisation_of_small_groups_changes_no_number(monkeypatch, kernel) -> None:
+    # Small analytic groups linearise on trial and the next linearize reuses the trial's
+    # Jacobians, Ωe, e'Ωe, ρ and ρ' (linearizer.TRIAL_LINEARIZE_EDGES): the same iterations,
+    # to the bit, as evaluating errors at the trial and linearising again.
+    meas = curve_data()
+    assert EdgeCurve.has_analytic_jacobians() and len(meas) <= 32768  # the policy applies
+    runs = []
+    for limit in (0, graphopt.linearizer.TRIAL_LINEARIZE_EDGES):
+        monkeypatch.setattr(graphopt.linearizer, "TRIAL_LINEARIZE_EDGES", limit)
+        abc, res = fit_curve(meas, LevenbergConfig(tau=1.0), kernel=kernel, iters=12)
+        runs.append((res.chi2_history, res.trials, abc))
+    assert sum(runs[0][1]) > len(runs[0][1])  # rejected trials: both paths are exercised
+    assert runs[0][0] == runs[1][0] and runs[0][1] == runs[1][1]
+    assert np.array_equal(runs[0][2], runs[1][2])

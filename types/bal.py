@@ -202,7 +202,8 @@ class EdgeBALProjection(BaseEdge):
         m = len(cam)
         rot = None if ctx is None or ctx.derived is None else ctx.derived[0]
         e = np.empty((m, 2), like=cam)  # like=: jets give a jet (graphopt.autodiff)
-        bs = cls.block_size
+        # Jets come in blocks already (graphopt.autodiff), whose cost is per operation.
+        bs = cls.block_size if type(cam) is np.ndarray else max(m, 1)
         for s in range(0, m, bs):  # blocks of edges, not a loop per edge
             r = None if rot is None else rot[s : s + bs]
             uv, _ = bal_project(cam[s : s + bs], X[s : s + bs], r)

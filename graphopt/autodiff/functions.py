@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff.jet import HOOKS, Jet, JetError, full, parts
+import graphopt.autodiff.tape as tape
+from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, full, parts
 from graphopt.autodiff.ufuncs import write_out
 
 __all__ = ["HANDLED", "apply_function"]
@@ -120,6 +121,8 @@ def _container(value: np.ndarray, like: Jet) -> Any:
     a jet of other directions widens it), or the plain value for a non-float dtype."""
     if value.dtype.kind != "f":
         return value
+    if Tape.active:
+        return tape.container(value, like)
     return Jet(value, np.zeros((len(like.tangent),) + value.shape), like.lo, like.n)
 
 
@@ -182,6 +185,10 @@ def _reduction(fn: Any) -> Callable[..., Any]:
         if kw.get("where", True) is not True:
             raise JetError(f"{_fname(fn)}(..., where=...)")
         kw.pop("where", None)
+        if Tape.active and type(a) is Jet and out is None and not kw and axis is not None:
+            rec = tape.reduce(fn, a, axis, keepdims, lambda: impl(a, axis, keepdims=keepdims))
+            if rec is not None:
+                return rec
         r = _linear(fn, a, {"axis": axis}, keepdims=keepdims, **kw)
         return r if out is None else write_out(r, out, _fname(fn))
     return impl
@@ -392,6 +399,9 @@ def _concatenate(arrays: Sequence[Any], axis: Any = 0, out: Any = None, **kw: An
         raise JetError(f"np.concatenate with {sorted(kw)}")
     if axis is None:
         arrays, axis = [np.ravel(a) for a in arrays], 0
+    if Tape.active and out is None and any(type(a) is Jet for a in arrays):
+        return tape.concatenate(list(arrays), axis, False,
+                                lambda: _concatenate(arrays, axis))
     ps = [parts(a) for a in arrays]
     y = np.concatenate([p[0] for p in ps], axis=axis)
     jets = [a for a in arrays if type(a) is Jet]
@@ -422,6 +432,8 @@ def _stack(arrays: Sequence[Any], axis: int = 0, out: Any = None, **kw: Any) -> 
     arrays = list(arrays)
     nd = np.ndim(arrays[0]) + 1
     ax = _pos(axis, nd)
+    if Tape.active and out is None and not kw and any(type(a) is Jet for a in arrays):
+        return tape.concatenate(arrays, ax, True, lambda: _stack(arrays, ax))
     return _concatenate([np.expand_dims(a, ax) for a in arrays], axis=ax, out=out, **kw)
 
 

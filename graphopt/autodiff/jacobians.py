@@ -15,7 +15,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+import graphopt.autodiff.tape as tape
 from graphopt.autodiff.jet import Jet, JetError
+from graphopt.autodiff.reverse import backward
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
 
@@ -78,11 +80,16 @@ def _columns(j: Jet) -> None:
     if j.value.ndim != 2 or j.seed:
         return
     nz = np.any(j.tangent != 0.0, axis=1)  # (k, d)
-    cols = []
+    cols: list[Any] = []
     for c in range(j.value.shape[1]):
         rows = np.flatnonzero(nz[:, c])
-        cols.append((j.lo + int(rows[0]), j.lo + int(rows[-1]) + 1) if len(rows)
-                    else (j.lo, j.lo + 1))
+        if not len(rows):
+            cols.append((j.lo, j.lo + 1))
+            continue
+        lo, hi = int(rows[0]), int(rows[-1]) + 1
+        # A column with one direction of derivative 1 everywhere (t of x + δ): "unit".
+        unit = hi - lo == 1 and bool(np.all(j.tangent[lo, :, c] == 1.0))
+        cols.append((j.lo + lo, j.lo + hi, unit))
     j.columns = cols
 
 
@@ -90,7 +97,9 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) 
     """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values)."""
     if type(j) is not Jet:
         return None if j is None else j[index]
-    t = j.tangent[:, index] if isinstance(index, slice) else np.take(j.tangent, index, axis=1)
+    if not isinstance(index, slice):  # the tangent is gathered when (and as far as) used
+        return tape.gathered(j.value[index] if value is None else value, j, index)
+    t = j.tangent[:, index]
     out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
     out.columns = j.columns
     return out
@@ -121,6 +130,22 @@ def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inv
 
 
+#: The last per-vertex jets by vertex type and position: ``(row bytes → row, jet, derived,
+#: derived usable)``. A group linearised in chunks sees the same cameras in each.
+_VERTEX_JETS: dict[tuple[Any, ...], tuple[dict[bytes, int], Jet, Any, bool]] = {}
+
+
+def _cached_rows(key: tuple[Any, ...], xu: np.ndarray) -> np.ndarray | None:
+    """Rows of the cached per-vertex jets holding exactly the vertices ``xu`` (all of them
+    cached: the jets are reused), else ``None``."""
+    entry = _VERTEX_JETS.get(key)
+    if entry is None or len(xu) > len(entry[0]):
+        return None
+    where = entry[0]
+    rows = [where.get(r.tobytes(), -1) for r in xu.reshape(len(xu), -1)]
+    return None if min(rows, default=-1) < 0 else np.asarray(rows)
+
+
 class _Position:
     """One vertex position's ``x ⊞ δ`` (and derived values) as jets, per block of edges.
 
@@ -140,6 +165,12 @@ class _Position:
             first, inv = _unique_rows(vtype, x)
             if len(first) < len(x):
                 self.inverse = inv
+                key = (vtype, lo, n, derived)
+                rows = _cached_rows(key, x[first])
+                if rows is not None:  # vertices seen by another chunk of the group
+                    self.inverse = rows[inv]
+                    self.jet, self.derived, self.derived_ok = _VERTEX_JETS[key][1:]
+                    return
                 self.jet = seeded(vtype, x[first], lo, n)
             else:
                 self.jet = seeded(vtype, x, lo, n)
@@ -147,6 +178,12 @@ class _Position:
         if derived:
             self.derived = self._derived(self.jet if self.jet is not None
                                          else Jet.seeded(x, lo, n))
+        if self.inverse is not None:  # only read afterwards (gathers copy), so reusable
+            if len(_VERTEX_JETS) >= 4:
+                _VERTEX_JETS.pop(next(iter(_VERTEX_JETS)))
+            xs = x[first].reshape(len(first), -1)
+            where = {r.tobytes(): i for i, r in enumerate(xs)} if len(xs) <= 4096 else {}
+            _VERTEX_JETS[key] = (where, self.jet, self.derived, self.derived_ok)
 
     def _derived(self, j: Jet) -> Any:
         try:
@@ -159,11 +196,16 @@ class _Position:
         return d
 
     def block(self, sl: slice) -> tuple[Jet, Any]:
-        """The block's ``x ⊞ δ`` jet and derived values."""
+        """The block's ``x ⊞ δ`` jet and derived values (axis 0: the block's edges)."""
         if self.vector:
-            return Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
-        index = sl if self.inverse is None else self.inverse[sl]
-        return _gather(self.jet, index, self.x[sl]), _gather(self.derived, index)
+            j, d = Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
+        else:
+            index = sl if self.inverse is None else self.inverse[sl]
+            j, d = _gather(self.jet, index, self.x[sl]), _gather(self.derived, index)
+        j.rows = (0, sl.stop - sl.start)
+        if type(d) is Jet:
+            d.rows = j.rows
+        return j, d
 
 
 def autodiff_linearize(
@@ -202,15 +244,17 @@ def autodiff_linearize(
     e = np.empty((m, dim))
     jac = [np.zeros((m, dim, d)) for d in dims]
     active: np.ndarray | None = None
+    buffer: np.ndarray | None = None
     for s in range(0, max(m, 1), BLOCK_EDGES):
         sl = slice(s, min(s + BLOCK_EDGES, m))
         blocks = [p.block(sl) for p in pos]
         sub = ctx.subset(sl) if ctx is not None and m > BLOCK_EDGES else ctx
         if sub is not None and (want or getattr(sub, "derived", None) is not None):
             sub = replace(sub, derived=tuple(b[1] for b in blocks) if want else None)
-        ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
-        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
         mb = sl.stop - sl.start
+        with tape.recording():
+            ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
+        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
         if tuple(np.shape(eb)) != (mb, dim):
             raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(eb)}, "
                              f"expected {(mb, dim)}")
@@ -222,6 +266,15 @@ def autodiff_linearize(
             e[sl] = eb
             continue
         e[sl] = eb.value
+        if eb._tape is not None and buffer is None:
+            buffer = np.empty(dim * n * min(m, BLOCK_EDGES))
+        J = backward(eb, n, buffer) if eb._tape is not None else None
+        tape.clear()
+        if J is not None:  # reverse accumulation: J (rows, n, mb), per row (a faster copy)
+            for i, d in enumerate(dims):
+                for row in range(dim):
+                    jac[i][sl, row, :] = J[row, offsets[i]: offsets[i] + d].T
+            continue
         t, lo = eb.tangent, eb.lo
         for i, d in enumerate(dims):
             a, b = max(offsets[i], lo), min(offsets[i] + d, lo + len(t))

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.lib.mixins import NDArrayOperatorsMixin
 
-from graphopt.errors import GraphError
+from graphopt.autodiff.errors import JetError
+from graphopt.autodiff.methods import ArrayMethods
 
 __all__ = ["HOOKS", "Jet", "JetError", "is_jet", "parts"]
 
@@ -35,13 +36,11 @@ __all__ = ["HOOKS", "Jet", "JetError", "is_jet", "parts"]
 HOOKS: dict[str, Callable[..., Any]] = {}
 
 
-class JetError(GraphError):
-    """A NumPy operation that graphopt's jets cannot differentiate (named in the message)."""
+class Tape:
+    """Whether jet operations are recorded for reverse accumulation
+    (:mod:`graphopt.autodiff.tape`) instead of carrying their tangents forward."""
 
-    def __init__(self, function: str, why: str = "") -> None:
-        self.function = function
-        super().__init__(f"automatic differentiation does not support {function}"
-                         + (f": {why}" if why else ""))
+    active = False
 
 
 def is_jet(a: object) -> bool:
@@ -88,7 +87,10 @@ def combine(shape: tuple[int, ...], n: int, terms: list[tuple[int, np.ndarray, b
         return None
     if len(terms) == 1:
         lo, t, fresh = terms[0]
-        return full(t, shape), lo
+        out = full(t, shape)
+        if not fresh and out.flags.writeable:  # p + 1 is a new array: writing p must not
+            out = out.copy()                   # change its derivatives
+        return out, lo
     lo = min(t[0] for t in terms)
     hi = max(t[0] + t[1].shape[0] for t in terms)
     same = all(t[0] == lo and t[1].shape[0] == hi - lo for t in terms)
@@ -164,11 +166,35 @@ def _advanced_first(key: tuple[Any, ...]) -> int:
     return len(np.broadcast_shapes(*shapes))
 
 
+def _rows_after(rows: tuple[int, int], key: tuple[Any, ...],
+               value: np.ndarray) -> tuple[int, int] | None:
+    """The edges of axis 0 after a value index (``None`` when axis 0 is no longer a range of
+    them): a unit-step slice of axis 0 keeps a sub-range."""
+    k0 = key[0] if key else slice(None)
+    if not isinstance(k0, slice) or k0.step not in (None, 1) or value.ndim == 0:
+        return None
+    a, b, _ = k0.indices(rows[1] - rows[0])
+    return (rows[0] + a, rows[0] + b) if value.shape[0] == b - a else None
+
+
 def _is_basic(key: tuple[Any, ...]) -> bool:
     return all(k is None or isinstance(k, slice | int | np.integer) for k in key)
 
 
-class Jet(NDArrayOperatorsMixin):
+def _operator(uf: np.ufunc, reflected: bool = False) -> Callable[[Any, Any], Any]:
+    """An arithmetic operator: recorded directly while recording (the ufunc protocol costs
+    more than the arithmetic on a block of edges), else through the ufunc."""
+    def op(self: Jet, other: Any) -> Any:
+        a, b = (other, self) if reflected else (self, other)
+        if Tape.active:
+            out = HOOKS["binary"](uf, a, b)
+            if out is not None:
+                return out
+        return uf(a, b)
+    return op
+
+
+class Jet(ArrayMethods, NDArrayOperatorsMixin):
     """Values ``(m, …)`` with derivatives ``(k, m, …)`` w.r.t. tangent directions ``lo…lo+k−1``
     of ``n``.
 
@@ -179,21 +205,49 @@ class Jet(NDArrayOperatorsMixin):
         n: Total number of tangent directions (of the edge being differentiated).
     """
 
-    __slots__ = ("value", "tangent", "lo", "n", "_base", "_key", "seed", "columns")
+    __slots__ = ("value", "_tangent", "_lo", "n", "_base", "_key", "seed", "columns", "rows",
+                 "_tape")
     # Above ndarray's: mixed operations dispatch to the jet.
     __array_priority__ = 1000.0
 
-    def __init__(self, value: np.ndarray, tangent: np.ndarray, lo: int, n: int) -> None:
+    def __init__(self, value: np.ndarray, tangent: np.ndarray | None, lo: int, n: int) -> None:
         self.value = value
-        self.tangent = tangent
-        self.lo = lo
+        self._tangent = tangent
+        self._lo = lo
         self.n = n
+        # Recorded, not yet computed (graphopt.autodiff.tape): the derivatives are formed on
+        # first use of .tangent/.lo, or never (reverse accumulation from the result).
+        self._tape: Any = None
+        # (a, b): axis 0 holds edges a…b−1 of the block being differentiated; None: unknown.
+        self.rows: tuple[int, int] | None = None
         self._base: Jet | None = None  # for a view: the jet it indexes, with self._key
         self._key: tuple[Any, ...] = ()
         # For (m, d) values: each column's support (lo, hi), so that x[:, j] covers only its
         # own directions (see __getitem__); a seed's tangent is the identity over the columns.
         self.columns: list[tuple[int, int]] | None = None
         self.seed = False
+
+    @property
+    def tangent(self) -> np.ndarray:
+        """The derivatives ``(k, *value.shape)`` (formed now if they were only recorded)."""
+        if self._tape is not None:
+            HOOKS["materialise"](self)
+        return self._tangent  # type: ignore[return-value]
+
+    @tangent.setter
+    def tangent(self, t: np.ndarray) -> None:
+        self._tangent = t
+
+    @property
+    def lo(self) -> int:
+        """The first direction the derivatives cover."""
+        if self._tape is not None:
+            HOOKS["materialise"](self)
+        return self._lo
+
+    @lo.setter
+    def lo(self, lo: int) -> None:
+        self._lo = lo
 
     # --- array-like attributes ---------------------------------------------------------------
 
@@ -253,6 +307,11 @@ class Jet(NDArrayOperatorsMixin):
 
     # --- NumPy protocols (rules in ufuncs.py and functions.py) --------------------------------
 
+    __add__, __radd__ = _operator(np.add), _operator(np.add, True)
+    __sub__, __rsub__ = _operator(np.subtract), _operator(np.subtract, True)
+    __mul__, __rmul__ = _operator(np.multiply), _operator(np.multiply, True)
+    __truediv__, __rtruediv__ = _operator(np.divide), _operator(np.divide, True)
+
     def __array_ufunc__(self, ufunc: np.ufunc, method: str, *inputs: Any, **kwargs: Any) -> Any:
         return HOOKS["ufunc"](ufunc, method, inputs, kwargs)
 
@@ -303,18 +362,23 @@ class Jet(NDArrayOperatorsMixin):
             return None
         lo, hi = min(x[0] for x in cols[a:b]), max(x[1] for x in cols[a:b])
         m = len(self.value)
-        if self.seed:
+        if self.seed or (one and len(cols[a]) > 2 and cols[a][2]):  # unit: derivative 1
             k = hi - lo
             t = (np.broadcast_to(np.ones(1), (1, m)) if one else
                  np.broadcast_to(np.eye(k)[:, None, :], (k, m, k)))
         else:
             t = self.tangent[lo - self.lo: hi - self.lo, :, a if one else slice(a, b)]
         out = Jet(self.value[:, a] if one else self.value[:, a:b], t, lo, self.n)
+        out.rows = self.rows
         if not one:
             out.seed, out.columns = self.seed, cols[a:b]
         return out
 
     def __getitem__(self, key: Any) -> Jet:
+        if self._tape is not None or Tape.active:
+            lazy = HOOKS["getitem"](self, key)
+            if lazy is not None:
+                return lazy
         if self.columns is not None:
             narrow = self._column_view(key)
             if narrow is not None:
@@ -327,9 +391,15 @@ class Jet(NDArrayOperatorsMixin):
         out = Jet(value, tangent, self.lo, self.n)
         if _is_basic(tkey[1:]):
             out._base, out._key = self, tkey[1:]
+        if self.rows is not None and not first:
+            out.rows = _rows_after(self.rows, tkey[1:], value)
+            if out.rows is not None and len(tkey) == 2 and self.columns is not None:
+                out.columns, out.seed = self.columns, self.seed  # rows only: same columns
         return out
 
     def __setitem__(self, key: Any, item: Any) -> None:
+        if Tape.active and HOOKS["setitem"](self, key, item):
+            return
         v, t, lo = parts(item)
         tkey, first = self.tangent_key(key)
         if t is not None:
@@ -369,98 +439,3 @@ class Jet(NDArrayOperatorsMixin):
         t = np.zeros((nhi - nlo,) + self.value.shape)
         t[self.lo - nlo: self.lo - nlo + len(self.tangent)] = self.tangent
         self.tangent, self.lo = t, nlo
-
-    # --- ndarray methods (through the NumPy functions) ---------------------------------------
-
-    def reshape(self, *shape: Any, order: str = "C") -> Jet:
-        """As ``ndarray.reshape``."""
-        s = shape[0] if len(shape) == 1 and not isinstance(shape[0], int) else shape
-        return np.reshape(self, s, order=order)  # type: ignore[call-overload]
-
-    def transpose(self, *axes: Any) -> Jet:
-        """As ``ndarray.transpose``."""
-        a = axes[0] if len(axes) == 1 and not isinstance(axes[0], int) else (axes or None)
-        return np.transpose(self, a)  # type: ignore[return-value]
-
-    def swapaxes(self, a: int, b: int) -> Jet:
-        """As ``ndarray.swapaxes``."""
-        return np.swapaxes(self, a, b)  # type: ignore[return-value]
-
-    def squeeze(self, axis: Any = None) -> Jet:
-        """As ``ndarray.squeeze``."""
-        return np.squeeze(self, axis)  # type: ignore[return-value]
-
-    def ravel(self) -> Jet:
-        """As ``ndarray.ravel``."""
-        return np.ravel(self)  # type: ignore[return-value]
-
-    def flatten(self) -> Jet:
-        """As ``ndarray.flatten`` (a copy)."""
-        return np.ravel(self).copy()  # type: ignore[union-attr]
-
-    def copy(self) -> Jet:
-        """A copy of value and derivatives."""
-        return Jet(self.value.copy(), self.tangent.copy(), self.lo, self.n)
-
-    def astype(self, dtype: Any, copy: bool = True) -> Any:
-        """Floating dtypes keep the derivatives; others are refused (they would drop them)."""
-        if np.dtype(dtype).kind != "f":
-            raise JetError(f"astype({np.dtype(dtype).name})", "an integer or boolean copy of a "
-                           "jet has no derivative; use its .value explicitly")
-        return self.copy() if copy else self
-
-    def sum(self, axis: Any = None, keepdims: bool = False, **kw: Any) -> Any:
-        """As ``ndarray.sum``."""
-        return np.sum(self, axis=axis, keepdims=keepdims, **kw)
-
-    def mean(self, axis: Any = None, keepdims: bool = False, **kw: Any) -> Any:
-        """As ``ndarray.mean``."""
-        return np.mean(self, axis=axis, keepdims=keepdims, **kw)
-
-    def prod(self, axis: Any = None, keepdims: bool = False, **kw: Any) -> Any:
-        """As ``ndarray.prod``."""
-        return np.prod(self, axis=axis, keepdims=keepdims, **kw)
-
-    def max(self, axis: Any = None, keepdims: bool = False) -> Any:
-        """As ``ndarray.max``."""
-        return np.max(self, axis=axis, keepdims=keepdims)
-
-    def min(self, axis: Any = None, keepdims: bool = False) -> Any:
-        """As ``ndarray.min``."""
-        return np.min(self, axis=axis, keepdims=keepdims)
-
-    def dot(self, other: Any) -> Any:
-        """As ``ndarray.dot``."""
-        return np.dot(self, other)
-
-    def clip(self, lo: Any = None, hi: Any = None) -> Any:
-        """As ``ndarray.clip``."""
-        return np.clip(self, lo, hi)
-
-    def take(self, indices: Any, axis: Any = None) -> Any:
-        """As ``ndarray.take``."""
-        return np.take(self, indices, axis=axis)
-
-    def diagonal(self, offset: int = 0, axis1: int = 0, axis2: int = 1) -> Any:
-        """As ``ndarray.diagonal``."""
-        return np.diagonal(self, offset, axis1, axis2)
-
-    def trace(self, offset: int = 0, axis1: int = 0, axis2: int = 1) -> Any:
-        """As ``ndarray.trace``."""
-        return np.trace(self, offset, axis1, axis2)
-
-    def all(self, *a: Any, **k: Any) -> Any:
-        """Of the values."""
-        return self.value.all(*a, **k)
-
-    def any(self, *a: Any, **k: Any) -> Any:
-        """Of the values."""
-        return self.value.any(*a, **k)
-
-    def argmax(self, *a: Any, **k: Any) -> Any:
-        """Of the values."""
-        return self.value.argmax(*a, **k)
-
-    def argmin(self, *a: Any, **k: Any) -> Any:
-        """Of the values."""
-        return self.value.argmin(*a, **k)

@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff.jet import HOOKS, Jet, JetError, combine, expand, make, parts
+import graphopt.autodiff.tape as tape
+from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, combine, expand, make, parts
 
 __all__ = ["apply_ufunc", "write_out"]
 
@@ -137,6 +138,23 @@ def _reduce(ufunc: np.ufunc, method: str, inputs: tuple[Any, ...]) -> Any:
 
 
 def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
+    if Tape.active and ufunc not in _VALUE_ONLY:
+        replay = lambda: _call(ufunc, inputs)  # noqa: E731 - the forward rule
+        lazy = (tape.matmul(inputs[0], inputs[1], _mm, replay) if ufunc is np.matmul
+                else tape.ufunc(ufunc, inputs, _UNARY, replay))
+        if lazy is not None:
+            return lazy
+    out = _forward(ufunc, inputs)
+    if type(out) is Jet:  # axis 0 keeps its edges if every jet operand's does
+        rows = {a.rows for a in inputs if type(a) is Jet}
+        if len(rows) == 1 and all(a.value.shape[:1] == out.value.shape[:1]
+                                  and a.value.ndim == out.value.ndim
+                                  for a in inputs if type(a) is Jet):
+            out.rows = rows.pop()
+    return out
+
+
+def _forward(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
     ps = [parts(a) for a in inputs]
     values = [p[0] for p in ps]
     n = max(a.n for a in inputs if type(a) is Jet)

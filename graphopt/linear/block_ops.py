@@ -82,6 +82,42 @@ def batched_cholesky_inverses(
     return linv.reshape(n, d, d), inv.reshape(n, d, d)
 
 
+try:  # SciPy's block-sparse kernel (a dense product per block, in one C loop)
+    from scipy.sparse._sparsetools import bsr_matvecs as _bsr_matvecs
+except ImportError:  # pragma: no cover - private module: numpy's matmul instead
+    _bsr_matvecs = None
+
+#: ``arange(n + 1)`` and ``arange(n)`` as int32, per ``n`` (the block-diagonal pattern).
+_DIAGONAL: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def block_products(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A[i] @ B[i]`` for every ``i``: ``(n, p, q) x (n, q, k) -> (n, p, k)``.
+
+    NumPy's stacked ``matmul`` pays about 60 ns per pair of small matrices; SciPy's BSR kernel
+    on the block-diagonal matrix whose blocks are ``A`` does the same products in one C loop
+    (2,807 pairs of 3x3 by 3x6: 163 -> 64 µs; 3x9: 175 -> 93 µs).
+
+    Args:
+        A: ``(n, p, q)`` blocks.
+        B: ``(n, q, k)`` blocks.
+    """
+    n, p, q = A.shape
+    k = B.shape[2]
+    if _bsr_matvecs is None or n >= 2**31 or not n:
+        return np.matmul(A, B)
+    diag = _DIAGONAL.get(n)
+    if diag is None:
+        if len(_DIAGONAL) > 16:
+            _DIAGONAL.clear()
+        diag = _DIAGONAL[n] = (np.arange(n + 1, dtype=np.int32), np.arange(n, dtype=np.int32))
+    out = np.zeros(n * p * k)
+    _bsr_matvecs(n, n, k, p, q, diag[0], diag[1],
+                 np.ascontiguousarray(A, dtype=float).reshape(-1),
+                 np.ascontiguousarray(B, dtype=float).reshape(-1), out)
+    return out.reshape(n, p, k)
+
+
 def csr_product_into(
     n_rows: int,
     n_cols: int,
@@ -126,13 +162,15 @@ class _CscContraction:
     """A constant-structure CSC operator ``M`` (rows ``(t, i)``, ``shape[1]`` rows of ``B``) whose
     values come from ``A``: ``out[t] = Σ A-blocksᵀ · B-blocks`` is ``M @ B``, the scatter-add
     done by SciPy's C loop. Subclasses set ``indices``, ``indptr``, ``shape``, ``n_targets``,
-    ``d1`` and say how ``A`` becomes the data array."""
+    ``d1`` and say how ``A`` becomes the data array; ``single`` when every block of ``A`` and
+    ``B``, in order, sums into one target (then ``AᵀB`` is one matrix product)."""
 
     indices: np.ndarray
     indptr: np.ndarray
     shape: tuple[int, int]
     n_targets: int
     d1: int
+    single: bool = False
 
     def _values(self, A: np.ndarray) -> np.ndarray:
         raise NotImplementedError
@@ -170,6 +208,12 @@ class _CscContraction:
                 when ``None``.
         """
         d2 = B.shape[-1]
+        if self.single:  # one target summing every block: one BLAS product, no scatter
+            res = np.matmul(A.reshape(-1, self.d1).T, B.reshape(-1, d2))
+            if out is None:
+                return res.reshape(1, self.d1, d2)
+            out[:self.d1 * d2] = res.reshape(-1)
+            return out[:self.d1 * d2].reshape(1, self.d1, d2)
         if self.indptr.dtype != self.indices.dtype:  # the kernel takes one index type
             res = self.apply(self.matrix(A), B)
             if out is not None:
@@ -292,6 +336,8 @@ class EdgeContraction(_CscContraction):
             np.int32)
         self.indices = np.broadcast_to(rows, (len(sel), r, d1)).ravel()
         self.shape = ((n_targets + self.scratch) * d1, m * r)
+        # A motion-only BA's pose block: all edges into one target.
+        self.single = self.all and n_targets == 1
 
     def _values(self, A: np.ndarray) -> np.ndarray:
         return A.reshape(-1) if self.all or self.scratch else A[self.sel].reshape(-1)

@@ -8,6 +8,7 @@ matrix-free assembly has no W blocks: its products come from the W terms' Jacobi
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,6 +19,7 @@ try:  # SciPy's BSR kernel, called on the arrays directly (see wt_product)
 except ImportError:  # pragma: no cover - a SciPy without it: the public product
     _bsr_matvec = None
 
+from graphopt.linear.block_ops import block_products
 from graphopt.linear.pattern import with_data
 
 if TYPE_CHECKING:
@@ -38,9 +40,10 @@ def is_finite(asm: Assembly) -> bool:
     Args:
         asm: The assembled system.
     """
-    total = asm.h_data.sum() + asm.bu.sum()
-    total += sum(float(v.sum()) for v in asm.v) + sum(float(b.sum()) for b in asm.bv)
-    return bool(np.isfinite(total))
+    total = float(asm.h_data.sum() + asm.bu.sum())
+    if asm.v:
+        total += sum(float(v.sum()) for v in asm.v) + sum(float(b.sum()) for b in asm.bv)
+    return math.isfinite(total)
 
 
 def damping(index: BlockIndex, asm: Assembly, diagonal: bool
@@ -84,7 +87,7 @@ def class_y_transposed(index: BlockIndex, asm: Assembly, vinv: list[np.ndarray],
     """
     wc = index.wclasses[k]
     wt = asm.wt[k] if asm.wt is not None else _wjac(asm).class_wt(k)
-    return np.matmul(vinv[wc.vclass][wc.vblock], wt)
+    return block_products(vinv[wc.vclass][wc.vblock], wt)
 
 
 def wt_product(index: BlockIndex, asm: Assembly, k: int, xu: np.ndarray) -> np.ndarray:
@@ -143,7 +146,7 @@ def back_substitute(index: BlockIndex, asm: Assembly, du: np.ndarray, vinv: list
             rc -= y
     for k, wc in enumerate(index.wclasses if asm.wt is not None else []):
         r[wc.vclass] -= wt_product(index, asm, k, du)
-    return [np.matmul(vi, ri[:, :, None])[:, :, 0] for vi, ri in zip(vinv, r, strict=True)]
+    return [block_products(vi, ri[:, :, None])[:, :, 0] for vi, ri in zip(vinv, r, strict=True)]
 
 
 def hessian_product(index: BlockIndex, asm: Assembly, xu: np.ndarray, xv: list[np.ndarray]
@@ -157,7 +160,7 @@ def hessian_product(index: BlockIndex, asm: Assembly, xu: np.ndarray, xv: list[n
         xv: V parts per class.
     """
     hu = with_data(index.pattern.csc, asm.h_data) @ xu
-    hv = [np.matmul(vb, x[:, :, None])[:, :, 0] for vb, x in zip(asm.v, xv, strict=True)]
+    hv = [block_products(vb, x[:, :, None])[:, :, 0] for vb, x in zip(asm.v, xv, strict=True)]
     if asm.wt is None:
         if index.wclasses:
             wj = _wjac(asm)

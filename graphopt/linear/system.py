@@ -76,6 +76,7 @@ class LinearSystem:
         self.udims = self.index.udims
         self.pattern = self.index.pattern.csc
         self.schur = bool(self.index.vclasses)
+        self._identity: tuple[np.ndarray, list[np.ndarray]] | None = None
 
     def assemble(self, jacobians: GroupArrays, weighted: GroupArrays,
                  weighted_errors: list[np.ndarray]) -> Assembly:
@@ -104,7 +105,14 @@ class LinearSystem:
             asm: The assembled system.
             diagonal: ``diag(H)`` (clipped) instead of the identity.
         """
-        return products.damping(self.index, asm, diagonal)
+        if diagonal:
+            return products.damping(self.index, asm, True)
+        if self._identity is None:  # the identity: the same arrays every time (read-only)
+            du, dv = products.damping(self.index, asm, False)
+            for a in (du, *dv):
+                a.flags.writeable = False
+            self._identity = du, dv
+        return self._identity[0], list(self._identity[1])
 
     def max_diagonal(self, asm: Assembly) -> float:
         """See :func:`~graphopt.linear.products.max_diagonal`.

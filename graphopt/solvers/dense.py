@@ -32,12 +32,17 @@ class LinearSolverDense(LinearSolver):
         n = pattern.shape[0]
         cols = np.repeat(np.arange(n), np.diff(pattern.indptr))
         self._flat = cols.astype(np.int64) * n + pattern.indices  # column-major position
+        # A full pattern (one pose's 6x6) is the column-major array itself: a copy, no scatter.
+        self._full = bool(np.array_equal(self._flat, np.arange(n * n)))
 
     def _factor(self, data: np.ndarray) -> tuple[np.ndarray, int]:
         """``L`` (lower triangle of a column-major array; garbage above) and LAPACK's info."""
         n = self.pattern.shape[0]
-        flat = np.zeros(n * n)
-        flat[self._flat] = data
+        if self._full:
+            flat = np.array(data, dtype=float)
+        else:
+            flat = np.zeros(n * n)
+            flat[self._flat] = data
         a = flat.reshape(n, n).T  # column-major view: LAPACK factorises it in place
         return sla.lapack.dpotrf(a, lower=1, overwrite_a=1, clean=0)
 
@@ -65,9 +70,9 @@ class LinearSolverDense(LinearSolver):
                 raise NotPositiveDefiniteError(f"dense Cholesky solve failed (LAPACK info {info})")
             return x
 
-        x = checked_solve(self.name, np.diagonal(c)[:done] ** 2, data[self.diag_pos],
+        x = checked_solve(self.name, c.diagonal()[:done] ** 2, data[self.diag_pos],
                           apply_inverse, rhs, lambda s: self._shifted_is_definite(data, s),
                           stopped_at=None if info == 0 else done)
-        if not np.all(np.isfinite(x)):
+        if not np.isfinite(x).all():
             raise NotPositiveDefiniteError("dense Cholesky produced non-finite values")
         return x

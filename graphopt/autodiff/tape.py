@@ -1,0 +1,478 @@
+"""Reverse accumulation of jets: a batched tape for the per-edge tail of an error.
+
+Forward jets carry ``k`` derivative rows through every operation: after ``P = R X + t`` a BAL
+error's quantities depend on 12 directions, so each product costs three passes over ``12 m``
+values, for an error of 2 rows. While :func:`recording` is on (around one evaluation of an
+error), the elementwise ufuncs, basic indexing, ``stack``/``concatenate`` and writes into
+containers (``np.empty_like(x)``, ``like=x``) on jets only compute values and record the
+operation (m-batched: the Python cost is per operation, not per edge). The reverse pass
+(:func:`graphopt.autodiff.reverse.backward`) then propagates the ``r`` output rows' adjoints
+``(r, m, …)`` back to the *leaves* — the jets whose tangents are known (the vertices'
+``x ⊞ δ``, their derived values, results of operations without a recorded rule) — and
+contracts each leaf's adjoint with its tangent, per edge.
+
+Anything else that reads a recorded jet's ``tangent`` forms it forward (the operation is
+replayed with the forward rules), so every rule of the forward mode still applies. Writing
+into a jet that is not a fresh container (``a += b``, ``out=a``) first forms every recorded
+tangent and switches recording off for the rest of the evaluation: recorded operations keep
+references to their operands' values, which must not change.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+
+from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic
+
+__all__ = ["ENABLED", "clear", "container", "gathered", "recording"]
+
+#: Record for reverse accumulation (``False``: forward jets throughout, e.g. to compare).
+ENABLED = True
+
+
+class _Node:
+    """One recorded operation: ``parents`` receive adjoints from ``back(g)``, a list of
+    ``(parent, contribution, key)`` (``key``: the parent's index the contribution is for, or
+    ``None`` for all of it, broadcasting undone); ``replay()`` recomputes the result forward.
+
+    The other kinds (``special``): a container (``writes``, ``like``), a view of one
+    (``root``, ``chain``), gathered rows (``source``, ``index``)."""
+
+    special = False
+    writes: list[tuple[tuple[Any, ...], Any]] | None = None
+    like: Jet | None = None
+    root: Jet | None = None
+    chain: tuple[Any, ...] = ()
+    source: np.ndarray | None = None
+    index: np.ndarray | None = None
+
+    def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
+                 replay: Callable[[], Any] | None, special: bool = False) -> None:
+        self.parents, self.back, self.replay = parents, back, replay
+        self.seq = 0
+        if special:
+            self.special = True
+
+
+class _State:
+    seq = 0
+    pending: list[Jet] = []
+
+
+def _record(value: np.ndarray, n: int, node: _Node) -> Jet:
+    j = Jet(value, None, 0, n)
+    _State.seq += 1
+    node.seq = _State.seq
+    j._tape = node
+    _State.pending.append(j)
+    return j
+
+
+@contextmanager
+def recording() -> Iterator[None]:
+    """Record jet operations (for :func:`graphopt.autodiff.reverse.backward`) inside the block."""
+    Tape.active = ENABLED
+    _State.pending = []
+    try:
+        yield
+    finally:
+        Tape.active = False
+        _State.pending = []  # (only a write during recording needs them all)
+
+
+def clear() -> None:
+    """Forget the recorded operations (after :func:`backward`)."""
+    _State.pending = []
+
+
+def _pending_container(a: Any) -> Jet | None:
+    """The container a recorded container (or a view of one) writes into, if still recorded."""
+    if type(a) is not Jet or a._tape is None:
+        return None
+    node = a._tape
+    if node.writes is not None:
+        return a
+    if node.root is not None and node.root._tape is not None:
+        return node.root
+    return None
+
+
+def _operand(a: Any) -> Any:
+    """An operand of a recorded operation: a recorded container is read, so formed now (as
+    are gathered rows: a leaf)."""
+    if type(a) is Jet and a._tape is not None and a._tape.special:
+        a.tangent  # noqa: B018 - forms it (later writes then stop recording)
+    return a
+
+
+# --- gathered rows ----------------------------------------------------------------------------
+
+def gathered(value: np.ndarray, source: Jet, index: np.ndarray) -> Jet:
+    """Rows ``index`` of a per-vertex jet ``source`` as a per-edge jet whose tangent is gathered
+    only when used: ``x[:, j]`` gathers column ``j``'s own directions (none for a column whose
+    derivative is one direction with value 1, as ``t`` of ``x + δ``)."""
+    return _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+
+
+def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: int,
+              columns: Any) -> Jet:
+    j = Jet(value, None, lo, n)
+    node = _Node((), None, None, True)
+    node.source, node.index = t, index
+    node.replay = lambda: Jet(value, np.take(t, index, axis=1), lo, n)
+    j._tape, j.columns = node, columns
+    return j
+
+
+_ALL = slice(None)
+_ONES: dict[int, np.ndarray] = {}
+
+
+def ones(m: int) -> np.ndarray:
+    """``(1, m)`` ones, read-only (the derivative of a unit column), one array per ``m``."""
+    t = _ONES.get(m)
+    if t is None:
+        if len(_ONES) > 16:
+            _ONES.clear()
+        t = _ONES[m] = np.broadcast_to(np.ones(1), (1, m))
+    return t
+
+
+def _gathered_item(j: Jet, key: Any) -> Jet | None:
+    """``j[key]`` of gathered rows, gathered as narrowly as the index allows."""
+    node = j._tape
+    if (type(key) is tuple and len(key) == 2 and type(key[1]) is int and key[0] == _ALL
+            and j.columns is not None and j.value.ndim == 2):
+        k: tuple[Any, ...] | None = key  # x[:, c], the common case: no normalisation
+    else:
+        k = _key(key, j.value.ndim)
+    if k is None or not k or not isinstance(k[0], slice) or k[0].step not in (None, 1):
+        return None
+    if (j.columns is not None and j.value.ndim == 2 and len(k) == 2
+            and k[0] == _ALL and isinstance(k[1], int | np.integer)):
+        c = int(k[1]) % j.value.shape[1]
+        lo, hi = j.columns[c][:2]
+        m = len(j.value)
+        if len(j.columns[c]) > 2 and j.columns[c][2]:
+            t = ones(m)
+        else:
+            t = np.take(node.source[lo - j._lo: hi - j._lo, :, c], node.index, axis=1)
+        out = Jet(j.value[:, c], t, lo, j.n)
+        out.rows = j.rows
+        return out
+    a, b, _ = k[0].indices(len(j.value))
+    rest = k[1:]
+    src, lo = node.source[(slice(None), slice(None)) + rest], j._lo
+    if rest:  # only the directions these entries depend on (a rotation block: ω's, not υ's)
+        nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1))
+        first, last = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
+        src, lo = src[first:last], lo + first
+    out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns)
+    out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
+    return out
+
+
+# --- forming tangents forward --------------------------------------------------------------
+
+def _ancestors(j: Jet) -> list[Jet]:
+    seen: dict[int, Jet] = {}
+    stack = [j]
+    while stack:
+        a = stack.pop()
+        if type(a) is not Jet or a._tape is None or id(a) in seen:
+            continue
+        seen[id(a)] = a
+        node = a._tape
+        stack.extend(node.parents)
+        if node.writes is not None:
+            stack.extend(w[1] for w in node.writes if type(w[1]) is Jet)
+            stack.append(node.like)
+        if node.root is not None:
+            stack.append(node.root)
+    return sorted(seen.values(), key=lambda a: a._tape.seq)
+
+
+def materialise(j: Jet) -> None:
+    """Form ``j``'s tangent (and its recorded ancestors') with the forward rules."""
+    was = Tape.active
+    Tape.active = False
+    try:
+        for a in _ancestors(j):
+            if a._tape is not None:
+                _replay(a)
+    finally:
+        Tape.active = was
+
+
+def _replay(a: Jet) -> None:
+    node = a._tape
+    if node.writes is not None:  # a container: zeros over like's directions, then the writes
+        like = node.like
+        a._tangent = np.zeros((len(like.tangent),) + a.value.shape)
+        a._lo = like.lo
+        a._tape = None
+        for chain, src in node.writes:
+            t = a
+            for k in chain[:-1]:
+                t = t[k]
+            t[chain[-1]] = src
+        return
+    if node.root is not None:  # a view of a container
+        res = node.root
+        res.tangent  # noqa: B018
+        for k in node.chain:
+            res = res[k]
+    else:
+        res = node.replay()
+    a._tape = None
+    if type(res) is Jet:
+        a._tangent, a._lo = res.tangent, res.lo
+        a.rows = a.rows if res.rows is None else res.rows
+        a._base, a._key = res._base, res._key
+    else:
+        a._tangent, a._lo = np.zeros((1,) + a.value.shape), 0
+
+
+def flush() -> None:
+    """Form every recorded tangent and stop recording (a jet is about to be written into)."""
+    for a in list(_State.pending):
+        if a._tape is not None and a._tape.root is None:
+            materialise(a)
+    Tape.active = False
+
+
+# --- recorded operations ---------------------------------------------------------------------
+
+def _key(key: Any, ndim: int) -> tuple[Any, ...] | None:
+    """A basic index as a tuple, or ``None`` for anything else."""
+    k = key if isinstance(key, tuple) else (key,)
+    if any(type(x) is Jet or isinstance(x, np.ndarray | list) for x in k):
+        return None
+    k = _expand_key(k, ndim)
+    return k if _is_basic(k) else None
+
+
+def getitem(j: Jet, key: Any) -> Jet | None:
+    """``j[key]`` recorded (a basic index of a recorded jet, or a view of a container), or
+    ``None`` for the forward rule."""
+    if j._tape is not None and j._tape.source is not None:
+        return _gathered_item(j, key)
+    k = _key(key, j.value.ndim)
+    if k is None:
+        return None
+    root = _pending_container(j)
+    if root is not None:
+        node = _Node((), None, None, True)
+        node.root = root
+        node.chain = j._tape.chain + (k,)
+        v = Jet(j.value[k], None, 0, j.n)
+        v._tape = node
+        return v
+    if j._tape is None or not Tape.active:
+        return None
+    sl = (slice(None),) + k
+    return _record(j.value[k], j.n, _Node((j,), lambda g: [(j, g, sl)], lambda: j[key]))
+
+
+def setitem(j: Jet, key: Any, item: Any) -> bool:
+    """Record ``j[key] = item`` into a fresh container; else form all tangents, stop recording
+    and return ``False`` (the forward rule writes)."""
+    item = _operand(item)  # (reading a container forms it: then it is written forward)
+    root = _pending_container(j)
+    k = _key(key, j.value.ndim)
+    if root is None or k is None:
+        flush()
+        return False
+    if type(item) is not Jet:  # a constant: kept as it is now (for a forward replay)
+        item = np.array(item, copy=True)
+    j.value[k] = item.value if type(item) is Jet else item
+    root._tape.writes.append((j._tape.chain + (k,), item))
+    _State.seq += 1
+    root._tape.seq = _State.seq  # after its sources, for the reverse order
+    return True
+
+
+def container(value: np.ndarray, like: Jet) -> Jet:
+    """A recorded container: zero derivatives until written."""
+    node = _Node((), None, None, True)
+    node.writes, node.like = [], like
+    return _record(value, like.n, node)
+
+
+def _unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``g (r, *s)`` summed to ``(r, *shape)`` (undoes NumPy broadcasting of an operand)."""
+    if g.shape[1:] == shape:
+        return g
+    extra = g.ndim - 1 - len(shape)
+    if extra:
+        g = g.sum(axis=tuple(range(1, 1 + extra)))
+    axes = tuple(i + 1 for i, d in enumerate(shape) if d == 1 and g.shape[i + 1] != 1)
+    if axes:
+        g = g.sum(axis=axes, keepdims=True)
+    return g.reshape((g.shape[0],) + shape)
+
+
+def ufunc(uf: np.ufunc, inputs: tuple[Any, ...], rules: dict[Any, Any],
+          replay: Callable[[], Any]) -> Jet | None:
+    """A recorded elementwise ufunc (``rules``: the unary derivative rules), or ``None``."""
+    if len(inputs) == 2:
+        return binary(uf, inputs[0], inputs[1], replay)
+    if len(inputs) != 1:
+        return None
+    a = _operand(inputs[0])
+    v = a.value
+    if v.dtype.kind != "f":
+        return None
+    if uf is np.negative:
+        return _record(uf(v), a.n, _Node((a,), lambda g: [(a, -g, None)], replay))
+    rule = rules.get(uf)
+    if rule is None or (uf is np.sqrt and not np.all(v)):
+        return None
+    y = uf(v)
+    return _record(y, a.n, _Node((a,), lambda g: [(a, g * rule(v, y), None)], replay))
+
+
+_SCALARS = (float, int, np.float64)
+
+
+def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> Jet | None:
+    """A recorded ``uf(a, b)`` for ``+ − × ÷`` and a constant power, or ``None``."""
+    fn = _BINARY.get(uf)
+    if fn is None:
+        return None
+    ja, jb = type(a) is Jet, type(b) is Jet
+    if ja:
+        if a._tape is not None and a._tape.special:
+            _operand(a)
+        va = a.value
+        if va.dtype.kind != "f":
+            return None
+    elif type(a) in _SCALARS:
+        va = a
+    elif type(a) is np.ndarray:
+        va = a
+    else:
+        return None
+    if jb:
+        if b._tape is not None and b._tape.special:
+            _operand(b)
+        vb = b.value
+        if vb.dtype.kind != "f":
+            return None
+    elif type(b) in _SCALARS:
+        vb = b
+    elif type(b) is np.ndarray:
+        vb = b
+    else:
+        return None
+    if fn is _power and (jb or np.ndim(vb) != 0):
+        return None
+    # The reverse pass reads a plain factor later: a copy, in case the caller reuses the array.
+    if not ja and type(va) is np.ndarray and uf is np.multiply and va.flags.writeable:
+        va = va.copy()
+    if (not jb and type(vb) is np.ndarray and (uf is np.multiply or uf is np.divide)
+            and vb.flags.writeable):
+        vb = vb.copy()
+    y = uf(va, vb)
+    if y.dtype.kind != "f":
+        return None
+    if replay is None:
+        replay = lambda: uf(a, b)  # noqa: E731 - the forward rule, recording off
+
+    def back(g: np.ndarray) -> list[Any]:
+        out = []
+        if ja:
+            out.append((a, _unbroadcast(fn(g, va, vb, y, 0), va.shape), None))
+        if jb:
+            out.append((b, _unbroadcast(fn(g, va, vb, y, 1), vb.shape), None))
+        return out
+
+    n = a.n if ja else b.n
+    return _record(y, n, _Node((a, b) if ja and jb else ((a,) if ja else (b,)), back, replay))
+
+
+def _power(g: np.ndarray, va: Any, vb: Any, y: Any, i: int) -> np.ndarray:
+    if vb == 2:
+        return g * (2.0 * va)
+    return g if vb == 1 else g * (vb * va ** (vb - 1.0))
+
+
+_BINARY: dict[Any, Callable[..., np.ndarray]] = {
+    np.add: lambda g, va, vb, y, i: g,
+    np.subtract: lambda g, va, vb, y, i: g if i == 0 else -g,
+    np.multiply: lambda g, va, vb, y, i: g * (vb if i == 0 else va),
+    np.divide: lambda g, va, vb, y, i: g / vb if i == 0 else -(g * y) / vb,
+    np.power: _power,
+    np.float_power: _power,
+}
+
+
+def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
+    """A recorded ``a @ b`` of stacks of matrices (``mm``: the product), or ``None``."""
+    a, b = _operand(a), _operand(b)
+    va = a.value if type(a) is Jet else np.array(a, copy=True)  # plain: as it is now
+    vb = b.value if type(b) is Jet else np.array(b, copy=True)
+    if not (isinstance(va, np.ndarray) and isinstance(vb, np.ndarray)) or min(
+            va.ndim, vb.ndim) < 2 or va.dtype.kind != "f" or vb.dtype.kind != "f":
+        return None
+    y = mm(va, vb)
+
+    def back(g: np.ndarray) -> list[Any]:
+        out = []
+        if type(a) is Jet:
+            out.append((a, _unbroadcast(mm(g, np.swapaxes(vb, -1, -2)), va.shape), None))
+        if type(b) is Jet:
+            out.append((b, _unbroadcast(mm(np.swapaxes(va, -1, -2), g), vb.shape), None))
+        return out
+
+    parents = tuple(x for x in (a, b) if type(x) is Jet)
+    return _record(y, parents[0].n, _Node(parents, back, replay))
+
+
+def concatenate(arrays: list[Any], axis: int, stack: bool, replay: Callable[[], Any]) -> Any:
+    """A recorded ``np.concatenate`` (``stack``: ``np.stack``) of jets and arrays."""
+    arrays = [_operand(a) for a in arrays]
+    values = [a.value if type(a) is Jet else np.asarray(a) for a in arrays]
+    y = np.stack(values, axis=axis) if stack else np.concatenate(values, axis=axis)
+    ax = axis % y.ndim + 1
+    spans, start = [], 0
+    for v in values:
+        w = 1 if stack else v.shape[ax - 1]
+        spans.append(start if stack else slice(start, start + w))
+        start += w
+
+    def back(g: np.ndarray) -> list[Any]:
+        pre = (slice(None),) * ax
+        return [(a, g[pre + (s,)], None) for a, s in zip(arrays, spans, strict=True)
+                if type(a) is Jet]
+
+    jets = tuple(a for a in arrays if type(a) is Jet)
+    return _record(y, max(j.n for j in jets), _Node(jets, back, replay))
+
+
+def reduce(fn: Any, a: Jet, axis: Any, keepdims: bool, replay: Callable[[], Any]) -> Any:
+    """A recorded ``np.sum``/``np.mean`` over axes other than the edges' (axis 0)."""
+    a = _operand(a)
+    nd = a.value.ndim
+    axes = tuple(x % nd for x in (axis if isinstance(axis, tuple) else (axis,)))
+    if 0 in axes or a.value.dtype.kind != "f":
+        return None
+    y = fn(a.value, axis=axes, keepdims=keepdims)
+    scale = 1.0 if fn is np.sum else 1.0 / np.prod([a.value.shape[x] for x in axes])
+
+    def back(g: np.ndarray) -> list[Any]:
+        gk = g if keepdims else np.expand_dims(g, tuple(x + 1 for x in axes))
+        c = np.broadcast_to(gk if scale == 1.0 else gk * scale, (g.shape[0],) + a.value.shape)
+        return [(a, c, None)]
+
+    return _record(np.asarray(y), a.n, _Node((a,), back, replay))
+
+
+HOOKS["materialise"] = materialise
+HOOKS["getitem"] = getitem
+HOOKS["setitem"] = setitem
+HOOKS["binary"] = binary
