@@ -34,7 +34,7 @@ from graphopt import (
     SparseOptimizer,
     make_kernel,
 )
-from graphopt.apps import _cli
+from graphopt.apps import _cli, g2o_online
 from graphopt.apps.g2o_report import (
     GraphView,
     SlamRecording,
@@ -95,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poses", type=int, default=1000, metavar="N",
                    help="poses of the generated graph (no INPUT; default 1000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the generated graph (default 0)")
+    g2o_online.add_options(p)
     return p
 
 
@@ -233,10 +234,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     truth0 = _truth_errors(view, truth) if truth is not None else None
 
     recording = None
-    if args.rrd:
+    if args.rrd and not args.online:
         recording = _start_recording(args.rrd, opt, view, opt.active_robust_chi2(), truth)
     try:
-        res = _cli.optimize_recorded(opt, args.iterations, recording)
+        res = (g2o_online.run_online(args, slam, view, PROG, kernel, opt.active_robust_chi2())
+               if args.online else _cli.optimize_recorded(opt, args.iterations, recording))
     except FloatingPointError as exc:
         raise _cli.AppError(f"{source}: {exc}") from None
     if not all(np.isfinite(a).all() for a in (view.poses(), view.landmarks())):
@@ -278,6 +280,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "marginals": _marginals(slam, view) if args.marginals else None,
         "output": args.output,
         "equiv": len(slam.equiv),
+        "online": getattr(res, "online", None),
     }
     if args.output:
         write_g2o(args.output, graph_file(slam), drop_equiv=True)
@@ -328,6 +331,12 @@ def format_summary(s: dict[str, Any], solver_text: str | None = None) -> str:
         f"{s['seconds_per_iteration']:.4f} s/iteration; read {s['read_seconds']:.3f} s, "
         f"build {s['build_seconds']:.3f} s, setup {s['setup_seconds']:.3f} s",
     ]
+    if s["online"]:
+        o = s["online"]
+        lines.append(f"  online: {o['steps']} steps, {o['total_seconds']:.3f} s; step median "
+                     f"{o['median_step_seconds'] * 1e3:.3f} ms, p95 "
+                     f"{o['p95_step_seconds'] * 1e3:.3f} ms, max {o['max_step_seconds'] * 1e3:.1f}"
+                     f" ms; {o['batch_steps']} batch steps, {o['fallbacks']} fallbacks")
     if s["ground_truth"] is not None:
         g0, g = s["ground_truth"]["initial"], s["ground_truth"]["final"]
         lines.append(

@@ -7,6 +7,7 @@ from graphopt.errors import GraphError, NotPositiveDefiniteError, SingularSystem
 from graphopt.jacobian_check import JacobianCheck, check_jacobians, edge_jacobians
 from graphopt.linear import SchurConfig
 from graphopt.numeric import numeric_jacobians
+from graphopt.online import IncrementalConfig, IncrementalOptimizer, UpdateReport
 from graphopt.optimizer import SparseOptimizer
 from graphopt.problem import Problem
 from graphopt.result import IterationInfo, OptimizationResult, StopReason
@@ -46,6 +47,8 @@ __all__ = [
     "GaussNewtonConfig",
     "GraphError",
     "ImplicitSchurConfig",
+    "IncrementalConfig",
+    "IncrementalOptimizer",
     "IterationInfo",
     "JacobianCheck",
     "Jet",
@@ -77,6 +80,7 @@ __all__ = [
     "SparseOptimizer",
     "StopReason",
     "StoppingConfig",
+    "UpdateReport",
     "VertexVector",
     "check_jacobians",
     "edge_jacobians",

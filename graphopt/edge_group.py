@@ -151,6 +151,44 @@ class EdgeGroup:
         self.next_uid += n
         return start
 
+    def tail(self, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                        dict[str, np.ndarray]]:
+        """The edges ``start:size`` read from the chunks, without finalising the group (what the
+        incremental optimizer takes after each update: a few edges, not a concatenation of
+        all).
+
+        Args:
+            start: First edge (an index).
+
+        Returns:
+            ``(vertex ids (n, k), measurements, information (n, e, e), kernel index (n,),
+            data)``.
+        """
+        first, at = len(self._vids), self.size
+        while first > 0 and at > start:  # walk back over the newest chunks only
+            first -= 1
+            at -= len(self._vids[first])
+        parts: list[list[np.ndarray]] = [[], [], [], []]
+        data: list[dict[str, np.ndarray]] = []
+        for c in range(first, len(self._vids)):
+            lo = max(start - at, 0)
+            at += len(self._vids[c])
+            n = len(self._vids[c]) - lo
+            info = self._info[c]
+            parts[0].append(self._vids[c][lo:])
+            parts[1].append(self._meas[c][lo:])
+            parts[2].append(np.broadcast_to(info, (n, self.dim, self.dim)) if info.ndim == 2
+                            else info[lo:])
+            parts[3].append(self._kern[c][lo:])
+            if self._data:
+                data.append({k: v[lo:] for k, v in self._data[c].items()})
+        if not parts[0]:
+            return (np.zeros((0, self.k), np.int64), np.zeros((0, *self.mshape)),
+                    np.zeros((0, self.dim, self.dim)), np.zeros(0, np.int64), {})
+        joined = [_join(p) for p in parts]
+        merged = {k: np.concatenate([d[k] for d in data]) for k in data[0]} if data else {}
+        return joined[0], joined[1], joined[2], joined[3], merged
+
     # --- finalising --------------------------------------------------------------------------
 
     def finalize(self) -> None:

@@ -26,7 +26,7 @@ KEYS = {
     "robust_kernel",
     "initial_chi2", "final_chi2", "initial_robust_chi2", "final_robust_chi2", "iterations",
     "seconds", "seconds_per_iteration", "read_seconds", "build_seconds",
-    "setup_seconds", "stop_reason", "ground_truth", "marginals", "output", "equiv",
+    "setup_seconds", "stop_reason", "ground_truth", "marginals", "output", "equiv", "online",
 }
 MARGINAL_KEYS = {"poses", "free_poses", "sampled", "max_position_sigma",
                  "max_position_sigma_vertex", "median_position_sigma", "max_rotation_sigma_rad",

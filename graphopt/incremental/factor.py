@@ -1,0 +1,142 @@
+"""A sparse Cholesky factor that grows: CHOLMOD rank updates into reserved trailing unknowns.
+
+The system ``H`` of the ``n`` unknowns in use is factorised (simplicial ``LDLᵀ``, in the order
+given: the caller numbers the unknowns in a fill-reducing order) together with ``reserve``
+trailing unknowns that are decoupled with a tiny diagonal ``ε = EPSILON·max diag(H)``. A new
+vertex takes the next reserved unknowns: its edges enter by a rank update (``LLᵀ + CCᵀ``,
+CHOLMOD's ``updown``, which also grows the pattern of ``L``), and its ``ε`` stays — a prior
+of relative weight 1e-12 towards its starting estimate, far below the data's resolution,
+instead of a downdate per vertex (a second CHOLMOD call per step, and a subtraction that can
+lose definiteness). The symbolic factorisation is redone only when the reserve runs out. New
+unknowns come last in the elimination order, as in iSAM: an update touches the path from its
+first unknown to the root.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from graphopt.errors import NotPositiveDefiniteError
+
+try:  # scikit-sparse is optional (see graphopt.solvers.cholmod)
+    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+    from sksparse.cholmod import analyze as cholmod_analyze
+
+    HAVE_CHOLMOD = True
+except ImportError:  # pragma: no cover - depends on the machine
+    HAVE_CHOLMOD = False
+
+#: The reserved unknowns' diagonal, relative to the largest diagonal entry of ``H``.
+EPSILON = 1e-12
+#: A new vertex whose pivot stays below this many ``ε`` is not constrained in every direction.
+PIVOT_FACTOR = 1e3
+
+
+def block_order(n_blocks: int, rows: np.ndarray, cols: np.ndarray, large: bool = False
+                ) -> np.ndarray:
+    """A fill-reducing order of the blocks from the block graph's edges: CHOLMOD's default
+    (AMD, METIS where AMD fills badly), or nested dissection (NESDIS) for large blocks, as
+    :class:`~graphopt.solvers.cholmod.LinearSolverCholmod` chooses (on the sphere's 6x6
+    blocks the factor holds 2.04M entries against AMD's 2.51M, and solves in half the time).
+
+    Args:
+        n_blocks: Number of blocks.
+        rows: ``(k,)`` block of one end of each coupling.
+        cols: ``(k,)`` block of the other end.
+        large: The blocks have more than 3 unknowns.
+
+    Returns:
+        ``(n_blocks,)`` the block eliminated at each position.
+    """
+    if n_blocks <= 1 or not HAVE_CHOLMOD:
+        return np.arange(n_blocks)
+    lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
+    diag = np.arange(n_blocks)
+    pattern = sp.csc_matrix((np.ones(len(lo) + n_blocks), (np.r_[hi, diag], np.r_[lo, diag])),
+                            shape=(n_blocks, n_blocks))
+    return np.asarray(cholmod_analyze(pattern, mode="simplicial", ordering_method=(
+        "nesdis" if large else "default")).P(), np.int64)
+
+
+class GrowingFactor:
+    """``LDLᵀ`` of ``diag(H, ε·I_reserve)`` kept current by rank updates.
+
+    Args:
+        H: ``(n, n)`` symmetric positive definite matrix (CSC, both triangles or lower).
+        reserve: Trailing unknowns to decouple with an identity.
+
+    Raises:
+        NotPositiveDefiniteError: ``H`` does not factorise with positive pivots.
+    """
+
+    def __init__(self, H: sp.csc_matrix, reserve: int) -> None:
+        if not HAVE_CHOLMOD:
+            raise ImportError("the incremental optimizer needs CHOLMOD (scikit-sparse)")
+        n = H.shape[0]
+        self.used = n
+        self.size = n + reserve
+        low = sp.tril(H, format="csc")
+        low.sort_indices()
+        self.epsilon = EPSILON * max(float(H.diagonal().max()) if n else 1.0, 1e-300)
+        full = sp.csc_matrix(
+            (np.r_[low.data, np.full(reserve, self.epsilon)],
+             np.r_[low.indices, np.arange(n, n + reserve)],
+             np.r_[low.indptr, low.indptr[-1] + np.arange(1, reserve + 1)]),
+            shape=(n + reserve, n + reserve))
+        try:
+            self._f = cholesky(full, mode="simplicial", ordering_method="natural")
+        except CholmodNotPositiveDefiniteError as exc:
+            raise NotPositiveDefiniteError(f"the system is not positive definite: {exc}"
+                                           ) from None
+        d = self._f.D()[:n]  # LDLᵀ factorises indefinite matrices too: screen the pivots
+        if n and (not np.all(np.isfinite(d)) or d.min() <= PIVOT_FACTOR * self.epsilon):
+            raise NotPositiveDefiniteError("the system is singular or not positive definite")
+
+    @property
+    def free(self) -> int:
+        """Reserved unknowns still unused."""
+        return self.size - self.used
+
+    def update(self, C: sp.csc_matrix) -> None:
+        """``LLᵀ ← LLᵀ + CCᵀ``.
+
+        Args:
+            C: ``(size, k)`` columns (the whitened rows of new edges).
+        """
+        if C.nnz:
+            self._f.update_inplace(C)
+
+    def take(self, count: int) -> np.ndarray:
+        """Hand out the next ``count`` reserved unknowns (after :meth:`update` has added the
+        edges of the vertices that take them).
+
+        Args:
+            count: Unknowns to take.
+
+        Returns:
+            ``(count,)`` their indices.
+
+        Raises:
+            NotPositiveDefiniteError: too few are left, or a pivot of theirs is still about
+                ``ε`` (their vertex is not constrained in every direction).
+        """
+        if count > self.free:
+            raise NotPositiveDefiniteError("the reserve is exhausted")
+        idx = np.arange(self.used, self.used + count)
+        self.used += count
+        d = self._f.D()[idx]
+        if not np.all(np.isfinite(d)) or (count and d.min() <= PIVOT_FACTOR * self.epsilon):
+            raise NotPositiveDefiniteError("a new vertex is not constrained in every direction")
+        return idx
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """``x = (LLᵀ)⁻¹ rhs`` ``(size,)``.
+
+        Args:
+            rhs: ``(size,)``.
+        """
+        x = self._f.solve_A(rhs)
+        if not np.all(np.isfinite(x)):
+            raise NotPositiveDefiniteError("the incremental solve produced non-finite values")
+        return x

@@ -1,0 +1,256 @@
+"""The incremental optimizer's bookkeeping: linearisation points, unknowns and edge batches.
+
+Per vertex store: the linearisation point ``θ`` of every slot and the index of its first
+unknown in the system (``-1``: fixed, or not yet taken in). Per edge group: how many edges are
+taken in, and the slots of their vertices (appended per update, joined lazily). A
+:class:`Batch` is a run of edges of one group with everything needed to linearise them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from graphopt.edge_group import EdgeGroup
+from graphopt.graph import Graph
+from graphopt.incremental.whitened import (
+    Whitened,
+    edge_chi2,
+    join,
+    linear_residual,
+    robust_cost,
+    robust_weights,
+    whiten,
+)
+from graphopt.storage import VertexStore
+
+
+@dataclass
+class Batch:
+    """Edges ``start:stop`` of one group.
+
+    Args:
+        group: The edge group.
+        vids: ``(m, k)`` vertex ids.
+        measurements: ``(m, *measurement_shape)``.
+        info: ``(m, e, e)``.
+        kernel_index: ``(m,)``.
+        data: Per-edge data.
+        stores: Per position, the store index.
+        slots: Per position, ``(m,)`` slots.
+    """
+
+    group: EdgeGroup
+    vids: np.ndarray
+    measurements: np.ndarray
+    info: np.ndarray
+    kernel_index: np.ndarray
+    data: dict[str, np.ndarray]
+    stores: list[int]
+    slots: list[np.ndarray]
+
+
+@dataclass
+class State:
+    """Linearisation points and unknowns per store, edges taken in per group.
+
+    Args:
+        graph: The optimizer's graph.
+    """
+
+    graph: Graph
+    stores: list[VertexStore] = field(default_factory=list)
+    theta: list[np.ndarray] = field(default_factory=list)
+    offsets: list[np.ndarray] = field(default_factory=list)
+    known_edges: dict[int, int] = field(default_factory=dict)
+    taken: dict[int, list[Batch]] = field(default_factory=dict)
+    linear: dict[int, list[Whitened]] = field(default_factory=dict)
+    _free: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    flags: list[int] = field(default_factory=list)
+
+    def store_index(self, st: VertexStore) -> int:
+        """Index of a store (registered on first sight)."""
+        for i, s in enumerate(self.stores):
+            if s is st:
+                return i
+        self.stores.append(st)
+        self.theta.append(np.zeros((0, *st.vtype.estimate_shape)))
+        self.offsets.append(np.zeros(0, np.int64))
+        self.flags.append(st.flags_version)
+        return len(self.stores) - 1
+
+    def flags_changed(self) -> bool:
+        """Whether a fixed/marginalised flag changed since the stores were taken in."""
+        return any(s.flags_version != f for s, f in zip(self.stores, self.flags, strict=True))
+
+    def removals(self) -> int:
+        """Vertex and edge removals so far (a change invalidates every index taken in)."""
+        return (sum(s.removals for s in self.graph.stores.values())
+                + sum(g.removals for g in self.graph.groups.values()))
+
+    def new_vertices(self) -> list[tuple[int, int, int]]:
+        """``(store index, first new slot, end)`` of every store with vertices not taken in."""
+        out = []
+        for st in list(self.graph.stores.values()):
+            si = self.store_index(st)
+            if len(st) > len(self.theta[si]):
+                out.append((si, len(self.theta[si]), len(st)))
+        return out
+
+    def new_batches(self) -> list[Batch]:
+        """Every group's edges not taken in, as batches (slots resolved by id)."""
+        out = []
+        ids = self.graph.ids
+        for g in list(self.graph.groups.values()):
+            start = self.known_edges.get(id(g), 0)
+            if g.size <= start:
+                continue
+            vids, meas, info, kern, data = g.tail(start)
+            stores, slots = [], []
+            for a in range(g.k):
+                col = vids[:, a].tolist()
+                hits = [ids[v] for v in col]
+                stores.append(self.store_index(hits[0][0]))
+                slots.append(np.fromiter((h[1] for h in hits), np.int64, len(hits)))
+            out.append(Batch(g, vids, meas, info, kern, data, stores, slots))
+        return out
+
+    def take_edges(self, batches: list[Batch]) -> None:
+        """Record the batches' edges as taken in (kept as chunks, joined when all are read)."""
+        for b in batches:
+            key = id(b.group)
+            self.known_edges[key] = self.known_edges.get(key, 0) + len(b.vids)
+            self.taken.setdefault(key, []).append(b)
+
+    def all_edges(self) -> list[Batch]:
+        """Every edge taken in, one batch per group."""
+        out = []
+        for key, chunks in self.taken.items():
+            if len(chunks) > 1:
+                self.taken[key] = [join_batches(chunks)]
+            out.append(self.taken[key][0])
+        return out
+
+    def keep_linear(self, batches: list[Batch], rows: list[Whitened], fresh: bool) -> None:
+        """Keep the whitened rows the factor holds (``fresh``: they replace all kept ones)."""
+        if fresh:
+            self.linear = {}
+        for b, w in zip(batches, rows, strict=True):
+            self.linear.setdefault(id(b.group), []).append(w)
+
+    def model_check(self, delta: np.ndarray) -> tuple[float, float]:
+        """``(chi2, model)``: the weighted chi2 of every edge at the current estimates (robust
+        weights ``ρ'`` taken there: weights gone stale count as a model error too) and the
+        linear model's ``Σ‖r + AΔ‖²`` (call when every edge taken in is in the factor)."""
+        true = model = 0.0
+        for key, rows in self.linear.items():
+            joined = join(rows)
+            self.linear[key] = [joined]
+            b = next(x for x in self.all_edges() if id(x.group) == key)
+            s = self.chi2(b)
+            w = robust_weights(s, b.kernel_index, b.group.kernels)  # today's weights: a
+            true += float(s @ (w * w) if w is not None else s.sum())  # stale one also counts
+            model += float(np.square(linear_residual(joined, delta)).sum())
+        return true, model
+
+    def cols(self, b: Batch) -> list[np.ndarray]:
+        """Per position, the first unknown of each edge's vertex (``-1``: fixed)."""
+        return [self.offsets[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
+
+    def whiten(self, b: Batch) -> Whitened:
+        """The batch linearised at the linearisation points."""
+        g = b.group
+        x = [self.theta[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
+        return whiten(g.etype, g.params, x, b.measurements, b.info, self.cols(b),
+                      b.kernel_index, g.kernels, b.data)
+
+    def chi2(self, b: Batch, robust: bool = False) -> np.ndarray:
+        """``e'Ωe`` per edge at the current estimates (``ρ(e'Ωe)`` if ``robust``)."""
+        g = b.group
+        x = [self.stores[si].estimates[s] for si, s in zip(b.stores, b.slots, strict=True)]
+        s = edge_chi2(g.etype, g.params, x, b.measurements, b.info, b.data)
+        return robust_cost(s, b.kernel_index, g.kernels) if robust else s
+
+    def apply(self, delta: np.ndarray, old: np.ndarray | None = None) -> float:
+        """Estimates ``θ ⊞ Δ`` of every vertex with unknowns; returns ``max |Δ|``.
+
+        Args:
+            delta: The step from the linearisation points, by unknown.
+            old: The step the estimates hold now (same length), if known: only vertices whose
+                step changed are written.
+        """
+        worst = 0.0
+        for si, (st, th, off) in enumerate(zip(self.stores, self.theta, self.offsets,
+                                               strict=True)):
+            hit = self._free.get(si)
+            if hit is None or hit[0] is not off:  # offsets are replaced, never edited
+                free = np.flatnonzero(off >= 0)
+                hit = self._free[si] = (off, free, off[free][:, None]
+                                        + np.arange(st.vtype.dimension))
+            _, free, cols = hit
+            if not len(free):
+                continue
+            step = delta[cols]
+            worst = max(worst, float(np.abs(step).max()))
+            if old is not None and len(old) == len(delta):
+                moved = (step != old[cols]).any(axis=1)
+                free, step = free[moved], step[moved]
+                if not len(free):
+                    continue
+            est = st.estimates
+            est[free] = st.vtype.oplus(th[free].copy(), step)
+            st.estimates = est
+        return worst
+
+    def relinearize_all(self) -> None:
+        """``θ ←`` the current estimates."""
+        self.theta = [st.estimates[: len(th)].copy() for st, th in
+                      zip(self.stores, self.theta, strict=True)]
+
+    def extend(self, si: int, start: int, stop: int, first: int) -> int:
+        """Take in the store's slots ``start:stop``: ``θ`` from their estimates, unknowns from
+        ``first`` on for the free ones; returns the number of unknowns taken."""
+        st = self.stores[si]
+        est = st.estimates[start:stop]
+        free = ~st.fixed[start:stop]
+        d = st.vtype.dimension
+        off = np.full(stop - start, -1, np.int64)
+        off[free] = first + d * np.arange(int(free.sum()))
+        self.theta[si] = np.concatenate([self.theta[si], est])
+        self.offsets[si] = np.concatenate([self.offsets[si], off])
+        return d * int(free.sum())
+
+    def unconstrained(self, new: list[tuple[int, int, int]], batches: list[Batch]
+                      ) -> tuple[VertexStore, int] | None:
+        """A new free vertex that no new edge names (its store and id), or ``None``."""
+        seen = set()
+        for b in batches:
+            seen.update(b.vids.ravel().tolist())
+        for si, lo, hi in new:
+            st = self.stores[si]
+            for vid, fixed in zip(st.ids[lo:hi].tolist(), st.fixed[lo:hi].tolist(),
+                                  strict=True):
+                if not fixed and vid not in seen:
+                    return st, int(vid)
+        return None
+
+
+def join_batches(chunks: list[Batch]) -> Batch:
+    """One batch of the edges of several batches of one group, in order."""
+    if len(chunks) == 1:
+        return chunks[0]
+    f = chunks[0]
+    data = {k: np.concatenate([c.data[k] for c in chunks]) for k in f.data}
+    return Batch(f.group, *(np.concatenate([getattr(c, a) for c in chunks])
+                            for a in ("vids", "measurements", "info", "kernel_index")),
+                 data, f.stores,
+                 [np.concatenate([c.slots[a] for c in chunks]) for a in range(len(f.slots))])
+
+
+def by_group(batches: list[Batch]) -> list[Batch]:
+    """The batches joined per group (one linearisation call per edge type)."""
+    groups: dict[int, list[Batch]] = {}
+    for b in batches:
+        groups.setdefault(id(b.group), []).append(b)
+    return [join_batches(c) for c in groups.values()]

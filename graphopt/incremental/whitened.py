@@ -1,0 +1,258 @@
+"""Whitened linearisations of a batch of edges: the rows the incremental factor absorbs.
+
+An edge with error ``e``, Jacobians ``J_a`` and information ``Ω = UᵀU`` contributes the
+whitened rows ``A_a = w·U J_a`` and the residual ``r = w·U e`` (``w = √ρ'(e'Ωe)`` for a robust
+kernel, else 1): ``Σ A_aᵀ A_b`` are its Hessian blocks and ``Σ A_aᵀ r`` its gradient, and the
+columns of ``A_aᵀ`` are exactly what a CHOLMOD rank update ``LLᵀ + CCᵀ`` takes. Everything is
+batched over the edges of one type; the caller gathers the estimates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from graphopt.edge import BaseEdge, EdgeContext
+from graphopt.robust_kernel import RobustKernel
+
+
+@dataclass
+class Whitened:
+    """Whitened rows of ``m`` edges.
+
+    Args:
+        cols: Per vertex position, ``(m,)`` first unknown of the vertex (``-1``: fixed).
+        blocks: Per position, ``(m, e, d)`` whitened Jacobians ``A_a``.
+        residual: ``(m, e)`` whitened errors ``r``.
+        chi2: ``(m,)`` ``e'Ωe`` (without the kernel).
+        weight: ``(m,)`` the kernel's ``ρ'`` at the linearisation (ones without one).
+    """
+
+    cols: list[np.ndarray]
+    blocks: list[np.ndarray]
+    residual: np.ndarray
+    chi2: np.ndarray
+    weight: np.ndarray
+
+
+def join(parts: Sequence[Whitened]) -> Whitened:
+    """One :class:`Whitened` of the rows of several (same edge type), in order.
+
+    Args:
+        parts: The pieces.
+    """
+    if len(parts) == 1:
+        return parts[0]
+    k = len(parts[0].cols)
+    return Whitened([np.concatenate([p.cols[a] for p in parts]) for a in range(k)],
+                    [np.concatenate([p.blocks[a] for p in parts]) for a in range(k)],
+                    *(np.concatenate([getattr(p, f) for p in parts])
+                      for f in ("residual", "chi2", "weight")))
+
+
+def sqrt_information(info: np.ndarray) -> np.ndarray:
+    """``U`` with ``UᵀU = Ω`` for ``(m, e, e)`` information matrices (Cholesky; an
+    eigen-decomposition for semi-definite ones).
+
+    Args:
+        info: ``(m, e, e)`` symmetric positive semi-definite matrices.
+
+    Returns:
+        ``(m, e, e)``.
+    """
+    if len(info) > 1 and bool((info == info[0]).all()):
+        return np.broadcast_to(sqrt_information(info[:1]), info.shape)
+    if len(info) == 1:
+        key = info.tobytes()
+        hit = _SQRT_CACHE.get(key)
+        if hit is None:
+            hit = _SQRT_CACHE[key] = _sqrt(info)
+            if len(_SQRT_CACHE) > 64:
+                _SQRT_CACHE.pop(next(iter(_SQRT_CACHE)))
+        return hit
+    return _sqrt(info)
+
+
+#: ``U`` of recently seen single information matrices (most graphs share a few).
+_SQRT_CACHE: dict[bytes, np.ndarray] = {}
+
+
+def _sqrt(info: np.ndarray) -> np.ndarray:
+    try:
+        return np.swapaxes(np.linalg.cholesky(info), 1, 2)
+    except np.linalg.LinAlgError:
+        w, v = np.linalg.eigh(info)
+        return np.sqrt(np.clip(w, 0.0, None))[:, :, None] * np.swapaxes(v, 1, 2)
+
+
+def robust_weights(chi2: np.ndarray, kernel_index: np.ndarray,
+                   kernels: Sequence[RobustKernel]) -> np.ndarray | None:
+    """``√ρ'(s)`` per edge (``None`` when no edge has a kernel).
+
+    Args:
+        chi2: ``(m,)`` ``s = e'Ωe``.
+        kernel_index: ``(m,)`` kernel slot per edge (``-1``: none).
+        kernels: The group's kernels.
+    """
+    if not len(kernels) or not (kernel_index >= 0).any():
+        return None
+    w = np.ones(len(chi2))
+    for k in np.unique(kernel_index[kernel_index >= 0]).tolist():
+        sel = kernel_index == k
+        w[sel] = np.sqrt(np.maximum(kernels[k].robustify(chi2[sel])[1], 0.0))
+    return w
+
+
+def robust_cost(chi2: np.ndarray, kernel_index: np.ndarray,
+                kernels: Sequence[RobustKernel]) -> np.ndarray:
+    """``ρ(s)`` per edge (``s`` itself without a kernel): what the optimizer minimises.
+
+    Args:
+        chi2: ``(m,)`` ``s = e'Ωe``.
+        kernel_index: ``(m,)`` kernel slot per edge (``-1``: none).
+        kernels: The group's kernels.
+    """
+    if not len(kernels) or not (kernel_index >= 0).any():
+        return chi2
+    out = chi2.copy()
+    for k in np.unique(kernel_index[kernel_index >= 0]).tolist():
+        sel = kernel_index == k
+        out[sel] = kernels[k].robustify(chi2[sel])[0]
+    return out
+
+
+def whiten(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray], measurements: np.ndarray,
+           info: np.ndarray, cols: list[np.ndarray], kernel_index: np.ndarray,
+           kernels: Sequence[RobustKernel], data: dict[str, np.ndarray]) -> Whitened:
+    """Linearise ``m`` edges of one type at ``x`` and whiten them.
+
+    Args:
+        etype: The edge type.
+        params: The group's shared parameters.
+        x: Per vertex position, ``(m, *estimate_shape)`` estimates.
+        measurements: ``(m, *measurement_shape)``.
+        info: ``(m, e, e)`` information matrices.
+        cols: Per position, ``(m,)`` first unknown of each vertex (``-1``: fixed).
+        kernel_index: ``(m,)`` kernel slot per edge.
+        kernels: The group's kernels.
+        data: Per-edge data of these edges.
+
+    Returns:
+        The :class:`Whitened` rows.
+    """
+    lin = etype.linearize(list(x), measurements, EdgeContext(params, data))
+    e = np.asarray(lin.error, float)
+    U = sqrt_information(info)
+    r = np.einsum("mij,mj->mi", U, e)
+    chi2 = np.einsum("mi,mi->m", r, r)
+    blocks = [np.einsum("mij,mjk->mik", U, np.asarray(J, float)) for J in lin.jacobians]
+    w = robust_weights(chi2, kernel_index, kernels)
+    if w is not None:
+        r = r * w[:, None]
+        blocks = [b * w[:, None, None] for b in blocks]
+    return Whitened(cols, blocks, r, chi2, np.ones(len(chi2)) if w is None else w * w)
+
+
+def edge_chi2(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray],
+              measurements: np.ndarray, info: np.ndarray, data: dict[str, np.ndarray]
+              ) -> np.ndarray:
+    """``e'Ωe`` of ``m`` edges at ``x`` (errors only).
+
+    Args:
+        etype: The edge type.
+        params: Shared parameters.
+        x: Per position, ``(m, *estimate_shape)``.
+        measurements: ``(m, *measurement_shape)``.
+        info: ``(m, e, e)``.
+        data: Per-edge data.
+
+    Returns:
+        ``(m,)``.
+    """
+    e = np.asarray(etype.evaluate(list(x), measurements, EdgeContext(params, data)).error, float)
+    return np.einsum("mi,mij,mj->m", e, info, e)
+
+
+def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
+    """``C`` ``(n, Σ m·e)`` with ``CCᵀ = Σ AᵀA`` over the batches: one column per whitened
+    row, holding the row's entries at its vertices' unknowns (a fixed vertex's left out).
+
+    Built as the transpose of the whitened Jacobian in CSR form, rows in the blocks' order
+    (CHOLMOD's update takes unsorted columns): a COO detour, or sorting, costs more than the
+    CHOLMOD update it feeds on a small step.
+
+    Args:
+        batches: Whitened rows.
+        n: Unknowns of the system.
+    """
+    data, index, counts = [], [], []
+    for wb in batches:
+        m, e = wb.residual.shape
+        parts = [(c, A) for c, A in zip(wb.cols, wb.blocks, strict=True)]
+        if any(bool((c < 0).any()) for c, _ in parts):  # fixed vertices: per-edge counts
+            idx = np.concatenate([np.where((c >= 0)[:, None], c[:, None] + np.arange(
+                A.shape[2]), -1) for c, A in parts], axis=1)
+            keep = np.broadcast_to((idx >= 0)[:, None, :], (m, e, idx.shape[1]))
+            vals = np.concatenate([A for _, A in parts], axis=2)
+            data.append(vals[keep])
+            index.append(np.broadcast_to(idx[:, None, :], keep.shape)[keep])
+            counts.append(np.repeat((idx >= 0).sum(axis=1), e))
+            continue
+        idx = np.concatenate([c[:, None] + np.arange(A.shape[2]) for c, A in parts], axis=1)
+        data.append(np.concatenate([A for _, A in parts], axis=2).ravel())
+        index.append(np.broadcast_to(idx[:, None, :], (m, e, idx.shape[1])).ravel())
+        counts.append(np.full(m * e, idx.shape[1]))
+    cnt = np.concatenate(counts) if len(counts) > 1 else counts[0] if counts else np.zeros(0, int)
+    indptr = np.zeros(len(cnt) + 1, np.int64)
+    np.cumsum(cnt, out=indptr[1:])
+    A = sp.csr_matrix((np.concatenate(data) if data else np.zeros(0),
+                       np.concatenate(index) if index else np.zeros(0, np.int64), indptr),
+                      shape=(len(cnt), n))
+    return A.T
+
+
+def gradient_into(g: np.ndarray, batches: Sequence[Whitened]) -> None:
+    """``g += Σ A_aᵀ r`` at each vertex's unknowns.
+
+    Args:
+        g: ``(n,)`` gradient, updated in place.
+        batches: Whitened rows.
+    """
+    for wb in batches:
+        for c, A in zip(wb.cols, wb.blocks, strict=True):
+            keep = c >= 0
+            if keep.any():
+                d = A.shape[2]
+                np.add.at(g, c[keep][:, None] + np.arange(d),
+                          np.einsum("mid,mi->md", A[keep], wb.residual[keep]))
+
+
+def hessian(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
+    """``H = Σ AᵀA`` ``(n, n)`` (CSC, both triangles) of the batches.
+
+    Args:
+        batches: Whitened rows.
+        n: Unknowns.
+    """
+    C = update_columns(batches, n)
+    return (C @ C.T).tocsc()
+
+
+def linear_residual(wb: Whitened, delta: np.ndarray) -> np.ndarray:
+    """``r + Σ A_a Δ_a`` per edge ``(m, e)``: the whitened error of the linear model at ``Δ``.
+
+    Args:
+        wb: Whitened rows.
+        delta: ``(n,)`` the step from the linearisation points.
+    """
+    out = wb.residual.copy()
+    for c, A in zip(wb.cols, wb.blocks, strict=True):
+        keep = c >= 0
+        if keep.any():
+            d = A.shape[2]
+            out[keep] += np.einsum("mid,md->mi", A[keep], delta[c[keep][:, None] + np.arange(d)])
+    return out

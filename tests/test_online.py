@@ -1,0 +1,230 @@
+"""The incremental optimizer: online replays end at the batch optimum, the grown factor is the
+system's factor, the fallbacks keep the estimate finite, a lone vertex is a clear error."""
+
+from __future__ import annotations
+
+import json
+from typing import ClassVar
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+from test_slam_graph import DATA, GRAPHOPT_LM
+
+from graphopt import GraphError, SparseOptimizer
+from graphopt.apps.slam_scene import manhattan_world
+from graphopt.edge import EdgeContext, Linearization
+from graphopt.io.g2o import read_graph
+from graphopt.online import IncrementalConfig, IncrementalOptimizer
+from graphopt.types.slam2d import EdgeSE2, EdgeSE2PointXY, VertexPointXY, VertexSE2
+from graphopt.types.slam_graph import build_graph
+from graphopt.types.slam_online import replay, replay_schedule
+
+pytest.importorskip("sksparse")
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"data folder {DATA} is absent")
+INFO = np.diag([400.0, 400.0, 2500.0])
+
+
+def _batch_chi2(graph, guess: bool = False) -> float:
+    slam = build_graph(graph, guess=guess)
+    slam.optimizer.optimize(100)
+    slam.optimizer.compute_active_errors()
+    return float(slam.optimizer.chi2())
+
+
+def _replayed_chi2(graph, guess: bool = False, **config) -> tuple[float, object]:
+    out = replay(replay_schedule(build_graph(graph, guess=guess)), IncrementalConfig(**config))
+    assert all(np.isfinite(out.poses).all() for _ in [0])
+    return out.incremental.chi2(), out
+
+
+@needs_data
+@pytest.mark.parametrize(("name", "guess"), [("w100.graph", False), ("pose2example.txt", False),
+                                             ("pose3example.txt", False),
+                                             ("victoriaPark_reduced_1k.g2o", True)])
+def test_replay_of_the_small_data_sets_ends_at_the_batch_optimum(name: str, guess: bool) -> None:
+    graph = read_graph(DATA / name)
+    chi2, out = _replayed_chi2(graph, guess)
+    best = GRAPHOPT_LM[name]
+    assert chi2 <= best * 1.005
+    assert chi2 >= best * (1 - 1e-6)  # not below the optimum: the chi2 is the graph's
+    assert len(out.steps) == len(out.poses)
+
+
+def test_replay_of_a_manhattan_world_ends_at_the_batch_optimum() -> None:
+    graph = manhattan_world(300, 1)[0]
+    chi2, out = _replayed_chi2(graph)
+    assert chi2 <= _batch_chi2(graph) * 1.005
+    kinds = {r.factor for r in out.incremental.reports}
+    assert {"pending", "updated", "rebuilt"} <= kinds  # every path ran
+
+
+def test_the_grown_factor_solves_like_a_fresh_factorisation() -> None:
+    graph = manhattan_world(120, 2)[0]
+    schedule = replay_schedule(build_graph(graph))
+    out = replay(schedule, IncrementalConfig(reserve=150, relinearize_threshold=1e9))
+    inc = out.incremental
+    assert sum(r.factor == "rebuilt" for r in inc.reports) == 1  # updates only after the first
+    H, g = inc.system()
+    f = inc.factor
+    n = len(g)
+    rhs = np.zeros(f.size)
+    rhs[:n] = g
+    x = f.solve(rhs)[:n]
+    fresh = spla.spsolve(H, g)
+    assert np.abs(x - fresh).max() <= 1e-9 * np.abs(fresh).max()
+    assert np.abs(x[n:]).max(initial=0.0) == 0.0
+
+
+def _chain(opt: SparseOptimizer, n: int) -> None:
+    opt.add_vertices(VertexSE2, np.arange(n), np.column_stack([np.arange(n), np.zeros(n),
+                                                               np.zeros(n)]),
+                     fixed=np.arange(n) == 0)
+    z = np.tile([1.0, 0.0, 0.0], (n - 1, 1))
+    opt.add_edges(EdgeSE2, np.column_stack([np.arange(n - 1), np.arange(1, n)]), z, INFO)
+
+
+def test_a_vertex_without_edges_is_a_clear_error() -> None:
+    opt = SparseOptimizer()
+    _chain(opt, 4)
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    opt.add_vertices(VertexSE2, [7], [[3.0, 1.0, 0.0]])
+    with pytest.raises(GraphError, match=r"vertex 7 \(VertexSE2\) has no edge"):
+        inc.update()
+    opt.add_edges(EdgeSE2, [[3, 7]], [[0.0, 1.0, 0.0]], INFO)  # then it goes on
+    report = inc.update()
+    assert report.vertices == 1 and report.edges == 1
+    assert np.allclose(opt.vertex(7).estimate, [3.0, 1.0, 0.0])
+
+
+def test_a_loop_closure_updates_the_factor_and_moves_the_estimate() -> None:
+    opt = SparseOptimizer()
+    _chain(opt, 6)
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    before = opt.estimates_of(VertexSE2).copy()
+    opt.add_edges(EdgeSE2, [[0, 5]], [[5.05, 0.0, 0.0]], INFO)
+    report = inc.update()
+    assert report.solved and report.factor == "updated" and report.edges == 1
+    after = opt.estimates_of(VertexSE2)
+    assert after[5, 0] > before[5, 0]  # pulled towards the closure
+    batch = SparseOptimizer()
+    _chain(batch, 6)
+    batch.add_edges(EdgeSE2, [[0, 5]], [[5.05, 0.0, 0.0]], INFO)
+    batch.optimize(20)
+    assert np.allclose(after, batch.estimates_of(VertexSE2), atol=1e-8)
+
+
+class WrongSignEdgeSE2(EdgeSE2):
+    """EdgeSE2 with Jacobians of the wrong sign: every Gauss-Newton step goes uphill."""
+
+    vertex_types: ClassVar = (VertexSE2, VertexSE2)
+
+    @classmethod
+    def linearize(cls, x, measurement, ctx: EdgeContext) -> Linearization:
+        lin = super().linearize(x, measurement, ctx)
+        return Linearization(lin.error, tuple(-J for J in lin.jacobians))
+
+
+def test_a_step_that_raises_chi2_falls_back_to_damped_steps() -> None:
+    opt = SparseOptimizer()
+    _chain(opt, 5)
+    opt.add_edges(WrongSignEdgeSE2, [[0, 4]], [[4.5, 0.3, 0.2]], INFO)
+    inc = IncrementalOptimizer(opt, IncrementalConfig(check_chi2=True))
+    report = inc.update()
+    assert report.fallback and report.factor == "rebuilt"
+    first = inc.chi2()
+    opt.add_vertices(VertexSE2, [5], [[5.0, 0.0, 0.0]])
+    opt.add_edges(EdgeSE2, [[4, 5]], [[1.0, 0.0, 0.0]], INFO)
+    opt.add_edges(WrongSignEdgeSE2, [[1, 5]], [[3.6, -0.2, 0.1]], INFO)
+    report = inc.update()
+    assert report.fallback
+    assert np.isfinite(opt.estimates_of(VertexSE2)).all()
+    assert inc.chi2() <= first + float(np.sum(_edge_chi2_now(opt)))
+
+
+def _edge_chi2_now(opt: SparseOptimizer) -> np.ndarray:
+    opt.compute_active_errors()
+    return np.array([opt.chi2()])
+
+
+def test_a_vertex_constrained_in_too_few_directions_never_raises() -> None:
+    opt = SparseOptimizer()
+    _chain(opt, 3)
+    opt.add_vertices(VertexPointXY, [10], [[1.0, 1.0]])
+    opt.add_edges(EdgeSE2PointXY, [[1, 10]], [[0.0, 1.0]], np.eye(2))
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    # A pose seen only through one point observation: 2 equations for 3 unknowns.
+    opt.add_vertices(VertexSE2, [11], [[1.0, 2.0, 0.3]])
+    opt.add_edges(EdgeSE2PointXY, [[11, 10]], [[0.5, 0.0]], np.eye(2))
+    report = inc.update()
+    assert report.factor == "rebuilt" and report.fallback
+    for vtype in (VertexSE2, VertexPointXY):
+        assert np.isfinite(opt.estimates_of(vtype)).all()
+
+
+ONLINE_KEYS = {"steps", "total_seconds", "median_step_seconds", "p95_step_seconds",
+               "max_step_seconds", "solves", "batch_steps", "fallbacks", "final_batch"}
+
+
+def test_the_app_replays_online_and_reports_the_steps(tmp_path, capsys) -> None:
+    from test_g2o_app import KEYS
+
+    from graphopt.apps.g2o import main
+
+    js = tmp_path / "online.json"
+    assert main(["--poses", "150", "--online", "--json", str(js)]) == 0
+    _, err = capsys.readouterr()
+    assert "online step 150/150" in err
+    s = json.loads(js.read_text())
+    assert set(s) == KEYS and set(s["online"]) == ONLINE_KEYS
+    o = s["online"]
+    assert o["steps"] == 150 and not o["final_batch"] and s["iterations"] == 0
+    assert o["median_step_seconds"] <= o["p95_step_seconds"] <= o["max_step_seconds"]
+    assert o["total_seconds"] == pytest.approx(s["seconds"])
+    graph = manhattan_world(150, 0)[0]
+    assert s["final_chi2"] <= _batch_chi2(graph) * 1.005
+    polished = tmp_path / "polished.json"
+    assert main(["--poses", "150", "--online", "--online-final-batch", "--quiet",
+                 "--json", str(polished)]) == 0
+    p = json.loads(polished.read_text())
+    assert p["online"]["final_batch"] and p["final_chi2"] <= s["final_chi2"] + 1e-9
+
+
+def test_the_app_records_the_online_steps(tmp_path, capsys) -> None:
+    pytest.importorskip("rerun")
+    from graphopt.apps.g2o import main
+
+    rrd = tmp_path / "online.rrd"
+    assert main(["--poses", "60", "--online", "--quiet", "--rrd", str(rrd)]) == 0
+    assert rrd.stat().st_size > 1000
+
+
+def test_a_replay_with_a_robust_kernel_ends_at_the_robust_optimum() -> None:
+    from graphopt import RobustKernelHuber
+
+    graph = manhattan_world(200, 3, sigma_xy=0.2)[0]
+    kernel = RobustKernelHuber(1.0)
+    out = replay(replay_schedule(build_graph(graph)), kernel=kernel)
+    slam = build_graph(graph)
+    for group in slam.optimizer.edge_groups():
+        group.set_kernel(slice(None), kernel)
+    slam.optimizer.optimize(100)
+    slam.optimizer.compute_active_errors()
+    best = float(slam.optimizer.active_robust_chi2())
+    assert out.incremental.chi2() <= best * 1.005
+
+
+def test_fixing_a_vertex_between_updates_rebuilds_without_it() -> None:
+    opt = SparseOptimizer()
+    _chain(opt, 5)
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    opt.vertex(4).set_fixed(True)
+    opt.add_edges(EdgeSE2, [[0, 4]], [[4.05, 0.0, 0.0]], INFO)
+    report = inc.update()
+    assert report.factor == "rebuilt" and report.reason == "flags"
+    assert inc.factor.used == 9  # poses 1-3 free
+    assert np.allclose(opt.vertex(4).estimate, [4.0, 0.0, 0.0])
