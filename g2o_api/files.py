@@ -107,7 +107,14 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
     for g in core.edge_groups():
         g.finalize()
         cls = _api_class(g.etype.__name__, [*EDGE_CLASSES.values(), *SBA_EDGES.values()], "edges")
-        pids = _param_ids(g.params, offsets, opt._parameters)
+        if cls._nparams == 0 and cls._param_type and g.params is not None:
+            # Intrinsics on the edge (or, for the Sim3 projections, on g2o's Sim3 vertex): the
+            # batch's key is their numbers, no parameter ids.
+            p, pids = g.params, []
+            key = (p.fx, p.fy, p.cx, p.cy, *((p.bf,) if hasattr(p, "bf") else ()))
+        else:
+            pids = _param_ids(g.params, offsets, opt._parameters)
+            key = tuple(pids)
         info = g.information
         meas = g.measurements.copy()  # the records keep row views of it
         infos = [info] * len(meas) if info.ndim == 2 else list(info)
@@ -122,7 +129,7 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
             edges[e] = None
             recs.append(e)
         banks_of = [opt._vertices[v]._bank for v in g.vertex_ids[0].tolist()]
-        batches.append(Batch(opt, cls, g.etype, opt._core_param(cls, tuple(pids)), recs,
+        batches.append(Batch(opt, cls, g.etype, opt._core_param(cls, key), recs,
                              g.vertex_ids.copy(), banks_of, meas,
                              None if g.info_is_identity else info.copy(), {}))
     opt._banks, opt._batches = banks, batches

@@ -311,6 +311,63 @@ def _xyz_vsc(rng: np.random.Generator, m: int) -> Sample:
     return [X, front(rng, X[:, :, :3], X[:, :, 3])], rng.normal(size=(m, 3)), \
         _t("SCamParameters")(500, 510, 320, 240, 0.1), None
 
+def _stereo_cam() -> Any:
+    from graphopt.types import StereoCameraParameters
+
+    return StereoCameraParameters(500, 510, 320, 240, 40)
+
+
+@sample("EdgeSE3ProjectXYZOnlyPose")
+def _only_pose(rng: np.random.Generator, m: int) -> Sample:
+    from graphopt.types import CameraParameters
+
+    T = pose(rng, m)
+    return [T], rng.normal(300, 50, (m, 2)), CameraParameters(500, 510, 320, 240), \
+        {"Xw": in_front(rng, T)}
+
+
+@sample("EdgeStereoSE3ProjectXYZOnlyPose")
+def _stereo_only_pose(rng: np.random.Generator, m: int) -> Sample:
+    T = pose(rng, m)
+    return [T], rng.normal(300, 50, (m, 3)), _stereo_cam(), {"Xw": in_front(rng, T)}
+
+
+@sample("EdgeStereoSE3ProjectXYZ")
+def _stereo(rng: np.random.Generator, m: int) -> Sample:
+    T = pose(rng, m)
+    return [T, in_front(rng, T)], rng.normal(300, 50, (m, 3)), _stereo_cam(), None
+
+
+@sample("EdgeSE3Expmap")
+def _se3_expmap(rng: np.random.Generator, m: int) -> Sample:
+    return [pose(rng, m), pose(rng, m)], pose(rng, m), None, None
+
+
+def _sim3(rng: np.random.Generator, m: int) -> np.ndarray:
+    from graphopt.types.sim3_lie import sim3_exp
+
+    return sim3_exp(np.c_[rng.normal(0.0, 0.3, (m, 6)), rng.normal(0.0, 0.3, m)])
+
+
+@sample("EdgeSim3")
+def _edge_sim3(rng: np.random.Generator, m: int) -> Sample:
+    return [_sim3(rng, m), _sim3(rng, m)], _sim3(rng, m), None, None
+
+
+def _sim3_projection(rng: np.random.Generator, m: int) -> Sample:
+    from graphopt.types import CameraParameters
+
+    S = _sim3(rng, m) * np.array([1.0, 1.0, 1.0, 0.0])[None, None, :]   # near the identity
+    S[:, :3, 3] *= 0.1
+    S[:, 3, 3] = 1.0
+    X = np.c_[rng.normal(0, 0.5, (m, 2)), rng.uniform(4, 8, m)]
+    return [X, S], rng.normal(300, 50, (m, 2)), CameraParameters(500, 510, 320, 240), None
+
+
+SAMPLES["EdgeSim3ProjectXYZ"] = _sim3_projection
+SAMPLES["EdgeInverseSim3ProjectXYZ"] = _sim3_projection
+
+
 #: Types whose analytic Jacobians are not the exact derivative of their error, by design: the
 #: test compares automatic differentiation with central differences instead.
 APPROXIMATE = {

@@ -11,7 +11,7 @@ from custom_types import EdgeSE2, VertexSE2, pose_graph
 
 from graphopt import GraphError, RobustKernelHuber, SparseOptimizer, StoppingConfig
 from graphopt.lie import transform_points
-from graphopt.types import EdgeSE3ProjectXYZ, VertexPointXYZ, VertexSE3Expmap
+from graphopt.types import EdgeSE3Expmap, EdgeSE3ProjectXYZ, VertexPointXYZ, VertexSE3Expmap
 
 
 @pytest.fixture(scope="module")
@@ -217,8 +217,10 @@ def test_bad_edits_are_clear_errors(scene) -> None:
         es.remove(np.ones(2, bool))
     with pytest.raises(GraphError, match="robust_kernel must be a RobustKernel or None"):
         es.set_robust_kernel("huber")
-    with pytest.raises(GraphError, match="EdgeSE3ProjectXYZ has no depth_positive"):
-        es.is_depth_positive()
+    ep = opt.add_edges(EdgeSE3Expmap, [[0, 1]], np.eye(4)[None])
+    with pytest.raises(GraphError, match="EdgeSE3Expmap has no depth_positive"):
+        ep.is_depth_positive()
+    ep.remove()
     with pytest.raises(GraphError, match=r"no vertex with id \[999\]"):
         opt.remove_vertices([999])
     with pytest.raises(GraphError, match="a level must be a non-negative integer"):

@@ -11,6 +11,12 @@ module                 types
 ``bal``                ``VertexCameraBAL``, ``EdgeBALProjection``
 ``projection``         ``CameraParameters``, ``EdgeSE3ProjectXYZ``, ``EdgeProjectXYZ2UV``,
                        ``EdgeInverseDepthProjection``
+``sba_pose``           ``StereoCameraParameters``, ``EdgeSE3ProjectXYZOnlyPose``,
+                       ``EdgeStereoSE3ProjectXYZ``, ``EdgeStereoSE3ProjectXYZOnlyPose``,
+                       ``EdgeSE3Expmap``
+``sim3``               ``VertexSim3Expmap``, ``EdgeSim3``, ``EdgeSim3ProjectXYZ``,
+                       ``EdgeInverseSim3ProjectXYZ`` (``sim3_lie``: g2o's Sim(3) exp/log,
+                       ``sim3_matrix``)
 ``photometric``        ``PhotometricParams``, ``EdgePhotometricPatch``,
                        ``EdgePhotometricPatchInverseDepth``,
                        ``EdgePhotometricPatchInverseDepthHost``
@@ -47,6 +53,11 @@ _WHERE = {
     "VertexCameraBAL": "bal", "EdgeBALProjection": "bal",
     "CameraParameters": "projection", "EdgeSE3ProjectXYZ": "projection",
     "EdgeProjectXYZ2UV": "projection", "EdgeInverseDepthProjection": "projection",
+    "StereoCameraParameters": "sba_pose", "EdgeSE3ProjectXYZOnlyPose": "sba_pose",
+    "EdgeStereoSE3ProjectXYZ": "sba_pose", "EdgeStereoSE3ProjectXYZOnlyPose": "sba_pose",
+    "EdgeSE3Expmap": "sba_pose",
+    "VertexSim3Expmap": "sim3", "EdgeSim3": "sim3", "EdgeSim3ProjectXYZ": "sim3",
+    "EdgeInverseSim3ProjectXYZ": "sim3", "sim3_matrix": "sim3_lie",
     "PhotometricParams": "photometric", "EdgePhotometricPatch": "photometric",
     "EdgePhotometricPatchInverseDepth": "photometric",
     "EdgePhotometricPatchInverseDepthHost": "photometric",

@@ -1,0 +1,147 @@
+"""g2o's own per-edge chi2 of the SBA/Sim3 types on the inputs of ``tests/sba_sim3_cases.py``,
+for the constants in ``tests/test_sba_sim3_types.py``: run with g2opy 2.3.0
+(``pip install g2opy==2.3.0``; not a test dependency) and paste the printed dictionary.
+
+What g2opy 2.3.0 cannot set is emulated with an equal g2o computation:
+
+* ``EdgeStereoSE3ProjectXYZOnlyPose`` exposes neither ``Xw`` nor its intrinsics: its reference
+  is g2o's ``EdgeStereoSE3ProjectXYZ`` with the point vertex at ``Xw`` (the same formula;
+  g2o's only-pose edge rounds ``1/z`` to a float, the binary one does not).
+* ``VertexSim3Expmap``'s intrinsics stay ``f = 1, c = 0``: the Sim3 projections get normalised
+  measurements ``(z − c)/f`` and the information ``f²Ω`` (``fx = fy = f``), which is the chi2 of
+  pixel measurements with information ``Ω`` through ``(f, f, cx, cy)``.
+
+Usage::
+
+    .venv/bin/python -P benchmarks/g2o_sba_sim3_reference.py
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+import g2opy as g2o  # noqa: E402
+import sba_sim3_cases as C  # noqa: E402
+
+
+def _se3(T: np.ndarray) -> g2o.SE3Quat:
+    return g2o.SE3Quat(np.asfortranarray(T[:3, :3]), T[:3, 3].copy())
+
+
+def _sim3(S: np.ndarray) -> g2o.Sim3:
+    sR = S[:3, :3]
+    s = float(np.sqrt((sR * sR).sum() / 3.0))
+    return g2o.Sim3(np.asfortranarray(sR / s), S[:3, 3].copy(), s)
+
+
+def _vertex(cls: type, vid: int, est: object, fixed: bool = False) -> object:
+    v = cls()
+    v.set_id(vid)
+    v.set_estimate(est)
+    v.set_fixed(fixed)
+    return v
+
+
+def _chi2(edge: object) -> float:
+    edge.compute_error()
+    return float(edge.chi2())
+
+
+def _intrinsics(e: object, stereo: bool = False) -> None:
+    e.fx, e.fy, e.cx, e.cy = C.FX, C.FY, C.CX, C.CY
+    if stereo:
+        e.bf = C.BF
+
+
+def reference() -> dict[str, list[float]]:
+    """Per-edge chi2 of every type, as g2o computes it."""
+    X, T, z2, z3 = C.points(), C.pose(), C.pixels(), C.stereo()
+    out: dict[str, list[float]] = {k: [] for k in (
+        "EdgeSE3ProjectXYZ", "EdgeSE3ProjectXYZOnlyPose", "EdgeStereoSE3ProjectXYZ",
+        "EdgeStereoSE3ProjectXYZOnlyPose", "EdgeSE3Expmap", "EdgeSim3",
+        "EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ")}
+    pose = _vertex(g2o.VertexSE3Expmap, 0, _se3(T))
+    for k in range(C.M):
+        pt = _vertex(g2o.VertexPointXYZ, 1, X[k].copy())
+        e = g2o.EdgeSE3ProjectXYZ()
+        e.set_vertex(0, pt)
+        e.set_vertex(1, pose)
+        e.set_measurement(z2[k].copy())
+        e.set_information(C.INFO2.copy())
+        _intrinsics(e)
+        out["EdgeSE3ProjectXYZ"].append(_chi2(e))
+        e = g2o.EdgeSE3ProjectXYZOnlyPose()
+        e.set_vertex(0, pose)
+        e.set_measurement(z2[k].copy())
+        e.set_information(C.INFO2.copy())
+        e.Xw = X[k].copy()
+        _intrinsics(e)
+        out["EdgeSE3ProjectXYZOnlyPose"].append(_chi2(e))
+        e = g2o.EdgeStereoSE3ProjectXYZ()
+        e.set_vertex(0, pt)
+        e.set_vertex(1, pose)
+        e.set_measurement(z3[k].copy())
+        e.set_information(C.INFO3.copy())
+        _intrinsics(e, stereo=True)
+        out["EdgeStereoSE3ProjectXYZ"].append(_chi2(e))
+        out["EdgeStereoSE3ProjectXYZOnlyPose"].append(out["EdgeStereoSE3ProjectXYZ"][-1])
+    Ti, Tj, Tij = C.pose_pairs()
+    for k in range(C.M):
+        e = g2o.EdgeSE3Expmap()
+        e.set_vertex(0, _vertex(g2o.VertexSE3Expmap, 0, _se3(Ti[k])))
+        e.set_vertex(1, _vertex(g2o.VertexSE3Expmap, 1, _se3(Tj[k])))
+        e.set_measurement(_se3(Tij[k]))
+        e.set_information(np.eye(6))
+        out["EdgeSE3Expmap"].append(_chi2(e))
+    Si, Sj, Sji = C.sim3_pairs()
+    for k in range(C.M):
+        e = g2o.EdgeSim3()
+        e.set_vertex(0, _vertex(g2o.VertexSim3Expmap, 0, _sim3(Si[k])))
+        e.set_vertex(1, _vertex(g2o.VertexSim3Expmap, 1, _sim3(Sj[k])))
+        e.set_measurement(_sim3(Sji[k]))
+        e.set_information(C.INFO7.copy())
+        out["EdgeSim3"].append(_chi2(e))
+    for name, scaled in (("EdgeSE3Expmap near optimum", False), ("EdgeSim3 near optimum", True)):
+        Xi, Xj, Z = C.near_optimum(scaled)
+        out[name] = []
+        for k in range(C.M):
+            vt, conv = (g2o.VertexSim3Expmap, _sim3) if scaled else (g2o.VertexSE3Expmap, _se3)
+            e = g2o.EdgeSim3() if scaled else g2o.EdgeSE3Expmap()
+            e.set_vertex(0, _vertex(vt, 0, conv(Xi[k])))
+            e.set_vertex(1, _vertex(vt, 1, conv(Xj[k])))
+            e.set_measurement(conv(Z[k]))
+            e.set_information(C.INFO7.copy() if scaled else np.eye(6))
+            out[name].append(_chi2(e))
+    S, zs = C.sim3_projection()
+    f, c = C.F_SIM3, np.array([C.CX, C.CY])
+    sim = _vertex(g2o.VertexSim3Expmap, 0, _sim3(S))
+    for k in range(C.M):
+        pt = _vertex(g2o.VertexPointXYZ, 1, X[k].copy())
+        for name, cls in (("EdgeSim3ProjectXYZ", g2o.EdgeSim3ProjectXYZ),
+                          ("EdgeInverseSim3ProjectXYZ", g2o.EdgeInverseSim3ProjectXYZ)):
+            e = cls()
+            e.set_vertex(0, pt)
+            e.set_vertex(1, sim)
+            e.set_measurement((zs[k] - c) / f)
+            e.set_information(C.INFO2 * f * f)
+            out[name].append(_chi2(e))
+    return out
+
+
+def main() -> None:
+    print("G2O_CHI2 = {")
+    for name, vals in reference().items():
+        print(f"    {name!r}: [")
+        for i in range(0, len(vals), 3):
+            print("        " + " ".join(f"{v!r}," for v in vals[i:i + 3]))
+        print("    ],")
+    print("}")
+
+
+if __name__ == "__main__":
+    main()
