@@ -95,3 +95,22 @@ def test_edge_reads_back_its_information_after_the_collapse() -> None:
         np.testing.assert_array_equal(got, DIAG)
         got[0, 0] = -1.0  # a copy: the shared matrix is not changed through it
     np.testing.assert_array_equal(g.information, DIAG)
+
+
+def test_diagonal_information_checks_as_the_eigenvalues_would() -> None:
+    """Per-edge diagonal matrices (σ⁻²·I) skip the eigenvalue test: the same answers —
+    accepted as given, collapsed when all equal, the first indefinite one named."""
+    from graphopt.object_batch import BatchError, checked_information
+
+    vids = np.stack([np.arange(5), np.arange(5) + 1], axis=1)
+    info = np.array([1.0, 2.0, 3.0, 4.0, 5.0])[:, None, None] * np.eye(3)
+    assert checked_information(EdgeSE2, vids, info) is info
+    same = np.repeat(2.0 * np.eye(3)[None], 5, axis=0)
+    np.testing.assert_array_equal(checked_information(EdgeSE2, vids, same), 2.0 * np.eye(3))
+    bad = info.copy()
+    bad[3, 2, 2] = -0.5
+    with pytest.raises(BatchError, match=r"vertices \[3, 4\]: .*not positive semi-definite") as e:
+        checked_information(EdgeSE2, vids, bad)
+    assert e.value.culprit == 3
+    bad[3, 2, 2] = -1e-12  # within the eigenvalue test's tolerance
+    assert checked_information(EdgeSE2, vids, bad) is bad
