@@ -258,7 +258,7 @@ class EdgeGroup:
         self.finalize()
         if not self.removals:  # nothing removed: a uid is its index
             return uids
-        pos = np.searchsorted(self.uids, uids).clip(0, max(self.size - 1, 0))
+        pos = np.minimum(np.searchsorted(self.uids, uids), max(self.size - 1, 0))
         gone = (self.uids[pos] != uids) if self.size else np.ones(len(uids), dtype=bool)
         if gone.any():
             raise GraphError(f"{self.etype.__name__}: {int(gone.sum())} of these {len(uids)} "

@@ -105,7 +105,7 @@ class ReducedPattern:
         """Rank of every block key among ``block_keys`` (−1: not in the pattern)."""
         if self._table is not None:
             return self._table[keys]
-        k = np.searchsorted(self.block_keys, keys).clip(0, max(len(self.block_keys) - 1, 0))
+        k = np.minimum(np.searchsorted(self.block_keys, keys), max(len(self.block_keys) - 1, 0))
         return np.where(self.block_keys[k] == keys, k, -1) if len(self.block_keys) else \
             np.full(len(keys), -1, dtype=np.int64)
 
