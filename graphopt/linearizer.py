@@ -338,13 +338,10 @@ class Linearizer:
         """``Ω e`` and ``e'Ω e`` per edge."""
         if g.info_is_identity:
             return e, np.einsum("me,me->m", e, e)
-        assert g.information is not None
-        if g.information.ndim == 2:
-            oe = e @ g.information
-        elif g.info_diagonal is not None:  # per-edge diagonal: the product's values, scaled
-            oe = e * g.info_diagonal
-        else:
-            oe = np.einsum("mij,mj->mi", g.information, e)
+        info, diag = g.information, g.info_diagonal  # diag: per-edge diagonal, a row scaling
+        assert info is not None
+        oe = (e @ info if info.ndim == 2 else e * diag if diag is not None
+              else np.einsum("mij,mj->mi", info, e))
         return oe, np.einsum("me,me->m", e, oe)
 
     @staticmethod

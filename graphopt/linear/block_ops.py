@@ -453,9 +453,8 @@ class GatheredGram:
         self._bufb = np.zeros(largest * r * d)
 
     def _one_output(self, a_idx: np.ndarray, b_idx: np.ndarray, r: int, d: int) -> None:
-        """The plan of one output of at most ``max_blocks`` terms (a motion-only BA's pose
-        block, a Sim3's), in O(1) numpy calls: what the general plan comes to then — one
-        chunk, one piece, no padding, the terms in their order.
+        """The general plan of one output of at most ``max_blocks`` terms (a pose's block) in
+        O(1) numpy calls: one chunk, one piece, no padding, the terms in their order.
 
         Args:
             a_idx: ``(q,)`` left blocks.
