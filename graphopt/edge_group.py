@@ -68,7 +68,8 @@ class EdgeGroup:
         self.measurements = np.zeros((0, *self.mshape))
         self.information: np.ndarray | None = None  # (e, e) shared, or (m, e, e)
         self.info_is_identity = True
-        self.info_diagonal: np.ndarray | None = None  # (e,) when the shared matrix is diagonal
+        # Diagonal information: (e,) of the shared matrix, or (m, e) of per-edge matrices.
+        self.info_diagonal: np.ndarray | None = None
         self._kidx = np.zeros(0, dtype=np.int64)  # see the kernel_index property
         self.levels = np.zeros(0, dtype=np.int64)
         self.uids = np.zeros(0, dtype=np.int64)
@@ -217,9 +218,12 @@ class EdgeGroup:
             self.information, np.eye(self.dim)
         )
         self.info_diagonal = None
-        if self.information.ndim == 2 and not np.count_nonzero(
-                self.information - np.diag(np.diag(self.information))):
-            self.info_diagonal = np.diag(self.information).copy()
+        info = self.information
+        if info.ndim == 2:
+            if not np.count_nonzero(info - np.diag(np.diag(info))):
+                self.info_diagonal = np.diag(info).copy()
+        elif np.count_nonzero(info) == np.count_nonzero(diag := info.diagonal(0, 1, 2)):
+            self.info_diagonal = np.ascontiguousarray(diag)  # σ⁻²·I per edge (a SLAM system's)
         if self._data:
             self.data = {key: _join([d[key] for d in self._data]) for key in self._data[0]}
         self.measured = self.etype.measurement_derived(self.measurements) if self.size else None
@@ -254,7 +258,7 @@ class EdgeGroup:
         self.finalize()
         if not self.removals:  # nothing removed: a uid is its index
             return uids
-        pos = np.searchsorted(self.uids, uids).clip(0, max(self.size - 1, 0))
+        pos = np.minimum(np.searchsorted(self.uids, uids), max(self.size - 1, 0))
         gone = (self.uids[pos] != uids) if self.size else np.ones(len(uids), dtype=bool)
         if gone.any():
             raise GraphError(f"{self.etype.__name__}: {int(gone.sum())} of these {len(uids)} "

@@ -64,8 +64,12 @@ def _errors(g: EdgeGroup, x: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.nda
         s = np.einsum("me,me->m", e, e)
     else:
         assert g.information is not None
-        oe = e @ g.information if g.information.ndim == 2 else np.einsum(
-            "mij,mj->mi", g.information, e)
+        if g.information.ndim == 2:
+            oe = e @ g.information
+        elif g.info_diagonal is not None:  # per-edge diagonal: the product's values, scaled
+            oe = e * g.info_diagonal
+        else:
+            oe = np.einsum("mij,mj->mi", g.information, e)
         s = np.einsum("me,me->m", e, oe)
     e.flags.writeable = False
     s.flags.writeable = False

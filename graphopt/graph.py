@@ -438,7 +438,8 @@ class Graph:
             col = vids[:, a]
             first = self.ids[int(col[0])][0]
             sids, order = self._lookup(first)
-            loc = np.searchsorted(sids, col).clip(0, max(len(sids) - 1, 0))
+            # minimum, not clip(0, …) (searchsorted is >= 0): 0.5 against 5.5 us
+            loc = np.minimum(np.searchsorted(sids, col), max(len(sids) - 1, 0))
             ok = sids[loc] == col
             if not ok.all():
                 bad = int(col[np.flatnonzero(~ok)[0]])

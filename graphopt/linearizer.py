@@ -338,9 +338,10 @@ class Linearizer:
         """``Ω e`` and ``e'Ω e`` per edge."""
         if g.info_is_identity:
             return e, np.einsum("me,me->m", e, e)
-        assert g.information is not None
-        oe = e @ g.information if g.information.ndim == 2 else np.einsum("mij,mj->mi",
-                                                                          g.information, e)
+        info, diag = g.information, g.info_diagonal  # diag: per-edge diagonal, a row scaling
+        assert info is not None
+        oe = (e @ info if info.ndim == 2 else e * diag if diag is not None
+              else np.einsum("mij,mj->mi", info, e))
         return oe, np.einsum("me,me->m", e, oe)
 
     @staticmethod
@@ -458,8 +459,8 @@ class Linearizer:
             if g.info_is_identity:
                 wj = J
             elif g.info_diagonal is not None:  # a row scaling: 3x faster than the products
-                wj = tuple(j * g.info_diagonal[None, :, None] if a else j
-                           for j, a in zip(J, live, strict=True))
+                d = g.info_diagonal[..., None]   # (e, 1) shared or (m, e, 1) per edge
+                wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
             else:
                 assert g.information is not None
                 wj = tuple(np.matmul(g.information, j) if a else j

@@ -89,6 +89,32 @@ def test_gathered_gram_sums_block_products_per_target() -> None:
     assert all(m <= 16 for _, _, m, *_ in gram.chunks)
 
 
+@pytest.mark.parametrize("same", [True, False])
+def test_gathered_gram_of_one_output_plans_as_the_general_case(same: bool) -> None:
+    """One target (a motion-only BA's pose block) takes a shortcut: the same plan and sums as
+    the general plan of that target beside an empty one."""
+    rng = np.random.default_rng(11)
+    r, d, nz, q = 2, 6, 40, 25
+    Z = rng.normal(size=(nz, r * d))
+    a = rng.integers(0, nz, q)
+    b = a if same else rng.integers(0, nz, q)
+    one = bo.GatheredGram(np.zeros(q, dtype=int), a, b, 1, r, d)
+    two = bo.GatheredGram(np.zeros(q, dtype=int), a, b, 2, r, d)  # target 1: no terms
+    assert (one.chunks, one.padded, one.gathered, one.n_out) == (
+        two.chunks, two.padded, two.gathered, two.n_out)
+    for name in ("ia", "ib", "pads", "targets"):
+        x, y = getattr(one, name), getattr(two, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y), name
+    B = None if same else Z[::-1].copy()
+    got, ref = np.full((1, d, d), np.nan), np.full((1, d, d), np.nan)
+    one(Z, got, B)
+    two(Z, ref, B)
+    assert np.array_equal(got, ref)
+    want = sum(Z[i].reshape(r, d).T @ (Z if B is None else B)[j].reshape(r, d)
+               for i, j in zip(a, b, strict=True))
+    np.testing.assert_allclose(got[0], want, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize(("p", "q", "k"), [(3, 3, 6), (3, 3, 1), (2, 4, 9), (1, 1, 1)])
 def test_block_products_match_matmul(p: int, q: int, k: int) -> None:
     rng = np.random.default_rng(p * 100 + q * 10 + k)

@@ -95,3 +95,55 @@ def test_edge_reads_back_its_information_after_the_collapse() -> None:
         np.testing.assert_array_equal(got, DIAG)
         got[0, 0] = -1.0  # a copy: the shared matrix is not changed through it
     np.testing.assert_array_equal(g.information, DIAG)
+
+
+def test_diagonal_information_checks_as_the_eigenvalues_would() -> None:
+    """Per-edge diagonal matrices (σ⁻²·I) skip the eigenvalue test: the same answers —
+    accepted as given, collapsed when all equal, the first indefinite one named."""
+    from graphopt.object_batch import BatchError, checked_information
+
+    vids = np.stack([np.arange(5), np.arange(5) + 1], axis=1)
+    info = np.array([1.0, 2.0, 3.0, 4.0, 5.0])[:, None, None] * np.eye(3)
+    assert checked_information(EdgeSE2, vids, info) is info
+    same = np.repeat(2.0 * np.eye(3)[None], 5, axis=0)
+    np.testing.assert_array_equal(checked_information(EdgeSE2, vids, same), 2.0 * np.eye(3))
+    bad = info.copy()
+    bad[3, 2, 2] = -0.5
+    with pytest.raises(BatchError, match=r"vertices \[3, 4\]: .*not positive semi-definite") as e:
+        checked_information(EdgeSE2, vids, bad)
+    assert e.value.culprit == 3
+    bad[3, 2, 2] = -1e-12  # within the eigenvalue test's tolerance
+    assert checked_information(EdgeSE2, vids, bad) is bad
+
+
+def test_per_edge_diagonal_information_scales_rows_with_the_products_values() -> None:
+    """Per-edge diagonal information (σ⁻²·I) weighs by a row scaling; the run is that of the
+    general products to the bit (an off-diagonal 1e-300 forces those: it adds less than half
+    an ulp to every product)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import slam_backend_scenes as scenes
+
+    from graphopt import RobustKernelHuber
+    from graphopt.types import EdgeStereoSE3ProjectXYZOnlyPose, VertexSE3Expmap
+
+    s = scenes.motion_only(60, True)
+    runs = []
+    for off in (0.0, 1e-300):
+        info = s.inv_sigma2[:, None, None] * np.eye(3) + off * (1.0 - np.eye(3))
+        opt = SparseOptimizer(algorithm="lm", solver="dense")
+        opt.add_vertices(VertexSE3Expmap, [0], s.T_init[None])
+        es = opt.add_edges(EdgeStereoSE3ProjectXYZOnlyPose, np.zeros((60, 1), dtype=int), s.z,
+                           information=info, robust_kernel=RobustKernelHuber(2.8),
+                           params=scenes.STEREO, data={"Xw": s.Xw})
+        g = opt.edge_groups()[0]
+        g.finalize()
+        assert (g.info_diagonal is not None) == (off == 0.0)
+        res = opt.optimize(6)
+        runs.append(([i.chi2 for i in res.info], es.chi2(), opt.vertex(0).estimate))
+    assert len(runs[0][0]) >= 2
+    assert runs[0][0] == runs[1][0]
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+    np.testing.assert_array_equal(runs[0][2], runs[1][2])

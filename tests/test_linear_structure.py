@@ -11,7 +11,7 @@ from graphopt import SparseOptimizer
 from graphopt.linear import SchurConfig, SchurCostModel
 from graphopt.linear.indexing import pairs_sharing_key, unique_ints
 from graphopt.linear.ordering import co_visibility_order
-from graphopt.linear.pattern import with_data
+from graphopt.linear.pattern import ReducedPattern, with_data
 
 
 def built(opt: SparseOptimizer):
@@ -226,3 +226,26 @@ def test_sorted_unique_equals_numpy(size: int) -> None:
                        np.unique(y, return_inverse=True))):
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("two", [False, True])
+def test_reduced_pattern_of_one_block_is_dense_column_major(two: bool) -> None:
+    """One U block (a motion-only BA's pose) takes a shortcut; its pattern, positions and
+    destinations are those of the general construction (the first block of two)."""
+    d = 6
+    if two:  # the general construction: blocks 0 and 1, block 0's entries
+        p = ReducedPattern(np.array([0, d, 2 * d]), np.array([d, d]), np.array([0, 3]))
+    else:
+        p = ReducedPattern(np.array([0, d]), np.array([d]), np.array([0]))
+    first = p.csc.indptr[: d + 1]
+    assert first.dtype == np.int32 and p.csc.indices.dtype == np.int32
+    np.testing.assert_array_equal(first, np.arange(d + 1) * d)
+    np.testing.assert_array_equal(p.csc.indices[: d * d], np.tile(np.arange(d), d))
+    np.testing.assert_array_equal(p.diag_pos[:d], np.arange(d) * (d + 1))
+    rows, cols = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
+    np.testing.assert_array_equal(p.positions(rows.ravel(), cols.ravel()),
+                                  cols.ravel() * d + rows.ravel())
+    zero = np.zeros(1, dtype=np.int64)
+    pos, post = p.dest(zero, zero, transposes=False)
+    np.testing.assert_array_equal(np.ravel(pos), (cols * d + rows).ravel())
+    assert post is None

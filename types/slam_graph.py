@@ -184,7 +184,7 @@ def _resolve_vertices(graph: GraphFile, verts: _Vertices, eids: dict[str, np.nda
         for c, vtag in enumerate(_ends(tag)):
             known, codes = verts.table()
             col = ids[:, c]
-            pos = np.searchsorted(known, col).clip(0, max(len(known) - 1, 0))
+            pos = np.minimum(np.searchsorted(known, col), max(len(known) - 1, 0))
             found = known[pos] == col if len(known) else np.zeros(len(col), bool)
             wrong = found & (codes[pos] != _TAG_ORDER.index(vtag)) if len(known) else found
             file_id = col - (shift if vtag in _POINT_EDGES else 0)

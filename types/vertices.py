@@ -9,6 +9,9 @@ import numpy as np
 from graphopt.lie import se3_exp
 from graphopt.vertex import BaseVertex, VertexVector
 
+_I3 = np.eye(3)
+_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])  # a homogeneous transform's last row
+
 
 class VertexSE3Expmap(BaseVertex):
     """A rigid transform ``T`` (world to camera, ``T_cw``) as a ``(4, 4)`` homogeneous matrix.
@@ -45,10 +48,14 @@ class VertexSE3Expmap(BaseVertex):
         """
         ok = super().validate(estimates)
         R = estimates[:, :3, :3]
-        with np.errstate(invalid="ignore"):
-            orth = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2)) < 1e-6
-            det = np.linalg.det(np.where(ok[:, None, None], R, np.eye(3))) > 0
-            bottom = np.abs(estimates[:, 3] - [0, 0, 0, 1]).max(axis=1) < 1e-12
+        if not ok.all():  # non-finite rotations checked as the identity (ok is False there)
+            R = np.where(ok[:, None, None], R, _I3)
+        # Few numpy calls: a motion-only BA checks its pose at every round's set_estimate.
+        G = np.matmul(R, np.swapaxes(R, 1, 2))
+        G -= _I3
+        orth = np.abs(G, out=G).reshape(len(R), 9).max(axis=1, initial=0.0) < 1e-6
+        det = np.linalg.det(R) > 0
+        bottom = np.abs(estimates[:, 3] - _BOTTOM).max(axis=1, initial=0.0) < 1e-12
         return ok & orth & det & bottom
 
 

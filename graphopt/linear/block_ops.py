@@ -385,12 +385,15 @@ class GatheredGram:
         max_blocks: int = 1024,
         ratio: float = 1.1,
     ) -> None:
+        self.r, self.d = r, d
+        if n_targets == 1 and 0 < len(target) <= max_blocks:
+            self._one_output(np.asarray(a_idx), np.asarray(b_idx), r, d)
+            return
         target = np.asarray(target, dtype=np.int64)
         order = np.argsort(target, kind="stable")
         target = target[order]
         a_idx = np.asarray(a_idx, dtype=np.int64)[order]
         b_idx = np.asarray(b_idx, dtype=np.int64)[order]
-        self.r, self.d = r, d
         cnt = np.bincount(target, minlength=n_targets)
         start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
         rank = np.arange(len(target)) - start[target]
@@ -448,6 +451,30 @@ class GatheredGram:
         largest = max((n * m for _, n, m, _, _, _, _ in self.chunks), default=0)
         self._bufa = np.zeros(largest * r * d)
         self._bufb = np.zeros(largest * r * d)
+
+    def _one_output(self, a_idx: np.ndarray, b_idx: np.ndarray, r: int, d: int) -> None:
+        """The general plan of one output of at most ``max_blocks`` terms (a pose's block) in
+        O(1) numpy calls: one chunk, one piece, no padding, the terms in their order.
+
+        Args:
+            a_idx: ``(q,)`` left blocks.
+            b_idx: ``(q,)`` right blocks.
+            r: Rows of a block.
+            d: Columns of a block.
+        """
+        q = len(a_idx)
+        same = bool(np.array_equal(a_idx, b_idx))
+        idx_t = np.int32 if max(q, int(a_idx.max()), int(b_idx.max())) < 2**31 else np.intp
+        self.ia = a_idx.astype(idx_t)
+        self.ib = b_idx.astype(idx_t)
+        self.chunks = [(0, 1, q, 0, same, 0, 0)]
+        self.pads = np.zeros(0, dtype=np.intp)
+        self.padded = q
+        self.gathered = q * (1 if same else 2)
+        self.targets = np.zeros(1, dtype=np.int64)
+        self.n_out = 1
+        self._bufa = np.zeros(q * r * d)
+        self._bufb = np.zeros(q * r * d)
 
     def __call__(self, A: np.ndarray, out: np.ndarray, B: np.ndarray | None = None) -> None:
         """Write every output into ``out``.

@@ -50,6 +50,9 @@ class ReducedPattern:
     def __init__(self, uoffset: np.ndarray, udims: np.ndarray, block_keys: np.ndarray) -> None:
         self.uoffset, self.udims = uoffset, udims
         self.block_keys = np.asarray(block_keys, dtype=np.int64)
+        if len(udims) == 1 and len(self.block_keys) == 1 and udims[0] > 0:
+            self._one_block(int(udims[0]))
+            return
         n, nb = int(uoffset[-1]), max(len(udims), 1)
         self.n, self._nb = n, nb
         bc, br = self.block_keys // nb, self.block_keys % nb
@@ -85,11 +88,24 @@ class ReducedPattern:
         self.diag_pos = self.positions(diag, diag)
         self.csc.diag_pos = self.diag_pos  # for the linear solvers' analyze (they check it)
 
+    def _one_block(self, d: int) -> None:
+        """The general construction's result for one dense ``(d, d)`` block (a pose, a Sim3),
+        in a few numpy calls: ``S`` is built at every initialisation of a motion-only BA."""
+        self.n, self._nb, self.nnz = d, 1, d * d
+        self._indptr = np.arange(0, d * d + 1, d, dtype=np.int64)
+        self._ptr = self._indptr.astype(np.int32)
+        self._rowoff = np.zeros(1, dtype=np.int32)
+        self._table = np.zeros(1, dtype=np.int32)
+        indices = np.tile(np.arange(d, dtype=np.int32), d)
+        self.csc = sp.csc_matrix((np.zeros(self.nnz), indices, self._ptr.copy()), shape=(d, d))
+        self.diag_pos = np.arange(d, dtype=np.int64) * (d + 1)
+        self.csc.diag_pos = self.diag_pos
+
     def _lookup(self, keys: np.ndarray) -> np.ndarray:
         """Rank of every block key among ``block_keys`` (−1: not in the pattern)."""
         if self._table is not None:
             return self._table[keys]
-        k = np.searchsorted(self.block_keys, keys).clip(0, max(len(self.block_keys) - 1, 0))
+        k = np.minimum(np.searchsorted(self.block_keys, keys), max(len(self.block_keys) - 1, 0))
         return np.where(self.block_keys[k] == keys, k, -1) if len(self.block_keys) else \
             np.full(len(keys), -1, dtype=np.int64)
 
