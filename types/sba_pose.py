@@ -32,6 +32,7 @@ from graphopt.types.projection import (
     CameraParameters,
     _pinhole,
     camera_params,
+    normalised_projection,
     pose_jacobian,
 )
 from graphopt.types.sim3_lie import log_left_jacobian, se3quat_log, sim3_adjoint
@@ -124,20 +125,11 @@ class _OnlyPose(BaseEdge):
         """Errors ``(m, 2|3)`` and, when asked, the pose Jacobians ``(m, 2|3, 6)``."""
         cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
                             else CameraParameters)
-        P = cls._point(x, ctx)
-        m = len(P)
-        iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]                  # normalised image coordinates
-        pix = uv * cam.focal + cam.centre
-        if cls.stereo:
-            e = np.empty((m, 3), like=P)             # like=: jets stay jets
-            e[:, :2] = z[:, :2] - pix
-            e[:, 2] = z[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
-        else:
-            e = z - pix
+        bf = cam.bf if cls.stereo else None  # type: ignore[attr-defined]
+        e, iz, uv = normalised_projection(cls._point(x, ctx), z, cam, bf)
         if not jacobian:
             return e, None
-        return e, pose_jacobian(iz, uv, cam, cam.bf if cls.stereo else None)  # type: ignore[attr-defined]
+        return e, pose_jacobian(iz, uv, cam, bf)
 
     @classmethod
     def depth_positive(
@@ -288,14 +280,9 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
         """
         T, X = x
         cam = camera_params(cls, ctx.params, StereoCameraParameters)
-        P = transform_points(T, X)
-        m = len(P)
-        iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]
-        pix = uv * cam.focal + cam.centre
-        e = np.empty((m, 3))
-        e[:, :2] = measurement[:, :2] - pix
-        e[:, 2] = measurement[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
+        e, iz, uv = normalised_projection(transform_points(T, X), measurement, cam,
+                                          cam.bf)  # type: ignore[attr-defined]
+        m = len(e)
         # ∂e/∂P·R: rows −f_r·iz·(R_r − uv_r·R_2), the third the first − bf·iz²·R_2.
         R = T[:, :3, :3]
         J_point = np.empty((m, 3, 3))
