@@ -89,19 +89,14 @@ def _world_points(ctx: EdgeContext, etype: type, m: int) -> np.ndarray:
     return Xw
 
 
-def _stereo(P: np.ndarray, z: np.ndarray, cam: StereoCameraParameters
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """Error ``z − [u, v, u − bf/z]`` ``(m, 3)`` and ``∂e/∂P`` ``(m, 3, 3)``."""
-    e2, D2 = _pinhole((P[:, 0], P[:, 1], P[:, 2]), z, cam)
+def _stereo(P: np.ndarray, z: np.ndarray, cam: StereoCameraParameters) -> np.ndarray:
+    """Error ``z − [u, v, u − bf/z]`` ``(m, 3)`` (the Jacobians: the edge's ``linearize``)."""
+    e2 = _pinhole((P[:, 0], P[:, 1], P[:, 2]), z, cam)[0]
     iz = 1.0 / P[:, 2]
     e = np.empty((len(P), 3), like=P)            # like=: jets stay jets (graphopt.autodiff)
     e[:, :2] = e2
     e[:, 2] = z[:, 2] - (z[:, 0] - e2[:, 0] - cam.bf * iz)
-    D = np.empty((len(P), 3, 3), like=P)
-    D[:, :2] = D2
-    D[:, 2] = D2[:, 0]
-    D[:, 2, 2] -= cam.bf * iz * iz
-    return e, D
+    return e
 
 
 class _OnlyPose(BaseEdge):
@@ -265,7 +260,7 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
             ctx: ``params``.
         """
         return _stereo(transform_points(x[0], x[1]), measurement,
-                       camera_params(cls, ctx.params, StereoCameraParameters))[0]
+                       camera_params(cls, ctx.params, StereoCameraParameters))
 
     @classmethod
     def linearize(
