@@ -115,16 +115,41 @@ class _OnlyPose(BaseEdge):
         return transform_points(x[0], _world_points(ctx, cls, len(x[0])))
 
     @classmethod
-    def _project(cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext, jacobian: bool
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Errors ``(m, 2|3)`` and, when asked, the pose Jacobians ``(m, 2|3, 6)``."""
+    def _project(cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, CameraParameters, float | None]:
+        """:func:`normalised_projection`'s ``(e, iz, uv)``, the intrinsics and ``bf`` (stereo)
+        or ``None``."""
         cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
                             else CameraParameters)
         bf = cam.bf if cls.stereo else None  # type: ignore[attr-defined]
-        e, iz, uv = normalised_projection(cls._point(x, ctx), z, cam, bf)
-        if not jacobian:
-            return e, None
-        return e, pose_jacobian(iz, uv, cam, bf)
+        return (*normalised_projection(cls._point(x, ctx), z, cam, bf), cam, bf)
+
+    @classmethod
+    def error(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """``z − π(P_c)`` (stereo: ``z − [u, v, u_r]``) ``(m, 2|3)`` for all edges.
+
+        Args:
+            x: ``(T_cw (m, 4, 4),)``.
+            measurement: ``(m, 2)`` pixels (stereo: ``(m, 3)``).
+            ctx: ``params`` (intrinsics) and ``data["Xw"]``.
+        """
+        return cls._project(x, measurement, ctx)[0]
+
+    @classmethod
+    def linearize(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> Linearization:
+        """Error and the analytic pose Jacobian ``(m, 2|3, 6)``.
+
+        Args:
+            x: ``(T_cw (m, 4, 4),)``.
+            measurement: ``(m, 2)`` pixels (stereo: ``(m, 3)``).
+            ctx: ``params`` and ``data["Xw"]``.
+        """
+        e, iz, uv, cam, bf = cls._project(x, measurement, ctx)
+        return Linearization(e, (pose_jacobian(iz, uv, cam, bf),))
 
     @classmethod
     def depth_positive(
@@ -157,33 +182,6 @@ class EdgeSE3ProjectXYZOnlyPose(_OnlyPose):
 
     dimension: ClassVar[int] = 2
 
-    @classmethod
-    def error(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """``z − π(P_c)`` for all edges.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 2)`` pixels.
-            ctx: ``params`` (intrinsics) and ``data["Xw"]``.
-        """
-        return cls._project(x, measurement, ctx, False)[0]
-
-    @classmethod
-    def linearize(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> Linearization:
-        """Error and the analytic pose Jacobian ``∂e/∂P·[−[P]×, I]`` ``(m, 2, 6)``.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 2)`` pixels.
-            ctx: ``params`` and ``data["Xw"]``.
-        """
-        e, J = cls._project(x, measurement, ctx, True)
-        return Linearization(e, (J,))
-
 
 class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
     """g2o's ``EdgeStereoSE3ProjectXYZOnlyPose``: ``e = z − [u, v, u − bf/z]`` of ``T_cw X_w``.
@@ -202,33 +200,6 @@ class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
 
     dimension: ClassVar[int] = 3
     stereo: ClassVar[bool] = True
-
-    @classmethod
-    def error(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """``z − [u, v, u_r]`` for all edges.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 3)``.
-            ctx: ``params`` and ``data["Xw"]``.
-        """
-        return cls._project(x, measurement, ctx, False)[0]
-
-    @classmethod
-    def linearize(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> Linearization:
-        """Error and the analytic pose Jacobian ``(m, 3, 6)``.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 3)``.
-            ctx: ``params`` and ``data["Xw"]``.
-        """
-        e, J = cls._project(x, measurement, ctx, True)
-        return Linearization(e, (J,))
 
 
 class EdgeStereoSE3ProjectXYZ(BaseEdge):
