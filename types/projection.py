@@ -219,7 +219,7 @@ def _pinhole_ctx(
 
 
 def _cross_matrix_rows(D: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``D · (−[p]×)`` for ``D`` ``(m, 2, 3)``: row ``r`` becomes ``p × r``."""
+    """``D · (−[p]×)`` for ``D`` ``(m, r, 3)``: row ``k`` becomes ``p × D_k``."""
     px, py, pz = p[:, 0, None], p[:, 1, None], p[:, 2, None]
     rx, ry, rz = D[:, :, 0], D[:, :, 1], D[:, :, 2]
     return np.stack([py * rz - pz * ry, pz * rx - px * rz, px * ry - py * rx], axis=2)
