@@ -58,6 +58,26 @@ def _intrinsics(e: object, stereo: bool = False) -> None:
         e.bf = C.BF
 
 
+def _point_pose_chi2(e: object, pt: object, pose: object, z: np.ndarray, info: np.ndarray,
+                     stereo: bool = False) -> float:
+    """g2o's chi2 of a (point, pose) projection edge ``e`` with the cases' intrinsics.
+
+    Args:
+        e: A new ``EdgeSE3ProjectXYZ`` or ``EdgeStereoSE3ProjectXYZ``.
+        pt: The point vertex.
+        pose: The pose vertex.
+        z: ``(2,)`` or ``(3,)`` measurement.
+        info: Information matrix.
+        stereo: Set ``bf`` too.
+    """
+    e.set_vertex(0, pt)
+    e.set_vertex(1, pose)
+    e.set_measurement(z.copy())
+    e.set_information(info.copy())
+    _intrinsics(e, stereo)
+    return _chi2(e)
+
+
 def _pair_chi2(scaled: bool, Xi: np.ndarray, Xj: np.ndarray, Z: np.ndarray) -> list[float]:
     """g2o's chi2 of ``EdgeSim3`` (``scaled``) or ``EdgeSE3Expmap`` edges, one per ``k``.
 
@@ -89,13 +109,8 @@ def reference() -> dict[str, list[float]]:
     pose = _vertex(g2o.VertexSE3Expmap, 0, _se3(T))
     for k in range(C.M):
         pt = _vertex(g2o.VertexPointXYZ, 1, X[k].copy())
-        e = g2o.EdgeSE3ProjectXYZ()
-        e.set_vertex(0, pt)
-        e.set_vertex(1, pose)
-        e.set_measurement(z2[k].copy())
-        e.set_information(C.INFO2.copy())
-        _intrinsics(e)
-        out["EdgeSE3ProjectXYZ"].append(_chi2(e))
+        out["EdgeSE3ProjectXYZ"].append(_point_pose_chi2(g2o.EdgeSE3ProjectXYZ(), pt, pose,
+                                                         z2[k], C.INFO2))
         e = g2o.EdgeSE3ProjectXYZOnlyPose()
         e.set_vertex(0, pose)
         e.set_measurement(z2[k].copy())
@@ -103,13 +118,8 @@ def reference() -> dict[str, list[float]]:
         e.Xw = X[k].copy()
         _intrinsics(e)
         out["EdgeSE3ProjectXYZOnlyPose"].append(_chi2(e))
-        e = g2o.EdgeStereoSE3ProjectXYZ()
-        e.set_vertex(0, pt)
-        e.set_vertex(1, pose)
-        e.set_measurement(z3[k].copy())
-        e.set_information(C.INFO3.copy())
-        _intrinsics(e, stereo=True)
-        out["EdgeStereoSE3ProjectXYZ"].append(_chi2(e))
+        out["EdgeStereoSE3ProjectXYZ"].append(_point_pose_chi2(
+            g2o.EdgeStereoSE3ProjectXYZ(), pt, pose, z3[k], C.INFO3, stereo=True))
         out["EdgeStereoSE3ProjectXYZOnlyPose"].append(out["EdgeStereoSE3ProjectXYZ"][-1])
     out["EdgeSE3Expmap"] = _pair_chi2(False, *C.pose_pairs())
     out["EdgeSim3"] = _pair_chi2(True, *C.sim3_pairs())
