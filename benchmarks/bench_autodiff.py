@@ -79,7 +79,27 @@ def _interleaved(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, f
             times[k].append(clock() - t)
     return {k: float(np.median(v)) for k, v in times.items()}
 
-def _report(name: str, t: dict[str, float]) -> None:
+def _compare(name: str, analytic: type, autodiff: type, x: tuple[np.ndarray, ...],
+             z: np.ndarray, ctx: EdgeContext, repeats: int) -> None:
+    """Time one linearisation by ``analytic`` (the type's own Jacobians), by ``autodiff`` (its
+    autodiff subclass: reverse, and forward jets only) and by central differences; print.
+
+    Args:
+        name: What the line reports (``"100,000 EdgeBALProjection edges"``).
+        analytic: The edge type.
+        autodiff: Its subclass with ``differentiation = "autodiff"``.
+        x: The gathered estimates ``(m, ...)`` per vertex position.
+        z: ``(m, d)`` measurements.
+        ctx: What the optimizer passes (derived values, params).
+        repeats: Interleaved runs per variant (medians).
+    """
+    t = _interleaved({
+        "analytic": lambda: analytic.linearize(x, z, ctx),
+        "autodiff": lambda: autodiff.linearize(x, z, ctx),
+        "forward": _forward(lambda: autodiff.linearize(x, z, ctx)),
+        "numeric": lambda: (analytic.evaluate(x, z, ctx),
+                            numeric_jacobians(analytic, x, z, ctx)),
+    }, repeats)
     a, d, n, f = t["analytic"], t["autodiff"], t["numeric"], t["forward"]
     print(f"{name}: analytic {a * 1e3:.1f} ms, autodiff {d * 1e3:.1f} ms (forward jets only "
           f"{f * 1e3:.1f} ms), central differences {n * 1e3:.1f} ms; autodiff/analytic "
@@ -95,15 +115,8 @@ def bench_bal(m: int, repeats: int, rng: np.random.Generator) -> None:
     cam, X = np.asfortranarray(cams[ci]), np.asfortranarray(pts[pi])  # as the optimizer gathers
     z = rng.normal(0, 200, (m, 2))
     ctx = EdgeContext(derived=(VertexCameraBAL.derived(cams)[ci], None))
-    x = (cam, X)
-    t = _interleaved({
-        "analytic": lambda: EdgeBALProjection.linearize(x, z, ctx),
-        "autodiff": lambda: EdgeBALAutodiff.linearize(x, z, ctx),
-        "forward": _forward(lambda: EdgeBALAutodiff.linearize(x, z, ctx)),
-        "numeric": lambda: (EdgeBALProjection.evaluate(x, z, ctx),
-                            numeric_jacobians(EdgeBALProjection, x, z, ctx)),
-    }, repeats)
-    _report(f"{m:,} EdgeBALProjection edges", t)
+    _compare(f"{m:,} EdgeBALProjection edges", EdgeBALProjection, EdgeBALAutodiff, (cam, X), z,
+             ctx, repeats)
 
 def bench_se3(m: int, repeats: int, rng: np.random.Generator) -> None:
     nc = 100
@@ -114,15 +127,8 @@ def bench_se3(m: int, repeats: int, rng: np.random.Generator) -> None:
     X = np.asfortranarray(np.einsum("mji,mj->mi", Tm[:, :3, :3], pc - Tm[:, :3, 3]))
     z = rng.normal(300, 50, (m, 2))
     ctx = EdgeContext(CameraParameters(500, 510, 320, 240))
-    x = (Tm, X)
-    t = _interleaved({
-        "analytic": lambda: EdgeSE3ProjectXYZ.linearize(x, z, ctx),
-        "autodiff": lambda: EdgeSE3ProjectXYZAutodiff.linearize(x, z, ctx),
-        "forward": _forward(lambda: EdgeSE3ProjectXYZAutodiff.linearize(x, z, ctx)),
-        "numeric": lambda: (EdgeSE3ProjectXYZ.evaluate(x, z, ctx),
-                            numeric_jacobians(EdgeSE3ProjectXYZ, x, z, ctx)),
-    }, repeats)
-    _report(f"{m:,} EdgeSE3ProjectXYZ edges", t)
+    _compare(f"{m:,} EdgeSE3ProjectXYZ edges", EdgeSE3ProjectXYZ, EdgeSE3ProjectXYZAutodiff,
+             (Tm, X), z, ctx, repeats)
 
 def bench_dubrovnik(iterations: int, runs: int) -> None:
     path = DATA / "problem-16-22106-pre.txt.bz2"

@@ -58,6 +58,47 @@ def _intrinsics(e: object, stereo: bool = False) -> None:
         e.bf = C.BF
 
 
+def _point_pose_chi2(e: object, pt: object, pose: object, z: np.ndarray, info: np.ndarray,
+                     stereo: bool = False) -> float:
+    """g2o's chi2 of a (point, pose) projection edge ``e`` with the cases' intrinsics.
+
+    Args:
+        e: A new ``EdgeSE3ProjectXYZ`` or ``EdgeStereoSE3ProjectXYZ``.
+        pt: The point vertex.
+        pose: The pose vertex.
+        z: ``(2,)`` or ``(3,)`` measurement.
+        info: Information matrix.
+        stereo: Set ``bf`` too.
+    """
+    e.set_vertex(0, pt)
+    e.set_vertex(1, pose)
+    e.set_measurement(z.copy())
+    e.set_information(info.copy())
+    _intrinsics(e, stereo)
+    return _chi2(e)
+
+
+def _pair_chi2(scaled: bool, Xi: np.ndarray, Xj: np.ndarray, Z: np.ndarray) -> list[float]:
+    """g2o's chi2 of ``EdgeSim3`` (``scaled``) or ``EdgeSE3Expmap`` edges, one per ``k``.
+
+    Args:
+        scaled: Sim(3) (information ``C.INFO7``) or SE(3) (the identity).
+        Xi: ``(M, 4, 4)`` first vertices.
+        Xj: ``(M, 4, 4)`` second vertices.
+        Z: ``(M, 4, 4)`` measurements.
+    """
+    vt, conv = (g2o.VertexSim3Expmap, _sim3) if scaled else (g2o.VertexSE3Expmap, _se3)
+    out = []
+    for k in range(C.M):
+        e = g2o.EdgeSim3() if scaled else g2o.EdgeSE3Expmap()
+        e.set_vertex(0, _vertex(vt, 0, conv(Xi[k])))
+        e.set_vertex(1, _vertex(vt, 1, conv(Xj[k])))
+        e.set_measurement(conv(Z[k]))
+        e.set_information(C.INFO7.copy() if scaled else np.eye(6))
+        out.append(_chi2(e))
+    return out
+
+
 def reference() -> dict[str, list[float]]:
     """Per-edge chi2 of every type, as g2o computes it."""
     X, T, z2, z3 = C.points(), C.pose(), C.pixels(), C.stereo()
@@ -68,13 +109,8 @@ def reference() -> dict[str, list[float]]:
     pose = _vertex(g2o.VertexSE3Expmap, 0, _se3(T))
     for k in range(C.M):
         pt = _vertex(g2o.VertexPointXYZ, 1, X[k].copy())
-        e = g2o.EdgeSE3ProjectXYZ()
-        e.set_vertex(0, pt)
-        e.set_vertex(1, pose)
-        e.set_measurement(z2[k].copy())
-        e.set_information(C.INFO2.copy())
-        _intrinsics(e)
-        out["EdgeSE3ProjectXYZ"].append(_chi2(e))
+        out["EdgeSE3ProjectXYZ"].append(_point_pose_chi2(g2o.EdgeSE3ProjectXYZ(), pt, pose,
+                                                         z2[k], C.INFO2))
         e = g2o.EdgeSE3ProjectXYZOnlyPose()
         e.set_vertex(0, pose)
         e.set_measurement(z2[k].copy())
@@ -82,41 +118,13 @@ def reference() -> dict[str, list[float]]:
         e.Xw = X[k].copy()
         _intrinsics(e)
         out["EdgeSE3ProjectXYZOnlyPose"].append(_chi2(e))
-        e = g2o.EdgeStereoSE3ProjectXYZ()
-        e.set_vertex(0, pt)
-        e.set_vertex(1, pose)
-        e.set_measurement(z3[k].copy())
-        e.set_information(C.INFO3.copy())
-        _intrinsics(e, stereo=True)
-        out["EdgeStereoSE3ProjectXYZ"].append(_chi2(e))
+        out["EdgeStereoSE3ProjectXYZ"].append(_point_pose_chi2(
+            g2o.EdgeStereoSE3ProjectXYZ(), pt, pose, z3[k], C.INFO3, stereo=True))
         out["EdgeStereoSE3ProjectXYZOnlyPose"].append(out["EdgeStereoSE3ProjectXYZ"][-1])
-    Ti, Tj, Tij = C.pose_pairs()
-    for k in range(C.M):
-        e = g2o.EdgeSE3Expmap()
-        e.set_vertex(0, _vertex(g2o.VertexSE3Expmap, 0, _se3(Ti[k])))
-        e.set_vertex(1, _vertex(g2o.VertexSE3Expmap, 1, _se3(Tj[k])))
-        e.set_measurement(_se3(Tij[k]))
-        e.set_information(np.eye(6))
-        out["EdgeSE3Expmap"].append(_chi2(e))
-    Si, Sj, Sji = C.sim3_pairs()
-    for k in range(C.M):
-        e = g2o.EdgeSim3()
-        e.set_vertex(0, _vertex(g2o.VertexSim3Expmap, 0, _sim3(Si[k])))
-        e.set_vertex(1, _vertex(g2o.VertexSim3Expmap, 1, _sim3(Sj[k])))
-        e.set_measurement(_sim3(Sji[k]))
-        e.set_information(C.INFO7.copy())
-        out["EdgeSim3"].append(_chi2(e))
+    out["EdgeSE3Expmap"] = _pair_chi2(False, *C.pose_pairs())
+    out["EdgeSim3"] = _pair_chi2(True, *C.sim3_pairs())
     for name, scaled in (("EdgeSE3Expmap near optimum", False), ("EdgeSim3 near optimum", True)):
-        Xi, Xj, Z = C.near_optimum(scaled)
-        out[name] = []
-        for k in range(C.M):
-            vt, conv = (g2o.VertexSim3Expmap, _sim3) if scaled else (g2o.VertexSE3Expmap, _se3)
-            e = g2o.EdgeSim3() if scaled else g2o.EdgeSE3Expmap()
-            e.set_vertex(0, _vertex(vt, 0, conv(Xi[k])))
-            e.set_vertex(1, _vertex(vt, 1, conv(Xj[k])))
-            e.set_measurement(conv(Z[k]))
-            e.set_information(C.INFO7.copy() if scaled else np.eye(6))
-            out[name].append(_chi2(e))
+        out[name] = _pair_chi2(scaled, *C.near_optimum(scaled))
     S, zs = C.sim3_projection()
     f, c = C.F_SIM3, np.array([C.CX, C.CY])
     sim = _vertex(g2o.VertexSim3Expmap, 0, _sim3(S))

@@ -124,6 +124,30 @@ def _lots_edge(g2o: Any, opt: Any, cls: str, d: int, verts: list[Any], z: np.nda
     return e
 
 
+def _lots_case(rng: np.random.Generator, name: str, vertices: tuple[str, str], d: int,
+               poses: np.ndarray, pose: Callable[[Any, np.ndarray], Any]) -> dict[str, Any]:
+    """The record of ``M`` edges of the variable-arity type ``name`` with ``k = 3`` random
+    points each (drawn here, then the measurements and the information).
+
+    Args:
+        rng: The generator (its draws continue the caller's sequence).
+        name: ``EdgeSE3LotsOfXYZ`` or ``EdgeSE2LotsOfXY``.
+        vertices: g2o's pose and point vertex class names.
+        d: The point dimension.
+        poses: ``(M, ...)`` the poses, in graphopt's layout.
+        pose: ``pose(g2o, poses[i])``: the g2o estimate of a pose.
+    """
+    k = 3
+    pts = [rng.normal(0, 3, (M, d)) for _ in range(k)]
+    c = Case(name, [poses, *pts], rng.normal(size=(M, d * k)), _info(rng, M, d * k))
+
+    def build(g2o: Any, opt: Any, i: int) -> Any:
+        v = [_vertex(g2o, opt, vertices[0], 10 * i, pose(g2o, poses[i]))]
+        v += [_vertex(g2o, opt, vertices[1], 10 * i + 1 + j, pts[j][i]) for j in range(k)]
+        return _lots_edge(g2o, opt, name, d, v, c.z[i], c.info[i])
+    return c.record(_g2o_chi2(c, build))
+
+
 def _iso(g2o: Any, T: np.ndarray) -> Any:
     return g2o.Isometry3d(np.ascontiguousarray(T))
 
@@ -173,15 +197,7 @@ def slam3d(rng: np.random.Generator) -> list[dict[str, Any]]:
         return _edge(g2o, opt, "EdgeSE3XYZPrior", [v], c.z[i], c.info[i], (0,))
     out.append(c.record(_g2o_chi2(c, b_xyzp)))
 
-    k = 3
-    pts = [rng.normal(0, 3, (M, 3)) for _ in range(k)]
-    c = Case("EdgeSE3LotsOfXYZ", [xi, *pts], rng.normal(size=(M, 3 * k)), _info(rng, M, 3 * k))
-
-    def b_lots(g2o: Any, opt: Any, i: int) -> Any:
-        v = [_vertex(g2o, opt, "VertexSE3", 10 * i, _iso(g2o, xi[i]))]
-        v += [_vertex(g2o, opt, "VertexPointXYZ", 10 * i + 1 + j, pts[j][i]) for j in range(k)]
-        return _lots_edge(g2o, opt, "EdgeSE3LotsOfXYZ", 3, v, c.z[i], c.info[i])
-    out.append(c.record(_g2o_chi2(c, b_lots)))
+    out.append(_lots_case(rng, "EdgeSE3LotsOfXYZ", ("VertexSE3", "VertexPointXYZ"), 3, xi, _iso))
     out += _camera_edges(rng, xi)
     return out
 
@@ -274,15 +290,7 @@ def slam2d(rng: np.random.Generator) -> list[dict[str, Any]]:
             return _edge(g2o, opt, c.name, v, zi, c.info[i], pids)
         out.append(c.record(_g2o_chi2(c, build)))
 
-    k = 3
-    pts = [rng.normal(0, 3, (M, 2)) for _ in range(k)]
-    c = Case("EdgeSE2LotsOfXY", [xi, *pts], rng.normal(size=(M, 2 * k)), _info(rng, M, 2 * k))
-
-    def b_lots(g2o: Any, opt: Any, i: int) -> Any:
-        v = [_vertex(g2o, opt, "VertexSE2", 10 * i, se2(g2o, xi[i]))]
-        v += [_vertex(g2o, opt, "VertexPointXY", 10 * i + 1 + j, pts[j][i]) for j in range(k)]
-        return _lots_edge(g2o, opt, "EdgeSE2LotsOfXY", 2, v, c.z[i], c.info[i])
-    out.append(c.record(_g2o_chi2(c, b_lots)))
+    out.append(_lots_case(rng, "EdgeSE2LotsOfXY", ("VertexSE2", "VertexPointXY"), 2, xi, se2))
     return out
 
 

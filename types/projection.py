@@ -31,6 +31,7 @@ from graphopt.vertex import BaseVertex
 __all__ = [
     "CameraParameters",
     "camera_params",
+    "normalised_projection",
     "pose_jacobian",
     "pose_jacobian_map",
     "EdgeInverseDepthProjection",
@@ -165,6 +166,32 @@ def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
     return J.reshape(m, 2 if bf is None else 3, 6)
 
 
+def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
+                          bf: float | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Errors ``z − [u, v]`` (with ``bf``: ``z − [u, v, u − bf/z]``) of camera-frame points,
+    with the ``iz`` and ``uv`` that :func:`pose_jacobian` takes.
+
+    Args:
+        P: ``(m, 3)`` camera-frame points.
+        z: ``(m, 2)`` pixels, or ``(m, 3)`` ``(u, v, u_r)`` with ``bf``.
+        cam: The intrinsics.
+        bf: Stereo baseline × ``fx``, or ``None`` (mono).
+
+    Returns:
+        ``(e (m, 2|3), iz (m,), uv (m, 2))``.
+    """
+    iz = 1.0 / P[:, 2]
+    uv = P[:, :2] * iz[:, None]                  # normalised image coordinates
+    pix = uv * cam.focal + cam.centre
+    if bf is None:
+        return z - pix, iz, uv
+    e = np.empty((len(P), 3), like=P)            # like=: jets stay jets (graphopt.autodiff)
+    e[:, :2] = z[:, :2] - pix
+    e[:, 2] = z[:, 2] - (pix[:, 0] - bf * iz)
+    return e, iz, uv
+
+
 def _pinhole(
     h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -192,7 +219,7 @@ def _pinhole_ctx(
 
 
 def _cross_matrix_rows(D: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``D · (−[p]×)`` for ``D`` ``(m, 2, 3)``: row ``r`` becomes ``p × r``."""
+    """``D · (−[p]×)`` for ``D`` ``(m, r, 3)``: row ``k`` becomes ``p × D_k``."""
     px, py, pz = p[:, 0, None], p[:, 1, None], p[:, 2, None]
     rx, ry, rz = D[:, :, 0], D[:, :, 1], D[:, :, 2]
     return np.stack([py * rz - pz * ry, pz * rx - px * rz, px * ry - py * rx], axis=2)

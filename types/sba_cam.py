@@ -232,7 +232,7 @@ class EdgeProjectP2SC(EdgeProjectP2MC):
 
 
 def _cam_poses(cams: np.ndarray) -> np.ndarray:
-    """``(m, 3, 4)`` ``[R | t]`` of cameras."""
+    """``(m, 3, 4)`` ``[R | t]`` of rows ``[t, q, …]``: cameras, or ``SE3Quat`` measurements."""
     T = np.empty((len(cams), 3, 4), like=cams)  # like=: jets stay jets (graphopt.autodiff)
     T[:, :, :3] = quat_to_rot(cams[:, 3:7])
     T[:, :, 3] = cams[:, :3]
@@ -259,10 +259,7 @@ class EdgeSBACam(EdgeFromParts):
 
     @classmethod
     def _poses(cls, x: Sequence[np.ndarray], z: np.ndarray) -> tuple[np.ndarray, ...]:
-        Z = np.empty((len(z), 3, 4))
-        Z[:, :, :3] = quat_to_rot(z[:, 3:7])
-        Z[:, :, 3] = z[:, :3]
-        return _cam_poses(x[0]), _cam_poses(x[1]), Z
+        return _cam_poses(x[0]), _cam_poses(x[1]), _cam_poses(z)
 
     @classmethod
     def _parts(cls, x: Sequence[np.ndarray], z: np.ndarray,

@@ -18,7 +18,11 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.lie import transform_points
-from graphopt.types.projection import CameraParameters, EdgeInverseDepthProjection
+from graphopt.types.projection import (
+    CameraParameters,
+    EdgeInverseDepthProjection,
+    _cross_matrix_rows,
+)
 from graphopt.types.sba_cam import stereo_projection
 from graphopt.types.vertices import VertexPointXYZ, VertexSE3Expmap
 from graphopt.vertex import BaseVertex
@@ -69,11 +73,6 @@ class SBACameraParameters(CameraParameters):
             return params
         raise TypeError(f"{name} needs params=SBACameraParameters(fx, fy, cx, cy, baseline), "
                         f"got {type(params).__name__}")
-
-
-def _cross_rows(D: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``D · (−[p]×)`` for ``D`` ``(m, r, 3)``: row ``k`` becomes ``p × D_k``."""
-    return np.cross(p[:, None, :], D)
 
 
 class EdgeProjectXYZ2UVU(BaseEdge):
@@ -128,7 +127,7 @@ class EdgeProjectXYZ2UVU(BaseEdge):
             ``(e (m, 3), (J_pose (m, 3, 6), J_point (m, 3, 3)))``.
         """
         e, D, P = cls._project(x, measurement, ctx)
-        J_pose = np.concatenate([-_cross_rows(D, P), -D], axis=2)
+        J_pose = np.concatenate([-_cross_matrix_rows(D, P), -D], axis=2)
         return Linearization(e, (J_pose, -(D @ x[0][:, :3, :3])))
 
 

@@ -32,6 +32,7 @@ from graphopt.types.projection import (
     CameraParameters,
     _pinhole,
     camera_params,
+    normalised_projection,
     pose_jacobian,
 )
 from graphopt.types.sim3_lie import log_left_jacobian, se3quat_log, sim3_adjoint
@@ -88,19 +89,14 @@ def _world_points(ctx: EdgeContext, etype: type, m: int) -> np.ndarray:
     return Xw
 
 
-def _stereo(P: np.ndarray, z: np.ndarray, cam: StereoCameraParameters
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """Error ``z − [u, v, u − bf/z]`` ``(m, 3)`` and ``∂e/∂P`` ``(m, 3, 3)``."""
-    e2, D2 = _pinhole((P[:, 0], P[:, 1], P[:, 2]), z, cam)
+def _stereo(P: np.ndarray, z: np.ndarray, cam: StereoCameraParameters) -> np.ndarray:
+    """Error ``z − [u, v, u − bf/z]`` ``(m, 3)`` (the Jacobians: the edge's ``linearize``)."""
+    e2 = _pinhole((P[:, 0], P[:, 1], P[:, 2]), z, cam)[0]
     iz = 1.0 / P[:, 2]
     e = np.empty((len(P), 3), like=P)            # like=: jets stay jets (graphopt.autodiff)
     e[:, :2] = e2
     e[:, 2] = z[:, 2] - (z[:, 0] - e2[:, 0] - cam.bf * iz)
-    D = np.empty((len(P), 3, 3), like=P)
-    D[:, :2] = D2
-    D[:, 2] = D2[:, 0]
-    D[:, 2, 2] -= cam.bf * iz * iz
-    return e, D
+    return e
 
 
 class _OnlyPose(BaseEdge):
@@ -119,25 +115,41 @@ class _OnlyPose(BaseEdge):
         return transform_points(x[0], _world_points(ctx, cls, len(x[0])))
 
     @classmethod
-    def _project(cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext, jacobian: bool
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Errors ``(m, 2|3)`` and, when asked, the pose Jacobians ``(m, 2|3, 6)``."""
+    def _project(cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, CameraParameters, float | None]:
+        """:func:`normalised_projection`'s ``(e, iz, uv)``, the intrinsics and ``bf`` (stereo)
+        or ``None``."""
         cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
                             else CameraParameters)
-        P = cls._point(x, ctx)
-        m = len(P)
-        iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]                  # normalised image coordinates
-        pix = uv * cam.focal + cam.centre
-        if cls.stereo:
-            e = np.empty((m, 3), like=P)             # like=: jets stay jets
-            e[:, :2] = z[:, :2] - pix
-            e[:, 2] = z[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
-        else:
-            e = z - pix
-        if not jacobian:
-            return e, None
-        return e, pose_jacobian(iz, uv, cam, cam.bf if cls.stereo else None)  # type: ignore[attr-defined]
+        bf = cam.bf if cls.stereo else None  # type: ignore[attr-defined]
+        return (*normalised_projection(cls._point(x, ctx), z, cam, bf), cam, bf)
+
+    @classmethod
+    def error(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> np.ndarray:
+        """``z − π(P_c)`` (stereo: ``z − [u, v, u_r]``) ``(m, 2|3)`` for all edges.
+
+        Args:
+            x: ``(T_cw (m, 4, 4),)``.
+            measurement: ``(m, 2)`` pixels (stereo: ``(m, 3)``).
+            ctx: ``params`` (intrinsics) and ``data["Xw"]``.
+        """
+        return cls._project(x, measurement, ctx)[0]
+
+    @classmethod
+    def linearize(
+        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
+    ) -> Linearization:
+        """Error and the analytic pose Jacobian ``(m, 2|3, 6)``.
+
+        Args:
+            x: ``(T_cw (m, 4, 4),)``.
+            measurement: ``(m, 2)`` pixels (stereo: ``(m, 3)``).
+            ctx: ``params`` and ``data["Xw"]``.
+        """
+        e, iz, uv, cam, bf = cls._project(x, measurement, ctx)
+        return Linearization(e, (pose_jacobian(iz, uv, cam, bf),))
 
     @classmethod
     def depth_positive(
@@ -170,33 +182,6 @@ class EdgeSE3ProjectXYZOnlyPose(_OnlyPose):
 
     dimension: ClassVar[int] = 2
 
-    @classmethod
-    def error(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """``z − π(P_c)`` for all edges.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 2)`` pixels.
-            ctx: ``params`` (intrinsics) and ``data["Xw"]``.
-        """
-        return cls._project(x, measurement, ctx, False)[0]
-
-    @classmethod
-    def linearize(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> Linearization:
-        """Error and the analytic pose Jacobian ``∂e/∂P·[−[P]×, I]`` ``(m, 2, 6)``.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 2)`` pixels.
-            ctx: ``params`` and ``data["Xw"]``.
-        """
-        e, J = cls._project(x, measurement, ctx, True)
-        return Linearization(e, (J,))
-
 
 class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
     """g2o's ``EdgeStereoSE3ProjectXYZOnlyPose``: ``e = z − [u, v, u − bf/z]`` of ``T_cw X_w``.
@@ -215,33 +200,6 @@ class EdgeStereoSE3ProjectXYZOnlyPose(_OnlyPose):
 
     dimension: ClassVar[int] = 3
     stereo: ClassVar[bool] = True
-
-    @classmethod
-    def error(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> np.ndarray:
-        """``z − [u, v, u_r]`` for all edges.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 3)``.
-            ctx: ``params`` and ``data["Xw"]``.
-        """
-        return cls._project(x, measurement, ctx, False)[0]
-
-    @classmethod
-    def linearize(
-        cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
-    ) -> Linearization:
-        """Error and the analytic pose Jacobian ``(m, 3, 6)``.
-
-        Args:
-            x: ``(T_cw (m, 4, 4),)``.
-            measurement: ``(m, 3)``.
-            ctx: ``params`` and ``data["Xw"]``.
-        """
-        e, J = cls._project(x, measurement, ctx, True)
-        return Linearization(e, (J,))
 
 
 class EdgeStereoSE3ProjectXYZ(BaseEdge):
@@ -273,7 +231,7 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
             ctx: ``params``.
         """
         return _stereo(transform_points(x[0], x[1]), measurement,
-                       camera_params(cls, ctx.params, StereoCameraParameters))[0]
+                       camera_params(cls, ctx.params, StereoCameraParameters))
 
     @classmethod
     def linearize(
@@ -288,14 +246,9 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
         """
         T, X = x
         cam = camera_params(cls, ctx.params, StereoCameraParameters)
-        P = transform_points(T, X)
-        m = len(P)
-        iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]
-        pix = uv * cam.focal + cam.centre
-        e = np.empty((m, 3))
-        e[:, :2] = measurement[:, :2] - pix
-        e[:, 2] = measurement[:, 2] - (pix[:, 0] - cam.bf * iz)  # type: ignore[attr-defined]
+        e, iz, uv = normalised_projection(transform_points(T, X), measurement, cam,
+                                          cam.bf)  # type: ignore[attr-defined]
+        m = len(e)
         # ∂e/∂P·R: rows −f_r·iz·(R_r − uv_r·R_2), the third the first − bf·iz²·R_2.
         R = T[:, :3, :3]
         J_point = np.empty((m, 3, 3))

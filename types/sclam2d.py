@@ -15,7 +15,14 @@ from typing import ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.types.slam2d import EdgeFromParts, EdgeSE2, VertexSE2, normalize_theta
+from graphopt.types.slam2d import (
+    EdgeFromParts,
+    EdgeSE2,
+    VertexSE2,
+    _by_offset,
+    _by_pose,
+    _sensor_pose,
+)
 from graphopt.vertex import BaseVertex, VertexVector
 
 __all__ = [
@@ -24,29 +31,6 @@ __all__ = [
     "VertexOdomDifferentialParams",
     "differential_motion",
 ]
-
-
-def _compose(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``X·L`` ``(m, 3)`` and ``R(θ_X) t_L`` ``(m, 2)``."""
-    c, s = np.cos(X[:, 2]), np.sin(X[:, 2])
-    rt = np.column_stack([c * L[:, 0] - s * L[:, 1], s * L[:, 0] + c * L[:, 1]])
-    return np.column_stack([X[:, :2] + rt, normalize_theta(X[:, 2] + L[:, 2])]), rt
-
-
-def _by_pose(J: np.ndarray, rt: np.ndarray) -> np.ndarray:
-    """``J·∂(X·L)/∂X``: the sensor's position turns with ``θ_X``."""
-    out = J.copy()
-    out[:, :, 2] += -J[:, :, 0] * rt[:, None, 1] + J[:, :, 1] * rt[:, None, 0]
-    return out
-
-
-def _by_offset(J: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """``J·∂(X·L)/∂L = J·diag(R(θ_X), 1)``."""
-    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-    out = J.copy()
-    out[:, :, 0] = J[:, :, 0] * c + J[:, :, 1] * s
-    out[:, :, 1] = -J[:, :, 0] * s + J[:, :, 1] * c
-    return out
 
 
 class EdgeSE2SensorCalib(EdgeFromParts):
@@ -67,8 +51,8 @@ class EdgeSE2SensorCalib(EdgeFromParts):
     @classmethod
     def _parts(cls, x: Sequence[np.ndarray], z: np.ndarray,
                ctx: EdgeContext) -> tuple[np.ndarray, ...]:
-        A, _ = _compose(x[0], x[2])
-        B, _ = _compose(x[1], x[2])
+        A, _ = _sensor_pose(x[0], x[2])
+        B, _ = _sensor_pose(x[1], x[2])
         return (EdgeSE2.error((A, B), z, EdgeContext()),)
 
     @classmethod
@@ -84,8 +68,8 @@ class EdgeSE2SensorCalib(EdgeFromParts):
         Returns:
             ``(e (m, 3), (J_1, J_2, J_L))``, each ``(m, 3, 3)``.
         """
-        A, ra = _compose(x[0], x[2])
-        B, rb = _compose(x[1], x[2])
+        A, ra = _sensor_pose(x[0], x[2])
+        B, rb = _sensor_pose(x[1], x[2])
         lin = EdgeSE2.linearize((A, B), measurement, EdgeContext())
         JA, JB = lin.jacobians
         JL = _by_offset(JA, x[0][:, 2]) + _by_offset(JB, x[1][:, 2])

@@ -36,7 +36,12 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.types.projection import _cross_matrix_rows, camera_params, pose_jacobian
+from graphopt.types.projection import (
+    _cross_matrix_rows,
+    camera_params,
+    normalised_projection,
+    pose_jacobian,
+)
 from graphopt.types.sim3_lie import (
     log_left_jacobian,
     sim3_adjoint,
@@ -277,9 +282,7 @@ class _Sim3Projection(BaseEdge):
         else:                                    # P = sRX + t
             M = S[:, :3, :3]
             P = np.matmul(M, X[:, :, None])[:, :, 0] + S[:, :3, 3]
-        iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]
-        e = measurement - (uv * cam.focal + cam.centre)
+        e, iz, uv = normalised_projection(P, measurement, cam)
         # ∂e/∂P = −f·iz·[[1, 0, −u], [0, 1, −v]], times ∂P/∂X = M row by row.
         J_point = (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
                                                                   * cam.focal[:, None])

@@ -167,6 +167,32 @@ def _rotate_back(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cz * z[:, 0] + sz * z[:, 1], cz * z[:, 1] - sz * z[:, 0]
 
 
+def _sensor_pose(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sensor poses ``X·L`` ``(m, 3)`` of poses ``X`` with sensor offsets ``L`` ``(m, 3)``,
+    and ``R(θ_X) t_L`` ``(m, 2)`` (whose perpendicular is the derivative of the sensor position
+    by ``θ_X``: :func:`_by_pose`)."""
+    c, s = np.cos(X[:, 2]), np.sin(X[:, 2])
+    rt = np.column_stack([c * L[:, 0] - s * L[:, 1], s * L[:, 0] + c * L[:, 1]])
+    return np.column_stack([X[:, :2] + rt, normalize_theta(X[:, 2] + L[:, 2])]), rt
+
+
+def _by_pose(J: np.ndarray, rt: np.ndarray) -> np.ndarray:
+    """``J·∂(X·L)/∂X`` ``(m, r, 3)`` for the additive update: the sensor's position turns with
+    ``θ_X`` (``∂t_S/∂θ = [−(R t_L)_y, (R t_L)_x]``, ``rt`` from :func:`_sensor_pose`)."""
+    out = J.copy()
+    out[:, :, 2] += -J[:, :, 0] * rt[:, None, 1] + J[:, :, 1] * rt[:, None, 0]
+    return out
+
+
+def _by_offset(J: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """``J·∂(X·L)/∂L = J·diag(R(θ_X), 1)`` ``(m, r, 3)``."""
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    out = J.copy()
+    out[:, :, 0] = J[:, :, 0] * c + J[:, :, 1] * s
+    out[:, :, 1] = -J[:, :, 0] * s + J[:, :, 1] * c
+    return out
+
+
 class EdgeFromParts(BaseEdge):
     """Base of the SLAM edge types: ``error`` and ``linearize`` share one batched computation,
     :meth:`_parts`, which returns the ``(m, dimension)`` errors first and then what the

@@ -31,6 +31,9 @@ from graphopt.types.slam2d import (
     EdgeSE2PointXY,
     VertexPointXY,
     VertexSE2,
+    _by_offset,
+    _by_pose,
+    _sensor_pose,
     normalize_theta,
 )
 from graphopt.vertex import BaseVertex
@@ -205,24 +208,6 @@ class ParameterSE2Offset:
 _ZERO_OFFSET = ParameterSE2Offset()
 
 
-def _with_offset(X: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``X·P`` ``(m, 3)`` and ``R(θ_X) t_P`` ``(m, 2)`` (whose perpendicular is the derivative
-    of the sensor position by ``θ_X``)."""
-    c, s = np.cos(X[:, 2]), np.sin(X[:, 2])
-    rt = np.column_stack([c * P[0] - s * P[1], s * P[0] + c * P[1]])
-    out = np.empty_like(X)
-    out[:, :2] = X[:, :2] + rt
-    out[:, 2] = normalize_theta(X[:, 2] + P[2])
-    return out, rt
-
-
-def _chain(J: np.ndarray, rt: np.ndarray) -> np.ndarray:
-    """``J · ∂(X·P)/∂X`` for the additive update: ``∂t_S/∂θ = [−(Rt_P)_y, (Rt_P)_x]``."""
-    out = J.copy()
-    out[:, :, 2] += J[:, :, 0] * -rt[:, None, 1] + J[:, :, 1] * rt[:, None, 0]
-    return out
-
-
 class EdgeSE2Offset(EdgeFromParts):
     """Relative pose of two sensors on two :class:`VertexSE2` (g2o's ``EdgeSE2Offset``):
     ``e = t2v(Z⁻¹·(Xi·Pi)⁻¹·(Xj·Pj))`` ``(m, 3)``, :class:`EdgeSE2`'s error of the sensor
@@ -254,8 +239,9 @@ class EdgeSE2Offset(EdgeFromParts):
                 raise TypeError("EdgeSE2Offset takes params=(offset_from, offset_to), got "
                                 f"{type(p).__name__}") from None
             pi, pj = ParameterSE2Offset.coerce(a), ParameterSE2Offset.coerce(b)
-        A, ra = _with_offset(x[0], pi.offset)
-        B, rb = _with_offset(x[1], pj.offset)
+        # One offset for every edge of the group.
+        A, ra = _sensor_pose(x[0], np.broadcast_to(pi.offset, (len(x[0]), 3)))
+        B, rb = _sensor_pose(x[1], np.broadcast_to(pj.offset, (len(x[1]), 3)))
         return A, B, ra, rb
 
     @classmethod
@@ -280,7 +266,7 @@ class EdgeSE2Offset(EdgeFromParts):
         A, B, ra, rb = cls._sensors(x, ctx)
         lin = EdgeSE2.linearize((A, B), measurement, EdgeContext())
         Ji, Jj = lin.jacobians
-        return Linearization(lin.error, (_chain(Ji, ra), _chain(Jj, rb)))
+        return Linearization(lin.error, (_by_pose(Ji, ra), _by_pose(Jj, rb)))
 
 
 class EdgeSE2PointXYOffset(EdgeSE2PointXY):
@@ -319,17 +305,9 @@ class EdgeSE2PointXYCalib(EdgeFromParts):
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE2, VertexPointXY, VertexSE2)
 
     @classmethod
-    def _sensor(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        X, C = x[0], x[2]
-        c, s = np.cos(X[:, 2]), np.sin(X[:, 2])
-        rt = np.column_stack([c * C[:, 0] - s * C[:, 1], s * C[:, 0] + c * C[:, 1]])
-        S = np.column_stack([X[:, :2] + rt, normalize_theta(X[:, 2] + C[:, 2])])
-        return S, rt
-
-    @classmethod
     def _parts(cls, x: Sequence[np.ndarray], z: np.ndarray,
                ctx: EdgeContext) -> tuple[np.ndarray, ...]:
-        return (EdgeSE2PointXY.error((cls._sensor(x)[0], x[1]), z, EdgeContext()),)
+        return (EdgeSE2PointXY.error((_sensor_pose(x[0], x[2])[0], x[1]), z, EdgeContext()),)
 
     @classmethod
     def linearize(cls, x: Sequence[np.ndarray], measurement: np.ndarray,
@@ -344,14 +322,10 @@ class EdgeSE2PointXYCalib(EdgeFromParts):
         Returns:
             ``(e (m, 2), (J_pose (m, 2, 3), J_point (m, 2, 2), J_calib (m, 2, 3)))``.
         """
-        S, rt = cls._sensor(x)
+        S, rt = _sensor_pose(x[0], x[2])
         lin = EdgeSE2PointXY.linearize((S, x[1]), measurement, EdgeContext())
         JS, Jp = lin.jacobians
-        c, s = np.cos(x[0][:, 2]), np.sin(x[0][:, 2])
-        Jc = JS.copy()
-        Jc[:, :, 0] = JS[:, :, 0] * c[:, None] + JS[:, :, 1] * s[:, None]
-        Jc[:, :, 1] = -JS[:, :, 0] * s[:, None] + JS[:, :, 1] * c[:, None]
-        return Linearization(lin.error, (_chain(JS, rt), Jp, Jc))
+        return Linearization(lin.error, (_by_pose(JS, rt), Jp, _by_offset(JS, x[0][:, 2])))
 
 
 class EdgeSE2LotsOfXY(BaseEdge):

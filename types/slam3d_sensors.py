@@ -27,7 +27,7 @@ from graphopt.types.point_edges import (
     scatter_point_jacobians,
 )
 from graphopt.types.slam2d import EdgeFromParts
-from graphopt.types.slam3d import EdgeSE3, ParameterSE3Offset, VertexSE3
+from graphopt.types.slam3d import EdgeSE3, ParameterSE3Offset, VertexSE3, _mv, _tr
 from graphopt.types.vertices import VertexPointXYZ
 from graphopt.vertex import BaseVertex
 
@@ -41,14 +41,6 @@ __all__ = [
     "EdgeXYZPrior",
     "ParameterCamera",
 ]
-
-
-def _mv(R: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.matmul(R, v[..., None])[..., 0]
-
-
-def _tr(R: np.ndarray) -> np.ndarray:
-    return np.swapaxes(R, -1, -2)
 
 
 class EdgePointXYZ(PointDifferenceEdge):
