@@ -76,6 +76,10 @@ class Batch:
         self.kernels_dirty = self.levels_dirty = False
         self.measured = gtype.measurement_derived(meas) if m else None
         self._cache: tuple[Any, ...] | None = None
+        # (state, chi2 as Python floats, depth tests as Python bools or None): what the per-edge
+        # getters index, valid while the state is.
+        self._lists: tuple[Any, list[float], list[bool] | None] | None = None
+        self._bank1 = banks[0] if len(banks) == 1 else None
         for i, r in enumerate(records):
             r._batch, r._idx = self, i
 
@@ -160,8 +164,41 @@ class Batch:
     # --- evaluation --------------------------------------------------------------------------
 
     def _state(self) -> tuple[Any, ...]:
-        return tuple((id(b.store), b.store.version if b.store is not None else -1)
+        """The stores behind the banks and their estimate versions (tuples compare by identity
+        first: a check costs a few attribute reads)."""
+        b = self._bank1
+        if b is not None:  # one vertex type (the pose-only edges): no loop
+            s = b.store
+            return (s, s.version if s is not None else -1)
+        return tuple((b.store, b.store.version if b.store is not None else -1)
                      for b in self.banks)
+
+    def chi2_of(self, i: int) -> float:
+        """Edge ``i``'s ``eᵀΩe`` (no kernel) at the current estimates: one state check and a
+        list index while the estimates are unchanged.
+
+        Args:
+            i: Index in the batch.
+        """
+        state = self._state()
+        lists = self._lists
+        if lists is None or lists[0] != state:
+            lists = self._lists = (state, self.chi2().tolist(), None)
+        return lists[1][i]
+
+    def depth_positive_of(self, i: int) -> bool:
+        """Edge ``i``'s depth test at the current estimates (as :meth:`chi2_of`).
+
+        Args:
+            i: Index in the batch.
+        """
+        state = self._state()
+        lists = self._lists
+        if lists is None or lists[0] != state:
+            lists = self._lists = (state, self.chi2().tolist(), None)
+        if lists[2] is None:
+            lists = self._lists = (state, lists[1], self.depth_positive().tolist())
+        return lists[2][i]
 
     def _evaluate(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
         state = self._state()
