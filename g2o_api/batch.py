@@ -284,6 +284,16 @@ def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
     infos = [e._info for e in recs]
     if all(i is None for i in infos):
         return None
+    first = infos[0]
+    if first is not None and first.shape == (d, d) and bool((first == first).all()):
+        # The usual case, one matrix value for all: compared as bytes (equal bytes, equal
+        # values), without stacking m copies first.
+        fb = first.tobytes()
+        for i in infos:
+            if i is None or i.shape != first.shape or i.tobytes() != fb:
+                break
+        else:
+            return first.copy()
     eye = np.eye(d)
     for e, i in zip(recs, infos, strict=True):
         if i is not None and i.shape != (d, d):
