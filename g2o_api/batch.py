@@ -67,7 +67,8 @@ class Batch:
         self._codes: dict[Any, int] = {}
         kernels = [r._kernel for r in records]
         first = kernels[0] if m else None
-        if all(k is first for k in kernels):  # one object (or None) for all: one code
+        if all(k is first for k in kernels) or (  # one object (or None) for all: one code
+                isinstance(first, RobustKernelBase) and self._one_key(kernels)):
             self.kcodes = np.full(m, self.code(first), dtype=np.int64)
         else:
             self.kcodes = np.fromiter((self.code(k) for k in kernels), dtype=np.int64, count=m)
@@ -84,6 +85,13 @@ class Batch:
             r._batch, r._idx = self, i
 
     # --- kernels and levels ------------------------------------------------------------------
+
+    @staticmethod
+    def _one_key(kernels: list[Any]) -> bool:
+        """Whether g2o kernels (one object per edge, as programs make them) all have the first's
+        :func:`kernel_key` — one comparison per edge instead of a key and a lookup."""
+        t0, d0 = type(kernels[0]), kernels[0]._delta
+        return all(type(k) is t0 and k._delta == d0 for k in kernels)
 
     def code(self, kernel: Any) -> int:
         """The batch's code of a kernel (-1: none)."""
