@@ -67,7 +67,8 @@ class Batch:
         self._codes: dict[Any, int] = {}
         kernels = [r._kernel for r in records]
         first = kernels[0] if m else None
-        if all(k is first for k in kernels):  # one object (or None) for all: one code
+        if all(k is first for k in kernels) or (  # one object (or None) for all: one code
+                isinstance(first, RobustKernelBase) and self._one_key(kernels)):
             self.kcodes = np.full(m, self.code(first), dtype=np.int64)
         else:
             self.kcodes = np.fromiter((self.code(k) for k in kernels), dtype=np.int64, count=m)
@@ -76,10 +77,21 @@ class Batch:
         self.kernels_dirty = self.levels_dirty = False
         self.measured = gtype.measurement_derived(meas) if m else None
         self._cache: tuple[Any, ...] | None = None
+        # (state, chi2 as Python floats, depth tests as Python bools or None): what the per-edge
+        # getters index, valid while the state is.
+        self._lists: tuple[Any, list[float], list[bool] | None] | None = None
+        self._bank1 = banks[0] if len(banks) == 1 else None
         for i, r in enumerate(records):
             r._batch, r._idx = self, i
 
     # --- kernels and levels ------------------------------------------------------------------
+
+    @staticmethod
+    def _one_key(kernels: list[Any]) -> bool:
+        """Whether g2o kernels (one object per edge, as programs make them) all have the first's
+        :func:`kernel_key` — one comparison per edge instead of a key and a lookup."""
+        t0, d0 = type(kernels[0]), kernels[0]._delta
+        return all(type(k) is t0 and k._delta == d0 for k in kernels)
 
     def code(self, kernel: Any) -> int:
         """The batch's code of a kernel (-1: none)."""
@@ -160,8 +172,41 @@ class Batch:
     # --- evaluation --------------------------------------------------------------------------
 
     def _state(self) -> tuple[Any, ...]:
-        return tuple((id(b.store), b.store.version if b.store is not None else -1)
+        """The stores behind the banks and their estimate versions (tuples compare by identity
+        first: a check costs a few attribute reads)."""
+        b = self._bank1
+        if b is not None:  # one vertex type (the pose-only edges): no loop
+            s = b.store
+            return (s, s.version if s is not None else -1)
+        return tuple((b.store, b.store.version if b.store is not None else -1)
                      for b in self.banks)
+
+    def chi2_of(self, i: int) -> float:
+        """Edge ``i``'s ``eᵀΩe`` (no kernel) at the current estimates: one state check and a
+        list index while the estimates are unchanged.
+
+        Args:
+            i: Index in the batch.
+        """
+        state = self._state()
+        lists = self._lists
+        if lists is None or lists[0] != state:
+            lists = self._lists = (state, self.chi2().tolist(), None)
+        return lists[1][i]
+
+    def depth_positive_of(self, i: int) -> bool:
+        """Edge ``i``'s depth test at the current estimates (as :meth:`chi2_of`).
+
+        Args:
+            i: Index in the batch.
+        """
+        state = self._state()
+        lists = self._lists
+        if lists is None or lists[0] != state:
+            lists = self._lists = (state, self.chi2().tolist(), None)
+        if lists[2] is None:
+            lists = self._lists = (state, lists[1], self.depth_positive().tolist())
+        return lists[2][i]
 
     def _evaluate(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
         state = self._state()
@@ -247,6 +292,16 @@ def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
     infos = [e._info for e in recs]
     if all(i is None for i in infos):
         return None
+    first = infos[0]
+    if first is not None and first.shape == (d, d) and bool((first == first).all()):
+        # The usual case, one matrix value for all: compared as bytes (equal bytes, equal
+        # values), without stacking m copies first.
+        fb = first.tobytes()
+        for i in infos:
+            if i is None or i.shape != first.shape or i.tobytes() != fb:
+                break
+        else:
+            return first.copy()
     eye = np.eye(d)
     for e, i in zip(recs, infos, strict=True):
         if i is not None and i.shape != (d, d):

@@ -186,7 +186,8 @@ class BaseEdge:
 
     def chi2(self) -> float:
         """``eᵀΩe`` at the current estimates, without the kernel (g2o's ``chi2()``)."""
-        return float(self._need_batch().chi2()[self._idx])
+        b = self._batch
+        return (b if b is not None else self._need_batch()).chi2_of(self._idx)
 
     def error(self) -> np.ndarray:
         """The error at the current estimates."""
@@ -194,7 +195,8 @@ class BaseEdge:
 
     def is_depth_positive(self) -> bool:
         """Whether the observed point is in front of the camera(s)."""
-        return bool(self._need_batch().depth_positive()[self._idx])
+        b = self._batch
+        return (b if b is not None else self._need_batch()).depth_positive_of(self._idx)
 
     def _need_batch(self) -> Any:
         if self._batch is None:

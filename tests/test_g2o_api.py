@@ -684,3 +684,37 @@ def test_growing_graph_matches_one_built_at_once() -> None:
     for i in range(9):
         assert np.allclose(grown.vertex(i).estimate().to_vector(),
                            once.vertex(i).estimate().to_vector(), atol=1e-9)
+
+
+def test_stacked_information_shared_or_per_edge() -> None:
+    from graphopt.g2o.batch import stack_information
+
+    cls = g2o.EdgeSE3ProjectXYZOnlyPose
+    recs = [cls() for _ in range(4)]
+    for e in recs:
+        e.set_information([[2.0, 0.5], [0.5, 3.0]])
+    shared = stack_information(cls, recs, 2)
+    assert shared.shape == (2, 2) and shared.tolist() == [[2.0, 0.5], [0.5, 3.0]]
+    recs[2].set_information([[-0.0, 0.0], [0.0, 0.0]])
+    recs[3].set_information(np.zeros((2, 2)))
+    per_edge = stack_information(cls, recs, 2)
+    assert per_edge.shape == (4, 2, 2) and per_edge[3].tolist() == [[0.0, 0.0], [0.0, 0.0]]
+    assert stack_information(cls, recs[2:], 2).shape == (2, 2)  # -0.0 == 0.0: one value
+    recs[1]._info = None  # unset: the identity
+    assert stack_information(cls, recs[:2], 2)[1].tolist() == [[1.0, 0.0], [0.0, 1.0]]
+
+
+def test_edge_chi2_follows_the_estimates() -> None:
+    opt, edges, pts = _small_ba(5)
+    opt.initialize_optimization()
+    before = [e.chi2() for e in edges]
+    opt.optimize(2)
+    after = [e.chi2() for e in edges]
+    assert sum(after) < sum(before)
+    opt.compute_active_errors()
+    assert opt.active_chi2() == pytest.approx(sum(after), rel=1e-9)
+    v = opt.vertex(10)
+    v.set_estimate(pts[0] + 0.5)
+    moved = [e for e in edges if e.vertex(0) is v]
+    assert moved and all(e.chi2() != a for e, a in zip(edges, after, strict=True)
+                         if e.vertex(0) is v)
