@@ -9,6 +9,7 @@ approximates a derivative (GemanMcClure's ρ'', DCS), the docstring says so.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -25,9 +26,16 @@ class RobustKernel:
     name = "none"
     #: ``ρ' ≥ 0`` everywhere (the optimizer then need not clip the weights at 0).
     nonnegative_weight = False
+    #: Incremented whenever a parameter of any kernel is set (``set_delta`` or an attribute):
+    #: evaluations cached at the old parameters are stale (see ``EdgeGroup.activity_version``).
+    changes = 0
 
     def __init__(self, delta: float = 1.0) -> None:
         self.set_delta(delta)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)
+        RobustKernel.changes += 1
 
     def set_delta(self, delta: float) -> None:
         """Set the kernel width.
