@@ -291,14 +291,14 @@ class EdgeGroup:
     def kernels(self) -> list[RobustKernel]:
         """The distinct kernels of the group (those some edge uses)."""
         if self._kernels_stale:
-            self._compact_kernels()
+            self._stale_kernels()
         return self._kernels
 
     @property
     def kernel_index(self) -> np.ndarray:
         """``(m,)`` every edge's index in :attr:`kernels` (−1: none)."""
         if self._kernels_stale:
-            self._compact_kernels()
+            self._stale_kernels()
         return self._kidx
 
     @property
@@ -340,6 +340,12 @@ class EdgeGroup:
         self._kidx[i] = slot
         self._kernels_stale = True
         self._activity += 1  # evaluations at the old kernels are stale
+
+    def _stale_kernels(self) -> None:
+        """Compact the kernels after an edit, with the edges appended since taken in first
+        (``_kidx`` is the finalised edges' only)."""
+        self.finalize()
+        self._compact_kernels()
 
     def _compact_kernels(self) -> None:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
