@@ -16,7 +16,7 @@ import numpy as np
 
 from graphopt.errors import GraphError
 from graphopt.robust_kernel import RobustKernel
-from graphopt.vertex import BaseVertex
+from graphopt.vertex import BaseVertex, _own  # one copy rule for both kinds of object
 
 if TYPE_CHECKING:
     from graphopt.edge_group import EdgeGroup
@@ -199,8 +199,3 @@ class EdgeObject:
         ids = [v._id if isinstance(v, BaseVertex) else v for v in self._vertices]
         return f"{type(self).__name__}(vertices={ids})"
 
-
-def _own(value: Any) -> Any:
-    """A copy of an array (a caller may reuse its buffer for the next object), else the value
-    (converted, and copied, in bulk when the edges are taken into the arrays)."""
-    return value.copy() if type(value) is np.ndarray else value
