@@ -48,6 +48,8 @@ class Graph:
         self._ebuf: dict[tuple[type[BaseEdge], int], tuple[EdgeGroup, list[BaseEdge]]] = {}
         #: The initialised level: the edges of this level are active.
         self.level = 0
+        #: Incremented by every removal of edges or vertices (indices into the arrays move).
+        self.removals = 0
         self._lookups: dict[int, tuple[Any, ...]] = {}
         self._evals: dict[int, tuple[Any, ...]] = {}  # per group: errors at a state
 

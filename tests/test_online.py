@@ -257,3 +257,22 @@ def test_kernels_edited_after_the_edges_were_taken_in_are_the_ones_used() -> Non
                   RobustKernelHuber(0.5))
     inc.update()
     assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), rel=1e-12)
+
+
+def test_removing_every_edge_of_a_group_between_updates_starts_afresh() -> None:
+    """The last loop closure of its group removed (the group leaves the graph, and with it
+    its count of removals): the next update is a batch step without it."""
+    opt = SparseOptimizer()
+    _chain(opt, 5)
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    loop = opt.add_edges(EdgeSE2, [[0, 4]], [[4.3, 0.2, 0.1]], INFO, params="loops")
+    inc.update()
+    assert inc.chi2() > 1.0  # the closure disagrees with the odometry
+    loop.remove()
+    opt.add_vertices(VertexSE2, [5], [[5.0, 0.0, 0.0]])
+    opt.add_edges(EdgeSE2, [[4, 5]], [[1.0, 0.0, 0.0]], INFO)
+    report = inc.update()
+    assert report.factor == "rebuilt"
+    assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), abs=1e-12)
+    assert inc.chi2() < 1e-12

@@ -101,9 +101,9 @@ class State:
         return any(s.flags_version != f for s, f in zip(self.stores, self.flags, strict=True))
 
     def removals(self) -> int:
-        """Vertex and edge removals so far (a change invalidates every index taken in)."""
-        return (sum(s.removals for s in self.graph.stores.values())
-                + sum(g.removals for g in self.graph.groups.values()))
+        """Vertex and edge removals so far (a change invalidates every index taken in; the
+        graph's count, as an emptied group or store leaves the graph with its own)."""
+        return self.graph.removals
 
     def new_vertices(self) -> list[tuple[int, int, int]]:
         """``(store index, first new slot, end)`` of every store with vertices not taken in."""
