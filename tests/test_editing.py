@@ -300,3 +300,27 @@ def test_a_kernel_width_changed_in_place_is_seen_by_the_next_query_and_run() -> 
     ref.optimize(1)
     np.testing.assert_allclose(opt.estimates_of(VertexSE2), ref.estimates_of(VertexSE2),
                                rtol=0, atol=1e-12)
+
+
+def test_values_of_an_added_edge_that_cannot_change_raise_instead_of_being_ignored() -> None:
+    """g2o lets ``setMeasurement`` follow ``addEdge``; here the measurement, information and
+    vertices of an edge in the arrays are structure: changing them is a clear error (remove
+    the edge and add it again), not a setter whose value the optimizer never sees."""
+    opt = SparseOptimizer()
+    opt.add_vertices(VertexSE2, [0, 1], [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], fixed=[True, False])
+    e = EdgeSE2([0, 1], np.array([1.0, 0.0, 0.0]))
+    opt.add_edge(e)
+    e.set_measurement(np.array([1.5, 0.0, 0.0]))  # still buffered: taken at the flush
+    opt.optimize(1)
+    np.testing.assert_array_equal(e.measurement, [1.5, 0.0, 0.0])
+    for call in (lambda: e.set_measurement(np.array([2.0, 0.0, 0.0])),
+                 lambda: e.set_information(np.eye(3) * 2.0), lambda: e.set_vertex(1, 0)):
+        with pytest.raises(GraphError, match=r"EdgeSE2\(vertices=\[0, 1\]\).*remove_edge"):
+            call()
+    np.testing.assert_array_equal(e.measurement, [1.5, 0.0, 0.0])
+    opt.remove_edge(e)
+    e.set_measurement(np.array([2.0, 0.0, 0.0]))  # a removed edge is a free object again
+    opt.add_edge(e)
+    opt.initialize_optimization()
+    opt.optimize(5)
+    np.testing.assert_allclose(opt.vertex(1).estimate, [2.0, 0.0, 0.0], atol=1e-9)
