@@ -14,7 +14,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.errors import GraphError
-from graphopt.robust_kernel import RobustKernel
+from graphopt.robust_kernel import RobustKernel, kernel_changes
 
 
 def join_chunks(chunks: list[np.ndarray]) -> np.ndarray:
@@ -304,9 +304,9 @@ class EdgeGroup:
     @property
     def activity_version(self) -> tuple[int, int]:
         """Changes whenever what weighs the edges changes — levels, the initialised level,
-        which kernel each edge has, any kernel's parameters (``RobustKernel.changes``) — so
-        that evaluations cached by it are stale."""
-        return self._activity, RobustKernel.changes
+        which kernel each edge has, any kernel's width (``robust_kernel.kernel_changes``) —
+        so that evaluations cached by it are stale."""
+        return self._activity, kernel_changes()
 
     @property
     def active_edges(self) -> np.ndarray | None:

@@ -9,11 +9,19 @@ approximates a derivative (GemanMcClure's ρ'', DCS), the docstring says so.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
 Rho = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+#: Incremented whenever a kernel's width is set (``set_delta``, also in ``__init__``).
+_changes = 0
+
+
+def kernel_changes() -> int:
+    """How many times a kernel's width was set (:meth:`RobustKernel.set_delta`): evaluations
+    cached at an older count may use old widths (see ``EdgeGroup.activity_version``)."""
+    return _changes
 
 
 class RobustKernel:
@@ -26,16 +34,9 @@ class RobustKernel:
     name = "none"
     #: ``ρ' ≥ 0`` everywhere (the optimizer then need not clip the weights at 0).
     nonnegative_weight = False
-    #: Incremented whenever a parameter of any kernel is set (``set_delta`` or an attribute):
-    #: evaluations cached at the old parameters are stale (see ``EdgeGroup.activity_version``).
-    changes = 0
 
     def __init__(self, delta: float = 1.0) -> None:
         self.set_delta(delta)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        object.__setattr__(self, name, value)
-        RobustKernel.changes += 1
 
     def set_delta(self, delta: float) -> None:
         """Set the kernel width.
@@ -48,7 +49,9 @@ class RobustKernel:
             raise ValueError(
                 f"{type(self).__name__}: delta must be positive and finite, got {delta}"
             )
+        global _changes  # a module global: a class attribute written would reset type caches
         self.delta = delta
+        _changes += 1
 
     def robustify(self, s: np.ndarray) -> Rho:
         """``(ρ, ρ', ρ'')`` at squared errors ``s``.
