@@ -62,6 +62,7 @@ class Batch:
         g = self.group
         if g.activity_version[0] == self.edits:
             return self.kernels_read
+        g.finalize()  # the slots of edges appended since are in the chunks only
         self.kernels_read = g.kernel_index[self.start:self.start + len(self.vids)]
         self.edits = g.activity_version[0]
         return self.kernels_read
