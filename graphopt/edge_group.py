@@ -14,7 +14,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.errors import GraphError
-from graphopt.robust_kernel import RobustKernel
+from graphopt.robust_kernel import RobustKernel, kernel_changes
 
 
 def join_chunks(chunks: list[np.ndarray]) -> np.ndarray:
@@ -83,7 +83,7 @@ class EdgeGroup:
         self._active: np.ndarray | None = None
         self._activity_stale = False  # the mask is recomputed when next read
         self._kernels_stale = False  # unused kernels are dropped when next read
-        self.activity_version = 0
+        self._activity = 0
         self._finalized_size = -1
 
     # --- adding ----------------------------------------------------------------------------
@@ -291,15 +291,22 @@ class EdgeGroup:
     def kernels(self) -> list[RobustKernel]:
         """The distinct kernels of the group (those some edge uses)."""
         if self._kernels_stale:
-            self._compact_kernels()
+            self._stale_kernels()
         return self._kernels
 
     @property
     def kernel_index(self) -> np.ndarray:
         """``(m,)`` every edge's index in :attr:`kernels` (−1: none)."""
         if self._kernels_stale:
-            self._compact_kernels()
+            self._stale_kernels()
         return self._kidx
+
+    @property
+    def activity_version(self) -> tuple[int, int]:
+        """Changes whenever what weighs the edges changes — levels, the initialised level,
+        which kernel each edge has, any kernel's width (``robust_kernel.kernel_changes``) —
+        so that evaluations cached by it are stale."""
+        return self._activity, kernel_changes()
 
     @property
     def active_edges(self) -> np.ndarray | None:
@@ -332,7 +339,13 @@ class EdgeGroup:
             self._kern = [self._kidx]
         self._kidx[i] = slot
         self._kernels_stale = True
-        self.activity_version += 1  # evaluations at the old kernels are stale
+        self._activity += 1  # evaluations at the old kernels are stale
+
+    def _stale_kernels(self) -> None:
+        """Compact the kernels after an edit, with the edges appended since taken in first
+        (``_kidx`` is the finalised edges' only)."""
+        self.finalize()
+        self._compact_kernels()
 
     def _compact_kernels(self) -> None:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
@@ -365,7 +378,7 @@ class EdgeGroup:
             self._lvl = [self.levels]
         self.levels[i] = levels
         self._activity_stale = True
-        self.activity_version += 1
+        self._activity += 1
 
     def apply_level(self, level: int, force: bool = False) -> None:
         """Make the edges of ``level`` the active ones.
@@ -378,7 +391,7 @@ class EdgeGroup:
             return
         self.level = level
         self._activity_stale = True
-        self.activity_version += 1
+        self._activity += 1
 
     def remove(self, index: np.ndarray) -> None:
         """Remove edges; the others keep their order and uids (the structure is stale).
@@ -408,7 +421,7 @@ class EdgeGroup:
         self._finalized_size = -1
         self._active = None
         self.finalize()
-        self.activity_version += 1
+        self._activity += 1
 
 
 def kernel_key(kernel: RobustKernel) -> Any:

@@ -16,7 +16,7 @@ import numpy as np
 
 from graphopt.errors import GraphError
 from graphopt.robust_kernel import RobustKernel
-from graphopt.vertex import BaseVertex
+from graphopt.vertex import BaseVertex, _own  # one copy rule for both kinds of object
 
 if TYPE_CHECKING:
     from graphopt.edge_group import EdgeGroup
@@ -74,6 +74,12 @@ class EdgeObject:
             return self._uid
         return int(g.index_of(np.array([self._uid]))[0])
 
+    def _fixed_once_added(self, what: str) -> None:
+        """Raise if the edge is in the arrays (``_uid >= 0``), where ``what`` is structure."""
+        if self._uid >= 0:
+            raise GraphError(f"{self!r}: the {what} of an added edge cannot change; remove it "
+                             "(remove_edge), change it and add it again")
+
     def _detach(self) -> None:
         """Keep the edge's values on the object and leave the group (removed or rejected)."""
         if self._uid >= 0:
@@ -90,9 +96,13 @@ class EdgeObject:
         Args:
             i: Position, ``0 <= i < len(vertex_types)``.
             vertex: A vertex object or its id.
+
+        Raises:
+            GraphError: the edge is in the optimizer's arrays (added and flushed).
         """
         if not 0 <= i < len(self._vertices):
             raise IndexError(f"{type(self).__name__} has no vertex position {i}")
+        self._fixed_once_added("vertices")
         self._vertices[i] = vertex
 
     def vertex(self, i: int) -> BaseVertex | int | None:
@@ -116,11 +126,15 @@ class EdgeObject:
         return None if self._measurement is None else np.asarray(self._measurement, float)
 
     def set_measurement(self, z: Any) -> None:
-        """Set the measurement (before the edge is added).
+        """Set the measurement (before the edge is added, or while it waits in the buffer).
 
         Args:
             z: Array of shape ``measurement_shape``.
+
+        Raises:
+            GraphError: the edge is in the optimizer's arrays (added and flushed).
         """
+        self._fixed_once_added("measurement")
         self._measurement = _own(z)
 
     @property
@@ -133,11 +147,16 @@ class EdgeObject:
         return np.asarray(self._information, dtype=float)
 
     def set_information(self, info: Any) -> None:
-        """Set the information matrix (before the edge is added).
+        """Set the information matrix (before the edge is added, or while it waits in the
+        buffer).
 
         Args:
             info: ``(dimension, dimension)`` symmetric positive semi-definite matrix.
+
+        Raises:
+            GraphError: the edge is in the optimizer's arrays (added and flushed).
         """
+        self._fixed_once_added("information")
         self._information = _own(info)
 
     @property
@@ -199,8 +218,3 @@ class EdgeObject:
         ids = [v._id if isinstance(v, BaseVertex) else v for v in self._vertices]
         return f"{type(self).__name__}(vertices={ids})"
 
-
-def _own(value: Any) -> Any:
-    """A copy of an array (a caller may reuse its buffer for the next object), else the value
-    (converted, and copied, in bulk when the edges are taken into the arrays)."""
-    return value.copy() if type(value) is np.ndarray else value

@@ -28,6 +28,15 @@ from graphopt.vertex import BaseVertex
 Positions = list[list[tuple[int, np.ndarray]]]
 
 
+def _flags(vtype: type[BaseVertex], name: str, value: Any, n: int) -> np.ndarray:
+    """``(n,)`` flags from one flag or ``n`` of them, else a :class:`GraphError`."""
+    arr = np.asarray(value, dtype=bool)
+    if arr.shape not in ((), (n,)):
+        raise GraphError(f"{vtype.__name__}: {name} must be one flag or {n} of them, got shape "
+                         f"{arr.shape}")
+    return np.broadcast_to(arr, (n,)).copy()
+
+
 class Graph:
     """Vertices and edges of one optimisation problem.
 
@@ -48,6 +57,8 @@ class Graph:
         self._ebuf: dict[tuple[type[BaseEdge], int], tuple[EdgeGroup, list[BaseEdge]]] = {}
         #: The initialised level: the edges of this level are active.
         self.level = 0
+        #: Incremented by every removal of edges or vertices (indices into the arrays move).
+        self.removals = 0
         self._lookups: dict[int, tuple[Any, ...]] = {}
         self._evals: dict[int, tuple[Any, ...]] = {}  # per group: errors at a state
 
@@ -149,8 +160,8 @@ class Graph:
             if dup is not None:
                 raise GraphError(f"duplicate vertex id {dup} ({vtype.__name__})")
             store.check_estimates(est, ids)
-        fixed_arr = np.broadcast_to(np.asarray(fixed, dtype=bool), (n,)).copy()
-        marg_arr = np.broadcast_to(np.asarray(marg, dtype=bool), (n,)).copy()
+        fixed_arr, marg_arr = (_flags(vtype, name, v, n) for name, v in (("fixed", fixed),
+                                                                          ("marginalized", marg)))
         start = store.append(ids, est, fixed_arr, marg_arr)
         self._ids.update(zip(ids.tolist(), ((store, s) for s in range(start, start + n)),
                              strict=True))
@@ -246,7 +257,10 @@ class Graph:
         if information is None:
             info = np.eye(e)
         else:
-            info = np.asarray(information, dtype=float)
+            try:
+                info = np.asarray(information, dtype=float)
+            except (TypeError, ValueError) as exc:
+                raise GraphError(f"{etype.__name__}: information is not numeric: {exc}") from None
             if info.shape not in ((e, e), (m, e, e)):
                 raise GraphError(
                     f"{etype.__name__}: information has shape {info.shape}, expected {(e, e)} "

@@ -40,6 +40,7 @@ def remove_edges(graph: Graph, group: EdgeGroup, index: np.ndarray) -> None:
                 e._detach()
         graph._edge_objects = [e for e in graph._edge_objects if e._group is not None]
     group.remove(index)
+    graph.removals += 1
     if group.size == 0:
         graph.groups.pop((group.etype, id(group.params)), None)
 
@@ -78,6 +79,7 @@ def remove_vertices(graph: Graph, ids: Any) -> None:
         v = graph._objects.pop(vid, None)
         if v is not None:
             v._detach()
+    graph.removals += bool(by_store)
     for st, slots in by_store.values():
         st.remove(np.array(slots))
         if len(st) == 0:

@@ -14,6 +14,15 @@ import numpy as np
 
 Rho = tuple[np.ndarray, np.ndarray, np.ndarray]
 
+#: Incremented whenever a kernel's width is set (``set_delta``, also in ``__init__``).
+_changes = 0
+
+
+def kernel_changes() -> int:
+    """How many times a kernel's width was set (:meth:`RobustKernel.set_delta`): evaluations
+    cached at an older count may use old widths (see ``EdgeGroup.activity_version``)."""
+    return _changes
+
 
 class RobustKernel:
     """Base class of the robust kernels.
@@ -40,7 +49,9 @@ class RobustKernel:
             raise ValueError(
                 f"{type(self).__name__}: delta must be positive and finite, got {delta}"
             )
+        global _changes  # a module global: a class attribute written would reset type caches
         self.delta = delta
+        _changes += 1
 
     def robustify(self, s: np.ndarray) -> Rho:
         """``(ρ, ρ', ρ'')`` at squared errors ``s``.

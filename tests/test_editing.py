@@ -274,3 +274,53 @@ def test_is_depth_positive_gathers_the_estimates_of_the_set(scene) -> None:
     for e in objs:
         opt.add_edge(e)
     assert [e.is_depth_positive() for e in objs] == (~behind[:20]).tolist()
+
+
+def test_a_kernel_width_changed_in_place_is_seen_by_the_next_query_and_run() -> None:
+    """``kernel.set_delta`` after a run (g2o: the edge holds the kernel's pointer): the robust
+    chi2 queried and the next run use the new width, not values cached by the last trial step
+    at the same estimates."""
+    truth, init, edges, meas = pose_graph(20, seed=1, noise=(0.3, 0.1))
+
+    def make(delta: float, est: np.ndarray) -> tuple[SparseOptimizer, RobustKernelHuber]:
+        opt = SparseOptimizer()
+        opt.add_vertices(VertexSE2, np.arange(20), est, fixed=np.arange(20) == 0)
+        k = RobustKernelHuber(delta)
+        opt.add_edges(EdgeSE2, edges, meas, robust_kernel=k)
+        return opt, k
+
+    opt, k = make(0.5, init)
+    opt.optimize(2)
+    est = opt.estimates_of(VertexSE2).copy()
+    k.set_delta(0.05)
+    ref, _ = make(0.05, est)
+    assert opt.active_robust_chi2() == pytest.approx(ref.active_robust_chi2(), rel=1e-12)
+    opt.initialize_optimization()  # λ from the τ rule again, as in a fresh optimizer
+    opt.optimize(1)
+    ref.optimize(1)
+    np.testing.assert_allclose(opt.estimates_of(VertexSE2), ref.estimates_of(VertexSE2),
+                               rtol=0, atol=1e-12)
+
+
+def test_values_of_an_added_edge_that_cannot_change_raise_instead_of_being_ignored() -> None:
+    """g2o lets ``setMeasurement`` follow ``addEdge``; here the measurement, information and
+    vertices of an edge in the arrays are structure: changing them is a clear error (remove
+    the edge and add it again), not a setter whose value the optimizer never sees."""
+    opt = SparseOptimizer()
+    opt.add_vertices(VertexSE2, [0, 1], [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], fixed=[True, False])
+    e = EdgeSE2([0, 1], np.array([1.0, 0.0, 0.0]))
+    opt.add_edge(e)
+    e.set_measurement(np.array([1.5, 0.0, 0.0]))  # still buffered: taken at the flush
+    opt.optimize(1)
+    np.testing.assert_array_equal(e.measurement, [1.5, 0.0, 0.0])
+    for call in (lambda: e.set_measurement(np.array([2.0, 0.0, 0.0])),
+                 lambda: e.set_information(np.eye(3) * 2.0), lambda: e.set_vertex(1, 0)):
+        with pytest.raises(GraphError, match=r"EdgeSE2\(vertices=\[0, 1\]\).*remove_edge"):
+            call()
+    np.testing.assert_array_equal(e.measurement, [1.5, 0.0, 0.0])
+    opt.remove_edge(e)
+    e.set_measurement(np.array([2.0, 0.0, 0.0]))  # a removed edge is a free object again
+    opt.add_edge(e)
+    opt.initialize_optimization()
+    opt.optimize(5)
+    np.testing.assert_allclose(opt.vertex(1).estimate, [2.0, 0.0, 0.0], atol=1e-9)

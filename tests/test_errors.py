@@ -473,3 +473,15 @@ def test_gauss_newton_keeps_the_last_finite_estimate() -> None:
     res = opt.optimize(20)
     assert np.isfinite(res.chi2_history).all()
     assert opt.vertex(0).estimate[0] == pytest.approx(0.01, rel=1e-6)
+
+
+def test_non_numeric_information_and_flags_of_the_wrong_length_are_graph_errors() -> None:
+    opt = two_poses()
+    with pytest.raises(GraphError, match="EdgeSE2: information is not numeric"):
+        opt.add_edges(EdgeSE2, np.array([[0, 1]]), np.zeros((1, 3)), information="x")
+    with pytest.raises(GraphError, match=r"VertexSE2: fixed must be one flag or 2 of them, got "
+                                         r"shape \(3,\)"):
+        opt.add_vertices(VertexSE2, [5, 6], np.zeros((2, 3)), fixed=[True, False, True])
+    with pytest.raises(GraphError, match=r"VertexSE2: marginalized must be one flag or 2"):
+        opt.add_vertices(VertexSE2, [5, 6], np.zeros((2, 3)), marginalized=[[True, False]])
+    assert opt.vertex(5) is None  # nothing added

@@ -228,3 +228,51 @@ def test_fixing_a_vertex_between_updates_rebuilds_without_it() -> None:
     assert report.factor == "rebuilt" and report.reason == "flags"
     assert inc.factor.used == 9  # poses 1-3 free
     assert np.allclose(opt.vertex(4).estimate, [4.0, 0.0, 0.0])
+
+
+def test_kernels_edited_after_the_edges_were_taken_in_are_the_ones_used() -> None:
+    """Edges taken in keep following their group's kernels: after an edit (which renumbers the
+    group's kernels) the chi2 is the batch optimizer's at the same estimates, not an
+    IndexError or the old kernels', and the next update runs."""
+    from graphopt import RobustKernelCauchy, RobustKernelHuber
+
+    opt = SparseOptimizer()
+    opt.add_vertices(VertexSE2, np.arange(5), np.column_stack([np.arange(5.0), np.zeros(5),
+                                                               np.zeros(5)]),
+                     fixed=np.arange(5) == 0)
+    odo = opt.add_edges(EdgeSE2, np.column_stack([np.arange(4), np.arange(1, 5)]),
+                        np.tile([1.0, 0.0, 0.0], (4, 1)), INFO, RobustKernelHuber(0.5))
+    opt.add_edges(EdgeSE2, [[0, 4]], [[4.3, 0.2, 0.1]], INFO, RobustKernelCauchy(0.5))
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    odo.set_robust_kernel(RobustKernelCauchy(0.5))  # one kernel left: the slots renumbered
+    assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), rel=1e-12)
+    odo.set_robust_kernel(None)
+    assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), rel=1e-12)
+    inc.update()
+    # An edit, then new edges (with new kernels) before anything reads the kernels.
+    odo[:2].set_robust_kernel(RobustKernelHuber(0.3))
+    odo[2:].set_robust_kernel(None)
+    opt.add_edges(EdgeSE2, [[1, 3], [0, 2]], [[2.2, 0.1, 0.0], [2.1, 0.0, 0.1]], INFO,
+                  RobustKernelHuber(0.5))
+    inc.update()
+    assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), rel=1e-12)
+
+
+def test_removing_every_edge_of_a_group_between_updates_starts_afresh() -> None:
+    """The last loop closure of its group removed (the group leaves the graph, and with it
+    its count of removals): the next update is a batch step without it."""
+    opt = SparseOptimizer()
+    _chain(opt, 5)
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    loop = opt.add_edges(EdgeSE2, [[0, 4]], [[4.3, 0.2, 0.1]], INFO, params="loops")
+    inc.update()
+    assert inc.chi2() > 1.0  # the closure disagrees with the odometry
+    loop.remove()
+    opt.add_vertices(VertexSE2, [5], [[5.0, 0.0, 0.0]])
+    opt.add_edges(EdgeSE2, [[4, 5]], [[1.0, 0.0, 0.0]], INFO)
+    report = inc.update()
+    assert report.factor == "rebuilt"
+    assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), abs=1e-12)
+    assert inc.chi2() < 1e-12

@@ -28,27 +28,44 @@ from graphopt.storage import VertexStore
 
 @dataclass
 class Batch:
-    """Edges ``start:stop`` of one group.
+    """Edges ``start:start + m`` of one group.
 
     Args:
         group: The edge group.
         vids: ``(m, k)`` vertex ids.
         measurements: ``(m, *measurement_shape)``.
         info: ``(m, e, e)``.
-        kernel_index: ``(m,)``.
+        kernels_read: ``(m,)`` the kernel slots when the edges were read (see
+            :attr:`kernel_index`).
         data: Per-edge data.
         stores: Per position, the store index.
         slots: Per position, ``(m,)`` slots.
+        start: The group index of the first edge.
+        edits: The group's count of edits when ``kernels_read`` was read.
     """
 
     group: EdgeGroup
     vids: np.ndarray
     measurements: np.ndarray
     info: np.ndarray
-    kernel_index: np.ndarray
+    kernels_read: np.ndarray
     data: dict[str, np.ndarray]
     stores: list[int]
     slots: list[np.ndarray]
+    start: int
+    edits: int
+
+    @property
+    def kernel_index(self) -> np.ndarray:
+        """``(m,)`` the edges' slots in ``group.kernels`` now: the slots read with the edges
+        unless the group's kernels were edited since (slots renumbered), then the group's."""
+        g = self.group
+        if g.activity_version[0] == self.edits:
+            return self.kernels_read
+        g.finalize()  # the slots of edges appended since are in the chunks only
+        self.kernels_read = g.kernel_index[self.start:self.start + len(self.vids)]
+        self.edits = g.activity_version[0]
+        return self.kernels_read
 
 
 @dataclass
@@ -85,9 +102,9 @@ class State:
         return any(s.flags_version != f for s, f in zip(self.stores, self.flags, strict=True))
 
     def removals(self) -> int:
-        """Vertex and edge removals so far (a change invalidates every index taken in)."""
-        return (sum(s.removals for s in self.graph.stores.values())
-                + sum(g.removals for g in self.graph.groups.values()))
+        """Vertex and edge removals so far (a change invalidates every index taken in; the
+        graph's count, as an emptied group or store leaves the graph with its own)."""
+        return self.graph.removals
 
     def new_vertices(self) -> list[tuple[int, int, int]]:
         """``(store index, first new slot, end)`` of every store with vertices not taken in."""
@@ -106,6 +123,7 @@ class State:
             start = self.known_edges.get(id(g), 0)
             if g.size <= start:
                 continue
+            g.kernels  # noqa: B018 - renumbers the slots after an edit, before they are read
             vids, meas, info, kern, data = g.tail(start)
             stores, slots = [], []
             for a in range(g.k):
@@ -113,7 +131,8 @@ class State:
                 hits = [ids[v] for v in col]
                 stores.append(self.store_index(hits[0][0]))
                 slots.append(np.fromiter((h[1] for h in hits), np.int64, len(hits)))
-            out.append(Batch(g, vids, meas, info, kern, data, stores, slots))
+            out.append(Batch(g, vids, meas, info, kern, data, stores, slots, start,
+                             g.activity_version[0]))
         return out
 
     def take_edges(self, batches: list[Batch]) -> None:
@@ -242,10 +261,12 @@ def join_batches(chunks: list[Batch]) -> Batch:
         return chunks[0]
     f = chunks[0]
     data = {k: np.concatenate([c.data[k] for c in chunks]) for k in f.data}
+    # Consecutive runs of the group (taken in order, never removed: a removal starts afresh).
     return Batch(f.group, *(np.concatenate([getattr(c, a) for c in chunks])
                             for a in ("vids", "measurements", "info", "kernel_index")),
                  data, f.stores,
-                 [np.concatenate([c.slots[a] for c in chunks]) for a in range(len(f.slots))])
+                 [np.concatenate([c.slots[a] for c in chunks]) for a in range(len(f.slots))],
+                 f.start, f.group.activity_version[0])
 
 
 def by_group(batches: list[Batch]) -> list[Batch]:
