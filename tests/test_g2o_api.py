@@ -120,14 +120,6 @@ def test_orbslam_local_ba_with_outlier_levels() -> None:
     assert inliers == 652  # of 1,200 observations: g2opy keeps the same ones
 
 
-def _graphopt_has(name: str) -> bool:
-    import graphopt.types
-
-    return hasattr(graphopt.types, name)
-
-
-@pytest.mark.skipif(not _graphopt_has("VertexSim3Expmap"),
-                    reason="graphopt.types has no VertexSim3Expmap yet (the SLAM back-end's types)")
 def test_optimize_sim3() -> None:
     # g2opy 2.3.0 on the same scene: 325.2567845718166, 90 inliers, s = 1.70117943.
     out = programs.optimize_sim3(g2o)
@@ -137,15 +129,6 @@ def test_optimize_sim3() -> None:
     assert np.allclose(out["t"], [0.3, -0.1, 0.2], atol=0.01)
 
 
-def test_sim3_without_the_types_says_so() -> None:
-    if _graphopt_has("VertexSim3Expmap"):
-        pytest.skip("graphopt has the Sim3 types")
-    with pytest.raises(NotImplementedError, match="VertexSim3Expmap"):
-        programs.optimize_sim3(g2o, n=5)
-
-
-@pytest.mark.skipif(not _graphopt_has("EdgeSE3ProjectXYZOnlyPose"),
-                    reason="graphopt.types has no EdgeSE3ProjectXYZOnlyPose yet")
 def test_orbslam_pose_optimization() -> None:
     # ORB-SLAM's PoseOptimization, 4 rounds; g2opy 2.3.0: 135.13018865177074, 79 inliers.
     _, _, chi2, inliers = programs.motion_only(g2o, programs.scene(20, 1000, 5, seed=1), 100)
@@ -159,8 +142,6 @@ BACKEND_CHI2 = {"EdgeSE3ProjectXYZOnlyPose": 279.9426991326854,
                 "EdgeSE3Expmap": 0.10163899318823004, "EdgeSim3": 0.014353710492890373}
 
 
-@pytest.mark.skipif(not _graphopt_has("VertexSim3Expmap"),
-                    reason="graphopt.types has no SLAM back-end types yet")
 def test_slam_backend_types_give_g2opys_chi2() -> None:
     ours = programs.slam_backend_types_chi2(g2o)
     for name, value in BACKEND_CHI2.items():
