@@ -327,9 +327,12 @@ def format_summary(s: dict[str, Any], solver_text: str | None = None) -> str:
         "   (g2o's chi2: sum e'Omega e"
         + (f"; with the kernel {s['initial_robust_chi2']:.6f} -> {s['final_robust_chi2']:.6f})"
            if s["robust_kernel"] else ")"),
-        f"  iterations {s['iterations']}, stop: {s['stop_reason']}; {s['seconds']:.3f} s, "
-        f"{s['seconds_per_iteration']:.4f} s/iteration; read {s['read_seconds']:.3f} s, "
-        f"build {s['build_seconds']:.3f} s, setup {s['setup_seconds']:.3f} s",
+        # An online run without a final batch runs no iteration: no per-iteration figure.
+        (f"  iterations {s['iterations']}, stop: {s['stop_reason']}; {s['seconds']:.3f} s, "
+         f"{s['seconds_per_iteration']:.4f} s/iteration; " if s["iterations"] else
+         f"  no batch iteration, stop: {s['stop_reason']}; {s['seconds']:.3f} s; ")
+        + f"read {s['read_seconds']:.3f} s, build {s['build_seconds']:.3f} s, "
+        f"setup {s['setup_seconds']:.3f} s",
     ]
     if s["online"]:
         o = s["online"]

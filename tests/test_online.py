@@ -176,8 +176,10 @@ def test_the_app_replays_online_and_reports_the_steps(tmp_path, capsys) -> None:
 
     js = tmp_path / "online.json"
     assert main(["--poses", "150", "--online", "--json", str(js)]) == 0
-    _, err = capsys.readouterr()
+    out, err = capsys.readouterr()
     assert "online step 150/150" in err
+    # No batch iteration ran: the summary gives no per-iteration figure.
+    assert "no batch iteration, stop: online" in out + err and "s/iteration" not in out + err
     s = json.loads(js.read_text())
     assert set(s) == KEYS and set(s["online"]) == ONLINE_KEYS
     o = s["online"]
