@@ -344,6 +344,21 @@ class Linearizer:
               else np.einsum("mij,mj->mi", info, e))
         return oe, np.einsum("me,me->m", e, oe)
 
+    def _weigh(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...]
+               ) -> tuple[Linearization, np.ndarray, np.ndarray]:
+        """``(out with inactive rows zeroed, Ωe, e'Ωe)`` of group ``gi``; every edge's errors
+        and ``e'Ωe`` are kept on the group (``raw_eval``) for the edge-set queries that
+        usually follow an optimisation at the same estimates (ORB-SLAM's outlier checks)."""
+        oe, s = self._sq(g, out.error)
+        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
+                       g.removals), out.error, s)
+        act = g.active_edges
+        if act is not None:  # edges of other levels: zero rows (also where not finite)
+            out = only_active(out, act)
+            oe = np.where(act[:, None], oe, 0.0)
+            s = np.where(act, s, 0.0)
+        return out, oe, s
+
     @staticmethod
     def _reduced(g: EdgeGroup, out: Linearization) -> np.ndarray:
         """Check and return ``e_lin`` of a reduced linearisation."""
@@ -410,9 +425,7 @@ class Linearizer:
             on_trial = linearize_trial and self.on_trial[gi]
             out = (self._linearization(gi, key=state) if on_trial
                    else self._run(gi, "evaluate"))
-            if g.active_edges is not None:  # edges of other levels: zero rows
-                out = only_active(out, g.active_edges)
-            oe, s = self._sq(g, out.error)
+            out, oe, s = self._weigh(gi, g, out, state)
             rho, w = self._robustify(g, s, weights=on_trial)
             if on_trial:  # the next linearize at this state takes all of it
                 self._weights[gi] = ((state, g.activity_version), out, oe, s, rho, w)
@@ -440,9 +453,7 @@ class Linearizer:
                 _, out, oe, s, rho, w = hit
             else:
                 out = self._linearization(gi, consume=True, key=state)
-                if g.active_edges is not None:  # edges of other levels: zero rows
-                    out = only_active(out, g.active_edges)
-                oe, s = self._sq(g, out.error)
+                out, oe, s = self._weigh(gi, g, out, state)
                 rho, w = self._robustify(g, s)
             del hit
             e, J = out.error, out.jacobians
