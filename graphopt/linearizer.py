@@ -68,6 +68,21 @@ class WeightedLinearization:
     weighted_errors: list[np.ndarray]
 
 
+def _broadcast_row(a: np.ndarray, one: int, m: int, transposed: bool) -> np.ndarray:
+    """Row ``one`` of ``a`` (column ``one`` of a transposed store) repeated ``m`` times, as a
+    read-only view with stride 0 (1 µs; ``np.broadcast_to`` takes 4)."""
+    if not a.flags.c_contiguous:
+        row = a[:, one] if transposed else a[one]
+        return np.broadcast_to(row, (m, *row.shape))
+    if transposed:
+        shape, offset, strides = (m, a.shape[0]), one * a.strides[1], (0, a.strides[0])
+    else:
+        shape, offset, strides = (m, *a.shape[1:]), one * a.strides[0], (0, *a.strides[1:])
+    view = np.ndarray(shape, a.dtype, a, offset, strides)
+    view.flags.writeable = False
+    return view
+
+
 class Linearizer:
     """Evaluates and linearises every edge group.
 
@@ -100,6 +115,14 @@ class Linearizer:
         # change builds a new problem).
         self._live = [tuple(bool(len(slots)) and not stores[si].fixed[slots].all()
                             for si, slots in pos) for pos in positions]
+        # Per group, per position: the one slot every edge has there (a pose's unary edges, the
+        # Sim(3) of OptimizeSim3), or -1. Such a position is gathered as a read-only broadcast
+        # of that vertex's estimate (stride 0), which batched code can treat as one transform
+        # (graphopt.lie: one (m, 3) x (3, 3) product instead of m small ones). ``None``: the
+        # type wrote into its inputs once, so the group gets copies.
+        self._one: list[tuple[int, ...] | None] = [
+            tuple(int(slots[0]) if len(slots) > 1 and not np.any(slots != slots[0]) else -1
+                  for _, slots in pos) for pos in positions]
         self.last_state: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         # Per group, what a trial that linearised computed besides the linearisation — Ωe,
         # e'Ωe, ρ, ρ' — keyed by (state, activity version): the next linearize reuses it.
@@ -109,20 +132,27 @@ class Linearizer:
     # --- gathering ---------------------------------------------------------------------------
 
     def gather(self, gi: int) -> tuple[np.ndarray, ...]:
-        """Estimates of group ``gi``'s vertices, one ``(m, *estimate_shape)`` array per position.
+        """Estimates of group ``gi``'s vertices, one ``(m, *estimate_shape)`` array per position
+        (read-only where every edge has the same vertex there).
 
         Args:
             gi: Group index.
         """
-        return tuple(self._gather_rows(si, "estimates", slots)  # type: ignore[misc]
-                     for si, slots in self.positions[gi])
+        one = self._one[gi]
+        if one is None:
+            return tuple(self._gather_rows(si, "estimates", slots)  # type: ignore[misc]
+                         for si, slots in self.positions[gi])
+        return tuple(self._gather_rows(si, "estimates", slots, o)  # type: ignore[misc]
+                     for (si, slots), o in zip(self.positions[gi], one, strict=True))
 
-    def _gather_rows(self, si: int, what: str, slots: np.ndarray) -> np.ndarray | None:
+    def _gather_rows(self, si: int, what: str, slots: np.ndarray, one: int = -1
+                     ) -> np.ndarray | None:
         """Rows ``slots`` of a store's estimates or derived values, cached per state.
 
         2-D arrays ``(n, d)`` are gathered coordinate by coordinate from a transposed copy: the
         result ``(m, d)`` is in Fortran order, so each coordinate over the edges is one
-        contiguous array — what batched edge code reads, and a cheaper gather.
+        contiguous array — what batched edge code reads, and a cheaper gather. With ``one``
+        (every slot equal to it) the result is a read-only broadcast of that row.
         """
         st = self.stores[si]
         key = (si, what)
@@ -135,9 +165,11 @@ class Linearizer:
         _, a, transposed = hit
         if a is None:
             return None
-        # np.take, not a[slots]: 4x faster on (n, 4, 4) poses (a 33 against 8 µs gather of
-        # 4,807 edges' poses).
-        return np.take(a, slots, axis=1).T if transposed else np.take(a, slots, axis=0)
+        if one >= 0:
+            return _broadcast_row(a, one, len(slots), transposed)
+        # take, not a[slots]: 4x faster on (n, 4, 4) poses (a 33 against 8 µs gather of
+        # 4,807 edges' poses); the method, not np.take: 1 against 2.5 µs a call.
+        return a.take(slots, axis=1).T if transposed else a.take(slots, axis=0)
 
     def context(self, gi: int) -> EdgeContext:
         """Group ``gi``'s context, with the vertices' derived values if its type uses them.
@@ -194,7 +226,13 @@ class Linearizer:
         """
         g = self.groups[gi]
         if g.size <= CHUNK_EDGES:
-            return self._call(g, method, self.gather(gi), self.context(gi))
+            try:
+                return self._call(g, method, self.gather(gi), self.context(gi))
+            except ValueError as exc:  # a type that writes into a broadcast input: copies
+                if self._one[gi] is None or "read-only" not in str(exc):
+                    raise
+                self._one[gi] = None
+                return self._call(g, method, self.gather(gi), self.context(gi))
         full: list[np.ndarray | None] = []
         for c0 in range(0, g.size, CHUNK_EDGES):
             sl = slice(c0, min(c0 + CHUNK_EDGES, g.size))
