@@ -16,6 +16,7 @@ import numpy as np
 
 from graphopt.activity import only_active
 from graphopt.edge import EdgeContext, Linearization
+from graphopt.edge_output import checked_output, raise_non_finite_edge, reduced_error, where
 from graphopt.errors import GraphError
 from graphopt.storage import EdgeGroup, VertexStore
 
@@ -282,68 +283,14 @@ class Linearizer:
         try:
             out = getattr(g.etype, method)(x, meas, ctx)
         except GraphError as exc:
-            raise GraphError(f"{exc} ({self._where(g)})") from exc
+            raise GraphError(f"{exc} ({where(g)})") from exc
         key = (id(g), method, len(meas))
         if type(out) is Linearization and key in self._trusted:
             return out
-        checked = self._checked(g, out, method, len(meas))
+        checked = checked_output(g, out, method, len(meas))
         if checked is out:
             self._trusted.add(key)
         return checked
-
-    @staticmethod
-    def _where(g: EdgeGroup) -> str:
-        ids = g.vertex_ids[0].tolist() if g.size else []
-        return f"{g.size} edges of the group, the first on vertices {ids}"
-
-    def _checked(self, g: EdgeGroup, out: object, method: str, m: int) -> Linearization:
-        """``out`` as a :class:`Linearization` whose arrays have the documented shapes.
-
-        Shape and dtype comparisons only, once per group and call. An error that is not an
-        ndarray (a list) is converted with ``np.asarray`` and accepted if its shape is right;
-        integer errors become float. Jacobians must be ndarrays, one per vertex position.
-        """
-        et = g.etype
-        name = f"{et.__name__}.{method}"
-        if not isinstance(out, Linearization):
-            if not isinstance(out, tuple) or not 1 <= len(out) <= 4:
-                raise GraphError(f"{name} returned a {type(out).__name__}, expected a "
-                                 f"Linearization ({self._where(g)})")
-            out = Linearization(*out)  # a plain (error, jacobians[, ...]) tuple
-        dim = et.dimension
-        e = out.error
-        if type(e) is not np.ndarray or e.dtype.kind != "f":
-            try:
-                e = np.asarray(e, dtype=float)
-            except (TypeError, ValueError):
-                e = np.zeros(0)  # reported below with the original's type
-        if e.shape != (m, dim):
-            got = (f"shape {out.error.shape}" if isinstance(out.error, np.ndarray)
-                   else f"a {type(out.error).__name__}")
-            raise GraphError(f"{name} returned an error of {got}, expected ({m}, {dim}) "
-                             f"({self._where(g)})")
-        if e is not out.error:
-            out = out._replace(error=e)
-        if out.active is not None and np.shape(out.active) != (m,):
-            raise GraphError(f"{name} returned an active mask of shape {np.shape(out.active)}, "
-                             f"expected ({m},) ({self._where(g)})")
-        if method == "linearize":
-            J = out.jacobians
-            vts = et.vertex_types
-            if not isinstance(J, tuple | list) or len(J) != len(vts):
-                got = (f"{len(J)} Jacobians" if isinstance(J, tuple | list)
-                       else f"a {type(J).__name__}")
-                raise GraphError(f"{name} returned {got}, expected a tuple of {len(vts)} (one "
-                                 f"per vertex position) ({self._where(g)})")
-            rows = et.jacobian_rows()
-            for i, (j, vt) in enumerate(zip(J, vts, strict=True)):
-                if type(j) is not np.ndarray or j.shape != (m, rows, vt.dimension):
-                    got = (f"shape {j.shape}" if isinstance(j, np.ndarray)
-                           else f"a {type(j).__name__}")
-                    raise GraphError(f"{name} returned a Jacobian of {got} for position {i} "
-                                     f"({vt.__name__}), expected ({m}, {rows}, {vt.dimension}) "
-                                     f"({self._where(g)})")
-        return out
 
     # --- weighting ---------------------------------------------------------------------------
 
@@ -396,26 +343,6 @@ class Linearizer:
             oe = np.where(act[:, None], oe, 0.0)
             s = np.where(act, s, 0.0)
         return out, oe, s
-
-    @staticmethod
-    def _reduced(g: EdgeGroup, out: Linearization) -> np.ndarray:
-        """Check and return ``e_lin`` of a reduced linearisation."""
-        r = g.etype.linearization_rows
-        name = g.etype.__name__
-        if out.reduced_error is None:
-            raise GraphError(f"{name}: linearization_rows is set, so linearize must return a "
-                             "Linearization with reduced_error (e_lin)")
-        e_lin = out.reduced_error
-        # The Jacobians' (m, r, d) shapes were checked with the rest of the output (_checked).
-        if np.shape(e_lin) != (g.size, r):
-            raise GraphError(f"{name}: a reduced linearisation needs e_lin ({g.size}, {r}), got "
-                             f"shape {np.shape(e_lin)}")
-        if not g.info_is_identity:
-            raise GraphError(f"{name}: a reduced linearisation needs an identity information "
-                             "matrix")
-        if not np.isfinite(e_lin.sum()):
-            raise FloatingPointError(f"{name}: non-finite reduced error at linearisation")
-        return e_lin
 
     def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
                 active: np.ndarray | None, totals: list[float], chi2: float | None = None
@@ -496,11 +423,11 @@ class Linearizer:
             del hit
             e, J = out.error, out.jacobians
             if g.etype.linearization_rows is not None:
-                oe = self._reduced(g, out)
+                oe = reduced_error(g, out)
             assert w is not None
             chi2 = float(s.sum())
             if not math.isfinite(chi2):  # one sum is cheaper than isfinite().all()
-                self._raise_non_finite(g, e, J)
+                raise_non_finite_edge(g, e, J)
             self._record(g, s, rho, out.active, totals, chi2)
             J = tuple(np.ascontiguousarray(j) for j in J)
             weighted = bool(g.kernels)
@@ -531,18 +458,5 @@ class Linearizer:
             FloatingPointError: always (naming the edge where one is found).
         """
         for g, J, e in zip(self.groups, lin.jacobians, lin.weighted_errors, strict=True):
-            self._raise_non_finite(g, e, J)
+            raise_non_finite_edge(g, e, J)
         raise FloatingPointError("the normal equations are not finite (overflow)")
-
-    @staticmethod
-    def _raise_non_finite(g: EdgeGroup, e: np.ndarray, J: tuple[np.ndarray, ...]) -> None:
-        """Raise naming the first edge of ``g`` with a non-finite error or Jacobian, if any."""
-        ok = np.isfinite(e.reshape(len(e), -1)).all(axis=1)
-        for j in J:
-            ok &= np.isfinite(j.reshape(len(j), -1)).all(axis=1)
-        if ok.all():
-            return
-        ids = g.vertex_ids[int(np.flatnonzero(~ok)[0])].tolist()
-        raise FloatingPointError(
-            f"{g.etype.__name__} on vertices {ids}: non-finite error or Jacobian at linearisation"
-        )
