@@ -338,3 +338,23 @@ def test_one_vertex_broadcast_over_the_edges_equals_its_copies(name: str) -> Non
         e = b.error
         np.testing.assert_allclose(np.einsum("ni,ij,nj->n", e, info, e), G2O_CHI2[name],
                                    rtol=1e-9)
+
+
+def test_one_pose_validation_equals_the_batched_one() -> None:
+    """One pose is checked in Python floats (a motion-only BA resets it every round): the same
+    verdicts as the batched check, at each test's threshold and past it."""
+    rng = np.random.default_rng(9)
+    for T in se3_exp(rng.normal(size=(20, 6))):
+        cases = [T]
+        for i, j, d in [(0, 0, 1e-5), (1, 2, 2e-7), (3, 0, 1e-11), (3, 3, 1e-13),
+                        (2, 1, np.nan), (0, 3, np.inf)]:
+            U = T.copy()
+            U[i, j] += d
+            cases.append(U)
+        U = T.copy()
+        U[:3, 0] *= -1.0  # a reflection
+        cases.append(U)
+        verdicts = [bool(VertexSE3Expmap.validate(c[None])[0]) for c in cases]
+        batched = VertexSE3Expmap.validate(np.stack(cases + [T]))[:-1]
+        assert verdicts == batched.tolist()
+        assert verdicts == [True, False, True, False, True, False, False, False]
