@@ -324,7 +324,14 @@ def test_one_vertex_broadcast_over_the_edges_equals_its_copies(name: str) -> Non
     recorded g2o chi2."""
     etype, x, z, ctx, info = _cases()[name]
     pos = len(x) - 1  # the pose or the Sim(3)
-    shared = x[pos][:1]
+    for fixed_scale in ([False, True] if "Sim3" in name else [False]):
+        shared = x[pos][:1].copy()
+        if fixed_scale:
+            shared[0, 3, 0] = 1.0
+        _check_shared(etype, x, z, ctx, info, name, pos, shared)
+
+
+def _check_shared(etype, x, z, ctx, info, name, pos, shared) -> None:
     copies = [*x[:pos], np.repeat(shared, C.M, axis=0)]
     view = [*x[:pos], np.broadcast_to(shared, copies[pos].shape)]
     assert view[pos].strides[0] == 0

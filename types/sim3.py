@@ -36,7 +36,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
+from graphopt.lie import hat
 from graphopt.types.projection import (
+    CameraParameters,
     _cross_matrix_rows,
     camera_params,
     normalised_projection,
@@ -289,6 +291,8 @@ class _Sim3Projection(BaseEdge):
         cam = camera_params(cls, ctx.params)
         P, M = cls._camera_point(x)
         e, iz, uv = normalised_projection(P, measurement, cam)
+        if M.strides[0] == 0 and len(X) and type(S) is np.ndarray:
+            return Linearization(e, cls._shared_jacobians(S[0], M[0], iz, uv, cam))
         # ∂e/∂P = −f·iz·[[1, 0, −u], [0, 1, −v]], times ∂P/∂X = M row by row.
         J_point = (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
                                                                   * cam.focal[:, None])
@@ -305,6 +309,32 @@ class _Sim3Projection(BaseEdge):
             J_sim = np.zeros((m, 2, 7))
             J_sim[:, :, :6] = pose_jacobian(iz, uv, cam)
         return Linearization(e, (J_point, J_sim))
+
+    @classmethod
+    def _shared_jacobians(cls, S: np.ndarray, M: np.ndarray, iz: np.ndarray, uv: np.ndarray,
+                          cam: CameraParameters) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians when every edge has the same Sim(3) ``S`` (``M = ∂P/∂X``), from
+        the pose Jacobian's rows ``[−D[P]×, D]`` (``D = ∂e/∂P``) by two ``(2m, 6)``
+        products instead of per-edge cross products.
+
+        Inverse: ``M[X]× = [P]×Rᵀ + M[t]×`` (``X − t = sRP``) and ``D·P = 0`` (a pinhole
+        image does not change when the point is scaled), so ``D M [X]× = −(−D[P]×)Rᵀ +
+        D M[t]×`` and ``−D M X = −D M t``.
+        """
+        m = len(iz)
+        pj = pose_jacobian(iz, uv, cam).reshape(2 * m, 6)
+        J_point = (pj[:, 3:] @ M).reshape(m, 2, 3)
+        if not cls.inverse:
+            J_sim = np.zeros((m, 2, 7))
+            J_sim[:, :, :6] = pj.reshape(m, 2, 6)
+            return J_point, J_sim
+        R, t, _ = sim3_parts(S[None])
+        B = np.zeros((6, 7))
+        B[:3, :3] = -R[0].T
+        B[3:, :3] = M @ hat(t)[0]
+        B[3:, 3:6] = -M
+        B[3:, 6] = -(M @ t[0]) * (1.0 - S[3, 0])  # the free-scale flag
+        return J_point, (pj @ B).reshape(m, 2, 7)
 
     @classmethod
     def depth_positive(
