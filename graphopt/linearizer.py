@@ -339,7 +339,11 @@ class Linearizer:
                        g.removals), out.error, s)
         act = g.active_edges
         if act is not None:  # edges of other levels: zero rows (also where not finite)
-            out = only_active(out, act)
+            if out.jacobians:
+                out = only_active(out, act)
+            else:  # errors only: nothing reads the error rows past Ωe and e'Ωe
+                out = out._replace(active=act if out.active is None
+                                   else act & np.asarray(out.active, dtype=bool))
             oe = np.where(act[:, None], oe, 0.0)
             s = np.where(act, s, 0.0)
         return out, oe, s
