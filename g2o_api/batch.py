@@ -5,6 +5,7 @@ once per state; ``set_level`` and ``set_robust_kernel`` as one entry of an array
 
 from __future__ import annotations
 
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,10 @@ from .solvers import RobustKernelBase, graphopt_kernel
 from .vertices import Bank
 
 __all__ = ["Batch", "stack_information", "stack_measurements"]
+
+_LEVEL = attrgetter("_level")
+_KERNEL = attrgetter("_kernel")
+_INFO = attrgetter("_info")
 
 
 def kernel_key(kernel: Any) -> Any:
@@ -62,10 +67,10 @@ class Batch:
                 raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
                                  f"{int(vids[i, p])} is not a {b.gtype.__name__} like the "
                                  "other edges' vertices at its position")
-        self.levels = np.fromiter((r._level for r in records), dtype=np.int64, count=m)
+        self.levels = np.fromiter(map(_LEVEL, records), dtype=np.int64, count=m)
         self.kernels: list[Any] = []  # graphopt kernels by code
         self._codes: dict[Any, int] = {}
-        kernels = [r._kernel for r in records]
+        kernels = list(map(_KERNEL, records))
         first = kernels[0] if m else None
         if all(k is first for k in kernels) or (  # one object (or None) for all: one code
                 isinstance(first, RobustKernelBase) and self._one_key(kernels)):
@@ -81,8 +86,10 @@ class Batch:
         # getters index, valid while the state is.
         self._lists: tuple[Any, list[float], list[bool] | None] | None = None
         self._bank1 = banks[0] if len(banks) == 1 else None
+        self._bank2 = (banks[0], banks[1]) if len(banks) == 2 else None
         for i, r in enumerate(records):
-            r._batch, r._idx = self, i
+            r._batch = self
+            r._idx = i
 
     # --- kernels and levels ------------------------------------------------------------------
 
@@ -95,9 +102,9 @@ class Batch:
 
     def code(self, kernel: Any) -> int:
         """The batch's code of a kernel (-1: none)."""
-        key = kernel_key(kernel)
-        if key is None:
+        if kernel is None:
             return -1
+        key = kernel_key(kernel)
         c = self._codes.get(key)
         if c is None:
             c = self._codes[key] = len(self.kernels)
@@ -178,8 +185,12 @@ class Batch:
         if b is not None:  # one vertex type (the pose-only edges): no loop
             s = b.store
             return (s, s.version if s is not None else -1)
-        return tuple((b.store, b.store.version if b.store is not None else -1)
-                     for b in self.banks)
+        if self._bank2 is not None:  # two (the projections): no loop either
+            s0, s1 = self._bank2[0].store, self._bank2[1].store
+            if s0 is not None and s1 is not None:
+                return (s0, s0.version, s1, s1.version)
+        return tuple([(b.store, b.store.version if b.store is not None else -1)
+                      for b in self.banks])
 
     def chi2_of(self, i: int) -> float:
         """Edge ``i``'s ``eᵀΩe`` (no kernel) at the current estimates: one state check and a
@@ -280,6 +291,15 @@ def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
         raise
 
 
+def _checked_one(cls: type, rec: Any, info: np.ndarray, d: int) -> np.ndarray:
+    """A copy of the one information matrix of a batch, or a GraphError if it is not
+    ``(d, d)``."""
+    if info.shape != (d, d):
+        raise GraphError(f"{cls.__name__} on vertices {[v._id for v in rec._v]}: "
+                         f"information has shape {info.shape}, expected {(d, d)}")
+    return info.copy()
+
+
 def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
     """The information matrices of a batch's records: ``None`` (all identity, unset), one
     ``(d, d)`` shared by all, or ``(m, d, d)``.
@@ -289,10 +309,12 @@ def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
         recs: Its records.
         d: The error dimension.
     """
-    infos = [e._info for e in recs]
+    infos = list(map(_INFO, recs))
+    first = infos[0]
+    if len(set(map(id, infos))) == 1:  # one object (set_information's shared copies), or None
+        return None if first is None else _checked_one(cls, recs[0], first, d)
     if all(i is None for i in infos):
         return None
-    first = infos[0]
     if first is not None and first.shape == (d, d) and bool((first == first).all()):
         # The usual case, one matrix value for all: compared as bytes (equal bytes, equal
         # values), without stacking m copies first.

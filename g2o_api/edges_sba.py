@@ -35,6 +35,8 @@ class EdgeSE3ProjectXYZ(BaseEdge):
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy)
 
+    _key_attrs = ("fx", "fy", "cx", "cy")
+
     def cam_project(self, p: Any) -> np.ndarray:
         """Pixel of a camera-frame point.
 
@@ -87,6 +89,8 @@ class EdgeStereoSE3ProjectXYZ(EdgeSE3ProjectXYZ):
 
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy, self.bf)
+
+    _key_attrs = ("fx", "fy", "cx", "cy", "bf")
 
 
 class EdgeStereoSE3ProjectXYZOnlyPose(EdgeStereoSE3ProjectXYZ):

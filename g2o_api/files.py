@@ -134,7 +134,7 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
             e._v = [vmap[row[p]] for p in where]
             e._meas, e._info, e._opt = z, inf, opt
             if pids:
-                e._pids = list(pids)
+                e._pids = tuple(pids)
             edges[e] = None
             recs.append(e)
         banks_of = [opt._vertices[v]._bank for v in g.vertex_ids[0].tolist()]
