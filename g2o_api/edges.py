@@ -155,6 +155,8 @@ class BaseEdge:
         Args:
             level: An integer.
         """
+        if level == self._level and type(level) is int:  # unchanged (outlier loops): nothing
+            return
         self._level = int(level)
         if self._batch is not None:
             self._batch.set_level(self._idx, self._level)
@@ -212,7 +214,12 @@ class BaseEdge:
     def chi2(self) -> float:
         """``eᵀΩe`` at the current estimates, without the kernel (g2o's ``chi2()``)."""
         b = self._batch
-        return (b if b is not None else self._need_batch()).chi2_of(self._idx)
+        if b is not None:
+            lists = b._lists  # the batch's chi2s while the estimates are unchanged
+            if lists is not None and lists[0] == b._state():
+                return lists[1][self._idx]
+            return b.chi2_of(self._idx)
+        return self._need_batch().chi2_of(self._idx)
 
     def error(self) -> np.ndarray:
         """The error at the current estimates."""

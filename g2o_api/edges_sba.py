@@ -12,6 +12,9 @@ from .edges import BaseEdge
 
 __all__ = ["SBA_EDGES"]
 
+_ORIGIN = np.zeros(3)
+_ORIGIN.flags.writeable = False
+
 
 def _depth_pose_point(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any
                       ) -> np.ndarray:
@@ -65,7 +68,7 @@ class EdgeSE3ProjectXYZOnlyPose(EdgeSE3ProjectXYZ):
 
     def __init__(self) -> None:
         super().__init__()
-        self.Xw = np.zeros(3)
+        self.Xw = _ORIGIN  # g2o's default; programs assign their point
 
     @classmethod
     def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
@@ -103,7 +106,7 @@ class EdgeStereoSE3ProjectXYZOnlyPose(EdgeStereoSE3ProjectXYZ):
 
     def __init__(self) -> None:
         super().__init__()
-        self.Xw = np.zeros(3)
+        self.Xw = _ORIGIN  # g2o's default; programs assign their point
 
     _data = EdgeSE3ProjectXYZOnlyPose._data
     _depth = staticmethod(_depth_pose_only)
