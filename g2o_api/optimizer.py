@@ -29,7 +29,7 @@ from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
 from graphopt.stopping import StoppingConfig
 
-from .batch import Batch, stack_information, stack_measurements
+from .batch import Batch, bucket_edges, stack_information, stack_measurements
 from .edges import BaseEdge
 from .params import Parameter
 from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
@@ -280,36 +280,10 @@ class SparseOptimizer:
             banks[gtype] = Bank(gtype, recs, est)
         self._banks = banks
 
-    def _buckets(self) -> dict[tuple[Any, ...], list[BaseEdge]]:
-        """The edges by class and parameter key, in the order added (one batch each)."""
-        edges = list(self._edges)
-        classes = set(map(type, edges))
-        by_class: dict[type, list[BaseEdge]] = {}
-        if len(classes) == 1:
-            by_class[classes.pop()] = edges
-        else:
-            for e in edges:
-                b = by_class.get(type(e))
-                if b is None:
-                    by_class[type(e)] = b = []
-                b.append(e)
-        buckets: dict[tuple[Any, ...], list[BaseEdge]] = {}
-        for cls, recs in by_class.items():
-            keys = list(map(cls._key_of(), recs))
-            if keys.count(keys[0]) == len(keys):  # the usual case: one key for the class
-                buckets[(cls, keys[0])] = recs
-                continue
-            for e, key in zip(recs, keys, strict=True):
-                b = buckets.get((cls, key))
-                if b is None:
-                    buckets[(cls, key)] = b = []
-                b.append(e)
-        return buckets
-
     def _file_edges(self) -> None:
         batches = []
         known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
-        for (cls, pkey), recs in self._buckets().items():
+        for (cls, pkey), recs in bucket_edges(self._edges).items():
             gtype = cls._core_type(pkey)
             m, k = len(recs), len(recs[0]._v)  # the class's count, or the edges' own (LotsOf)
             perm = cls._perm if len(cls._perm) == k else tuple(range(k))
