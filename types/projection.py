@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
@@ -33,6 +33,7 @@ __all__ = [
     "camera_params",
     "normalised_projection",
     "pose_jacobian",
+    "pose_jacobian_map",
     "EdgeInverseDepthProjection",
     "EdgeProjectXYZ2UV",
     "EdgeSE3ProjectXYZ",
@@ -98,13 +99,68 @@ def camera_params(etype: type, params: Any,
                          f"({exc})") from None
 
 
+@lru_cache(maxsize=64)
+def pose_jacobian_map(fx: float, fy: float, bf: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(M (12, 6k), C (6k,))`` with ``J.reshape(m, 6k) = F @ M + C``: g2o's pose Jacobian of
+    a pinhole (or, with ``bf``, stereo) projection under ``T ← exp([ω, υ]) T``.
+
+    ``F`` holds the products ``a_i b_j`` (index ``3i + j``) of ``a = [u, v, iz, 1]`` and
+    ``b = [u, v, iz]`` (``u, v`` normalised image coordinates, ``iz = 1/z``): every entry of
+    g2o's Jacobian rows is a combination of them (``k = 2``, or 3 rows with ``bf``)."""
+    k = 2 if bf is None else 3
+    M, C = np.zeros((12, 6 * k)), np.zeros(6 * k)
+    U, V, IZ, ONE = 0, 1, 2, 3               # the factors of a
+    u, v, iz = 0, 1, 2                       # the factors of b
+
+    def put(row: int, col: int, i: int, j: int, coef: float) -> None:
+        M[3 * i + j, 6 * row + col] += coef
+
+    for row, f in [(0, fx)] + ([] if bf is None else [(2, fx)]):
+        # fx·[uv, −(1 + u²), v, −iz, 0, u·iz]
+        put(row, 0, U, v, f)
+        C[6 * row + 1] = -f
+        put(row, 1, U, u, -f)
+        put(row, 2, ONE, v, f)
+        put(row, 3, ONE, iz, -f)
+        put(row, 5, U, iz, f)
+    # fy·[1 + v², −uv, −u, 0, −iz, v·iz]
+    C[6] = fy
+    put(1, 0, V, v, fy)
+    put(1, 1, U, v, -fy)
+    put(1, 2, ONE, u, -fy)
+    put(1, 4, ONE, iz, -fy)
+    put(1, 5, V, iz, fy)
+    if bf is not None:       # u_r = u − bf·iz: row 0 plus bf·[−v·iz, u·iz, 0, 0, 0, −iz²]
+        put(2, 0, V, iz, -bf)
+        put(2, 1, U, iz, bf)
+        put(2, 5, IZ, iz, -bf)
+    return M, C
+
+
+#: Rows per product in :func:`pose_jacobian`: OpenBLAS runs a ``(rows, 16) × (16, 6k)``
+#: product on several threads above ~4,000 rows, which costs milliseconds on a loaded machine.
+_CHUNK = 2048
+
+
+@lru_cache(maxsize=64)
+def _pose_jacobian_map16(fx: float, fy: float, bf: float | None) -> np.ndarray:
+    """:func:`pose_jacobian_map` as one ``(16, 6k)`` matrix over the products ``a_i a_j``
+    (index ``4i + j``) of ``a = [u, v, iz, 1]``: the constant ``C`` is the row of ``1·1``."""
+    M, C = pose_jacobian_map(fx, fy, bf)
+    M16 = np.zeros((4, 4, M.shape[1]))
+    M16[:, :3] = M.reshape(4, 3, -1)
+    M16[3, 3] = C
+    return M16.reshape(16, -1)
+
+
 def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
                   bf: float | None = None) -> np.ndarray:
     """g2o's pose Jacobian rows ``(m, 2|3, 6)`` of pinhole (or, with ``bf``, stereo)
-    projections under ``T ← exp([ω, υ]) T``, written entry by entry from ``u, v, iz``:
-    ``fx·[uv, −(1 + u²), v, −iz, 0, u·iz]``, ``fy·[1 + v², −uv, −u, 0, −iz, v·iz]`` and, for
-    ``u_r = u − bf·iz``, row 0 plus ``bf·[−v·iz, u·iz, 0, 0, 0, −iz²]`` (twelve column writes:
-    at 2,000 edges a quarter of the time of a product of monomials with a constant matrix).
+    projections, as one product of per-edge monomials with :func:`pose_jacobian_map`.
+
+    The monomials are formed edge-last, ``(16, m)``: an outer product over a long contiguous
+    axis, 5x faster than over the 4 x 3 trailing axes at 500 edges (13 against 2.7 µs); the
+    product reads their transpose without a copy.
 
     Args:
         iz: ``(m,)`` inverse depths ``1/z`` of the camera-frame points.
@@ -112,29 +168,18 @@ def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
         cam: The intrinsics.
         bf: Stereo baseline × ``fx``, or ``None`` (mono).
     """
-    u, v = uv[:, 0], uv[:, 1]
-    fx, fy = cam.fx, cam.fy
-    J = np.empty((len(iz), 2 if bf is None else 3, 6))
-    uv_ = u * v
-    J[:, 0, 0] = fx * uv_
-    J[:, 0, 1] = -fx * (1.0 + u * u)
-    J[:, 0, 2] = fx * v
-    J[:, 0, 3] = -fx * iz
-    J[:, 0, 4] = 0.0
-    J[:, 0, 5] = fx * u * iz
-    J[:, 1, 0] = fy * (1.0 + v * v)
-    J[:, 1, 1] = -fy * uv_
-    J[:, 1, 2] = -fy * u
-    J[:, 1, 3] = 0.0
-    J[:, 1, 4] = -fy * iz
-    J[:, 1, 5] = fy * v * iz
-    if bf is not None:
-        biz = bf * iz
-        J[:, 2] = J[:, 0]
-        J[:, 2, 0] -= biz * v
-        J[:, 2, 1] += biz * u
-        J[:, 2, 5] -= biz * iz
-    return J
+    m = len(iz)
+    a = np.empty((4, m))                         # [u, v, iz, 1], one row each
+    a[:2] = uv.T
+    a[2] = iz
+    a[3] = 1.0
+    F = (a[:, None, :] * a[None, :, :]).reshape(16, m)
+    M = _pose_jacobian_map16(cam.fx, cam.fy, bf)
+    if m <= _CHUNK:
+        J = F.T @ M
+    else:
+        J = np.concatenate([F[:, i:i + _CHUNK].T @ M for i in range(0, m, _CHUNK)])
+    return J.reshape(m, 2 if bf is None else 3, 6)
 
 
 def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,

@@ -103,8 +103,8 @@ class _OnlyPose(BaseEdge):
     """Unary projection edges on one pose; the world point per edge in ``data["Xw"]``.
 
     The most frequent call of a SLAM system (every frame, every iteration), so written with
-    few numpy calls: g2o's closed-form Jacobian rows entry by entry
-    (:func:`~graphopt.types.projection.pose_jacobian`), not ``∂e/∂P·[−[P]×, I]``.
+    few numpy calls: g2o's closed-form Jacobian rows as one product of per-edge monomials with
+    a constant matrix (:func:`~graphopt.types.projection.pose_jacobian`), not ``∂e/∂P·[−[P]×, I]``.
     """
 
     vertex_types: ClassVar[tuple[type[BaseVertex], ...]] = (VertexSE3Expmap,)

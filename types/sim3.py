@@ -237,12 +237,24 @@ class _Sim3Projection(BaseEdge):
     inverse: ClassVar[bool] = False
 
     @classmethod
-    def _camera_point(cls, x: Sequence[np.ndarray]) -> np.ndarray:
+    def _camera_point(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """``(P (m, 3), M (m, 3, 3))``: the camera-frame points and ``∂P/∂X``.
+
+        ``S`` broadcast over the edges (stride 0: one Sim(3), as in ``OptimizeSim3``) is one
+        ``(m, 3) × (3, 3)`` product, not ``m`` small ones.
+        """
         X, S = x
-        if cls.inverse:
-            R, t, s = sim3_parts(S)
-            return np.matmul(np.swapaxes(R, 1, 2), (X - t)[:, :, None])[:, :, 0] / s[:, None]
-        return np.matmul(S[:, :3, :3], X[:, :, None])[:, :, 0] + S[:, :3, 3]
+        m = len(X)
+        one = type(S) is np.ndarray and type(X) is np.ndarray and m > 0 and S.strides[0] == 0
+        S1 = S[:1] if one else S
+        if cls.inverse:                          # P = S⁻¹X = Rᵀ(X − t)/s
+            R, t, s = sim3_parts(S1)
+            M = np.swapaxes(R, 1, 2) / s[:, None, None]
+            P = (X - t) @ M[0].T if one else np.matmul(M, (X - t)[:, :, None])[:, :, 0]
+        else:                                    # P = sRX + t
+            M = S1[:, :3, :3]
+            P = (X @ M[0].T if one else np.matmul(M, X[:, :, None])[:, :, 0]) + S1[:, :3, 3]
+        return P, (np.broadcast_to(M, (m, 3, 3)) if one else M)
 
     @classmethod
     def error(
@@ -256,7 +268,7 @@ class _Sim3Projection(BaseEdge):
             ctx: ``ctx.params``: the camera's :class:`CameraParameters`.
         """
         cam = camera_params(cls, ctx.params)
-        P = cls._camera_point(x)
+        P = cls._camera_point(x)[0]
         return measurement - (P[:, :2] / P[:, 2:3] * cam.focal + cam.centre)
 
     @classmethod
@@ -275,13 +287,7 @@ class _Sim3Projection(BaseEdge):
         """
         X, S = x
         cam = camera_params(cls, ctx.params)
-        if cls.inverse:                          # P = S⁻¹X = Rᵀ(X − t)/s
-            R, t, s = sim3_parts(S)
-            M = np.swapaxes(R, 1, 2) / s[:, None, None]
-            P = np.matmul(M, (X - t)[:, :, None])[:, :, 0]
-        else:                                    # P = sRX + t
-            M = S[:, :3, :3]
-            P = np.matmul(M, X[:, :, None])[:, :, 0] + S[:, :3, 3]
+        P, M = cls._camera_point(x)
         e, iz, uv = normalised_projection(P, measurement, cam)
         # ∂e/∂P = −f·iz·[[1, 0, −u], [0, 1, −v]], times ∂P/∂X = M row by row.
         J_point = (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
@@ -311,7 +317,7 @@ class _Sim3Projection(BaseEdge):
             measurement: ``(m, 2)`` (unused).
             ctx: Unused.
         """
-        return cls._camera_point(x)[:, 2] > 0
+        return cls._camera_point(x)[0][:, 2] > 0
 
 
 class EdgeSim3ProjectXYZ(_Sim3Projection):
