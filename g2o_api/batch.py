@@ -12,6 +12,7 @@ import numpy as np
 
 from graphopt.edge import EdgeContext
 from graphopt.edge_group import EdgeGroup
+from graphopt.edge_set import group_errors
 from graphopt.errors import GraphError
 
 from .edges import BaseEdge
@@ -219,20 +220,34 @@ class Batch:
             lists = self._lists = (state, lists[1], self.depth_positive().tolist())
         return lists[2][i]
 
-    def _evaluate(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    def _evaluate(self) -> tuple[np.ndarray, np.ndarray]:
+        """Errors and ``eᵀΩe`` of every edge at the current estimates, once per state: the
+        optimizer's own evaluation of the group when it has one at this state (it keeps every
+        edge's, whatever its level), else the batch's."""
         state = self._state()
         if self._cache is None or self._cache[0] != state:
-            x = [b.estimates()[s] for b, s in zip(self.banks, self.slots, strict=True)]
-            ctx = EdgeContext(self.params, self.data, measured=self.measured)
-            e = np.asarray(self.gtype.error(x, self.meas, ctx), dtype=float)
-            if self.info is None:
-                chi2 = np.einsum("mi,mi->m", e, e)
-            elif self.info.ndim == 2:
-                chi2 = np.einsum("mi,ij,mj->m", e, self.info, e)
+            g, core = self.group, self.owner._core
+            if g is not None and core is not None and self.banks[0].store is not None:
+                e_all, s_all = group_errors(core.graph, g)
+                whole = len(self.rows) == len(e_all)  # the group is this batch, in order
+                e, chi2 = (e_all, s_all) if whole else (e_all[self.rows], s_all[self.rows])
+                self._cache = (state, e, chi2, None, None)
             else:
-                chi2 = np.einsum("mi,mij,mj->m", e, self.info, e)
-            self._cache = (state, e, chi2, x, None)
-        return self._cache[1], self._cache[2], self._cache[3]
+                x = self._gather()
+                ctx = EdgeContext(self.params, self.data, measured=self.measured)
+                e = np.asarray(self.gtype.error(x, self.meas, ctx), dtype=float)
+                if self.info is None:
+                    chi2 = np.einsum("mi,mi->m", e, e)
+                elif self.info.ndim == 2:
+                    chi2 = np.einsum("mi,ij,mj->m", e, self.info, e)
+                else:
+                    chi2 = np.einsum("mi,mij,mj->m", e, self.info, e)
+                self._cache = (state, e, chi2, x, None)
+        return self._cache[1], self._cache[2]
+
+    def _gather(self) -> list[np.ndarray]:
+        """The estimates of every position, ``(m, *shape)`` each."""
+        return [b.estimates()[s] for b, s in zip(self.banks, self.slots, strict=True)]
 
     def errors(self) -> np.ndarray:
         """``(m, e)`` errors at the current estimates."""
@@ -247,7 +262,7 @@ class Batch:
         self._evaluate()
         assert self._cache is not None
         if self._cache[4] is None:
-            x = self._cache[3]
+            x = self._cache[3] if self._cache[3] is not None else self._gather()
             if self.cls._depth is not BaseEdge._depth:  # the g2o class's own test
                 ok = self.cls._depth(x, self.data, self.params)
             else:  # graphopt's type's (the Sim3 projections, ...)
