@@ -229,7 +229,8 @@ class Batch:
             g, core = self.group, self.owner._core
             if g is not None and core is not None and self.banks[0].store is not None:
                 e_all, s_all = group_errors(core.graph, g)
-                whole = len(self.rows) == len(e_all)  # the group is this batch, in order
+                r = self.rows  # (sorted, unique) the group is this batch, in order:
+                whole = len(r) == len(e_all) and (not len(r) or int(r[-1]) == len(r) - 1)
                 e, chi2 = (e_all, s_all) if whole else (e_all[self.rows], s_all[self.rows])
                 self._cache = (state, e, chi2, None, None)
             else:

@@ -761,3 +761,39 @@ def test_save_then_load_keeps_gicp_normals_and_parameters(tmp_path: Path) -> Non
     np.testing.assert_allclose(loaded_cam.offset().translation(), [0.1, 0.0, -0.2])
     assert isinstance(loaded_off, g2o.ParameterSE2Offset)
     np.testing.assert_allclose(loaded_off.offset().to_vector(), [0.2, -0.1, 0.3])
+
+
+def test_chi2_of_inactive_edges_after_optimize() -> None:
+    """After optimize() an edge's chi2() (read from graphopt's own last evaluation) is its
+    eᵀΩe at the current estimate, also for an edge of another level (which the optimizer
+    weighs zero)."""
+    rng = np.random.default_rng(7)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverSE3(g2o.LinearSolverDenseSE3())))
+    v = g2o.VertexSE3Expmap()
+    v.set_id(0)
+    v.set_estimate(g2o.SE3Quat(np.eye(3), [0.05, -0.02, 0.1]))
+    opt.add_vertex(v)
+    X = rng.uniform(-1, 1, (12, 3)) + [0, 0, 5]
+    edges = []
+    for i, p in enumerate(X):
+        e = g2o.EdgeSE3ProjectXYZOnlyPose()
+        e.set_vertex(0, v)
+        e.set_measurement(500 * p[:2] / p[2] + [320, 240] + (40.0 if i == 3 else 0.0))
+        e.set_information(np.eye(2) * (1.0 + i))
+        e.fx = e.fy = 500.0
+        e.cx, e.cy = 320.0, 240.0
+        e.Xw = p
+        opt.add_edge(e)
+        edges.append(e)
+    edges[3].set_level(1)
+    opt.initialize_optimization(0)
+    opt.optimize(5)
+    T = v.estimate().matrix()
+    for i, e in enumerate(edges):
+        pc = T[:3, :3] @ X[i] + T[:3, 3]
+        err = e.measurement() - (500 * pc[:2] / pc[2] + [320, 240])
+        assert e.chi2() == pytest.approx(float(err @ (np.eye(2) * (1.0 + i)) @ err), rel=1e-9)
+        np.testing.assert_allclose(e.error(), err, rtol=1e-9, atol=1e-9)
+    assert edges[3].chi2() > 1000.0  # the 40-pixel outlier, not zeroed for its level
