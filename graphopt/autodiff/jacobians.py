@@ -108,6 +108,17 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) 
 _UNIQUE: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
 
 
+def _regathers(flat: np.ndarray, first: np.ndarray, inv: np.ndarray) -> bool:
+    """``flat[first][inv] == flat`` exactly (``flat`` ``(m, s)``), gathered along its
+    contiguous axis (the optimizer gathers 2-D estimates in Fortran order)."""
+    if inv.shape != (len(flat),) or (len(first) and int(first.max()) >= len(flat)):
+        return False
+    if flat.flags.f_contiguous and not flat.flags.c_contiguous:
+        u = np.ascontiguousarray(flat[first].T)  # (s, distinct)
+        return bool(np.array_equal(np.take(u, inv, axis=1), flat.T))
+    return bool(np.array_equal(np.take(flat[first], inv, axis=0), flat))
+
+
 def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(first, inverse)`` with ``x[first][inverse] == x`` exactly: the distinct vertices of
     the edges. The groupings of the last calls are tried first (the edges of a group keep
@@ -116,11 +127,11 @@ def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     flat = x.reshape(m, -1)
     key = (id(vtype), m)
     for first, inv in _UNIQUE.get(key, []):
-        if np.array_equal(flat[first][inv], flat):
+        if _regathers(flat, first, inv):
             return first, inv
     h = flat @ np.random.default_rng(0).normal(size=flat.shape[1])
     _, first, inv = np.unique(h, return_index=True, return_inverse=True)
-    if not np.array_equal(flat[first][inv], flat):  # a hash collision: no grouping
+    if not _regathers(flat, first, inv):  # a hash collision: no grouping
         first, inv = np.arange(m), np.arange(m)
     if len(_UNIQUE) > 64:  # many group sizes seen: start over (a cache, bounded)
         _UNIQUE.clear()

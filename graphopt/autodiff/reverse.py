@@ -25,9 +25,11 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
     """
     if out.value.ndim != 2 or out._tape.root is not None:
         return None
+    _SOURCES.clear()
     m, r = out.value.shape
     nodes = _ancestors(out)
-    leaves = {id(p): p for a in nodes for p in _inputs(a) if p._tape is None}
+    leaves = {id(p): p for a in nodes for p in _inputs(a)
+              if p._tape is None or p._tape.source is not None}
     if any(p.rows is None or p.value.ndim == 0 for p in leaves.values()):
         return None
     g0 = np.zeros((r, m, r))
@@ -48,10 +50,12 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
 
 def _propagate(nodes: list[Jet], adj: dict[int, list[Any]], r: int) -> None:
     for a in reversed(nodes):
+        node = a._tape
+        if node.source is not None:  # gathered rows: a leaf (contracted from its source)
+            continue
         ent = adj.pop(id(a), None)
         if ent is None:
             continue
-        node = a._tape
         if node.writes is not None:
             contrib = _container_back(node, ent[1] if ent[2] else ent[1].copy())
         else:
@@ -102,6 +106,9 @@ def _accumulate(adj: dict[int, list[Any]], p: Jet, c: np.ndarray, key: Any, r: i
 
 def _contract(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
     """``J[:, dirs, rows] += Σ_entries g · t`` for one leaf (per edge: its rows)."""
+    if leaf._tape is not None:
+        _contract_gathered(J, leaf, g)
+        return
     t, lo = leaf._tangent, leaf._lo
     a, b = leaf.rows  # type: ignore[misc]
     r, m = g.shape[:2]
@@ -135,3 +142,44 @@ def _contract(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
         acc = J[i, lo:lo + k, a:b]
         for e in range(tf.shape[2]):
             acc += tf[:, :, e] * gf[i, :, e]
+
+
+#: Per-vertex tangents with the edge axis moved last, by the memory they view (cleared by each
+#: :func:`backward`; the per-vertex jets live as long as one linearisation).
+_SOURCES: dict[tuple[Any, ...], tuple[np.ndarray, int]] = {}
+
+
+def _source_rows(src: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(t (k', s', vertices), first)``: a per-vertex tangent ``(k, vertices, *s)`` with its
+    entries that have a derivative (a transform's constant last row has none) and the
+    directions they depend on, the vertex axis last (contiguous gathers per entry)."""
+    key = (src.__array_interface__["data"][0], src.shape, src.strides)
+    hit = _SOURCES.get(key)
+    if hit is not None:
+        return hit
+    k, nv = src.shape[:2]
+    flat = src.reshape(k, nv, -1)
+    nz = np.any(flat != 0.0, axis=1)  # (k, s)
+    ent = np.flatnonzero(np.any(nz, axis=0))
+    dirs = np.flatnonzero(np.any(nz, axis=1))
+    first, last = (int(dirs[0]), int(dirs[-1]) + 1) if len(dirs) else (0, 1)
+    t = np.ascontiguousarray(flat[first:last][:, :, ent].transpose(0, 2, 1))
+    _SOURCES[key] = hit = (t, ent, first)  # type: ignore[assignment]
+    return hit
+
+
+def _contract_gathered(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
+    """:func:`_contract` for gathered rows of a per-vertex jet: its tangent's entries are
+    gathered per edge from the vertices' (``(k, s, m)``, the edge axis contiguous) and
+    contracted with the adjoint in one ``einsum``; nothing is gathered for entries without
+    derivatives."""
+    node = leaf._tape
+    t, ent, first = _source_rows(node.source)  # type: ignore[misc, arg-type]
+    a, b = leaf.rows  # type: ignore[misc]
+    r, m = g.shape[:2]
+    if not len(ent):
+        return
+    tg = np.take(t, node.index, axis=2)  # (k', s', m)
+    gs = np.moveaxis(g.reshape(r, m, -1)[:, :, ent], 1, 2)  # (r, s', m)
+    lo = leaf._lo + first
+    J[:, lo:lo + len(t), a:b] += np.einsum("ksm,ism->ikm", tg, gs)

@@ -102,9 +102,10 @@ def _pending_container(a: Any) -> Jet | None:
 
 
 def _operand(a: Any) -> Any:
-    """An operand of a recorded operation: a recorded container is read, so formed now (as
-    are gathered rows: a leaf)."""
-    if type(a) is Jet and a._tape is not None and a._tape.special:
+    """An operand of a recorded operation: a recorded container is read, so formed now.
+    Gathered rows stay as they are: a leaf whose tangent the reverse pass gathers itself."""
+    if (type(a) is Jet and a._tape is not None and a._tape.special
+            and a._tape.source is None):
         a.tangent  # noqa: B018 - forms it (later writes then stop recording)
     return a
 
