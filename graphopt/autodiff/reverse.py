@@ -146,13 +146,14 @@ def _contract(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
 
 #: Per-vertex tangents with the edge axis moved last, by the memory they view (cleared by each
 #: :func:`backward`; the per-vertex jets live as long as one linearisation).
-_SOURCES: dict[tuple[Any, ...], tuple[np.ndarray, int]] = {}
+_SOURCES: dict[tuple[Any, ...], tuple[np.ndarray, np.ndarray, int]] = {}
 
 
-def _source_rows(src: np.ndarray) -> tuple[np.ndarray, int]:
-    """``(t (k', s', vertices), first)``: a per-vertex tangent ``(k, vertices, *s)`` with its
-    entries that have a derivative (a transform's constant last row has none) and the
-    directions they depend on, the vertex axis last (contiguous gathers per entry)."""
+def _source_rows(src: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(t (k', s', vertices), entries (s',), first)``: a per-vertex tangent
+    ``(k, vertices, *s)`` restricted to its entries that have a derivative (a transform's
+    constant last row has none) and to the directions ``first…first+k'−1`` they depend on,
+    the vertex axis last (contiguous gathers per entry)."""
     key = (src.__array_interface__["data"][0], src.shape, src.strides)
     hit = _SOURCES.get(key)
     if hit is not None:
@@ -164,7 +165,7 @@ def _source_rows(src: np.ndarray) -> tuple[np.ndarray, int]:
     dirs = np.flatnonzero(np.any(nz, axis=1))
     first, last = (int(dirs[0]), int(dirs[-1]) + 1) if len(dirs) else (0, 1)
     t = np.ascontiguousarray(flat[first:last][:, :, ent].transpose(0, 2, 1))
-    _SOURCES[key] = hit = (t, ent, first)  # type: ignore[assignment]
+    _SOURCES[key] = hit = (t, ent, first)
     return hit
 
 
@@ -174,7 +175,7 @@ def _contract_gathered(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
     contracted with the adjoint in one ``einsum``; nothing is gathered for entries without
     derivatives."""
     node = leaf._tape
-    t, ent, first = _source_rows(node.source)  # type: ignore[misc, arg-type]
+    t, ent, first = _source_rows(node.source)
     a, b = leaf.rows  # type: ignore[misc]
     r, m = g.shape[:2]
     if not len(ent):
