@@ -98,7 +98,13 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) 
     if type(j) is not Jet:
         return None if j is None else j[index]
     if not isinstance(index, slice):  # the tangent is gathered when (and as far as) used
-        return tape.gathered(j.value[index] if value is None else value, j, index)
+        if value is None:
+            v = j.value
+            # (m, d) values column by column (Fortran order, as the optimizer gathers
+            # estimates): every operation on a column x[:, c] then reads contiguous memory.
+            value = (np.take(v.T, index, axis=1).T if v.ndim == 2 and v.flags.c_contiguous
+                     else v[index])
+        return tape.gathered(value, j, index)
     t = j.tangent[:, index]
     out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
     out.columns = j.columns
