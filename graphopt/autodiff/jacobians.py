@@ -18,6 +18,7 @@ import numpy as np
 import graphopt.autodiff.tape as tape
 from graphopt.autodiff.jet import Jet, JetError
 from graphopt.autodiff.reverse import backward
+from graphopt.autodiff.structure import Structure, detect
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
 
@@ -93,8 +94,10 @@ def _columns(j: Jet) -> None:
     j.columns = cols
 
 
-def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) -> Any:
-    """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values)."""
+def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None,
+            struct: Structure | None = None) -> Any:
+    """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values;
+    ``struct``: the jet's structure, if any)."""
     if type(j) is not Jet:
         return None if j is None else j[index]
     if not isinstance(index, slice):  # the tangent is gathered when (and as far as) used
@@ -104,7 +107,7 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None) 
             # estimates): every operation on a column x[:, c] then reads contiguous memory.
             value = (np.take(v.T, index, axis=1).T if v.ndim == 2 and v.flags.c_contiguous
                      else v[index])
-        return tape.gathered(value, j, index)
+        return tape.gathered(value, j, index, struct)
     t = j.tangent[:, index]
     out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
     out.columns = j.columns
@@ -148,8 +151,9 @@ def _unique_rows(vtype: type, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: The last per-vertex jets by vertex type and position: ``(row bytes → row, jet, derived,
-#: derived usable)``. A group linearised in chunks sees the same cameras in each.
-_VERTEX_JETS: dict[tuple[Any, ...], tuple[dict[bytes, int], Jet, Any, bool]] = {}
+#: derived usable, their structures)``. A group linearised in chunks sees the same cameras
+#: in each.
+_VERTEX_JETS: dict[tuple[Any, ...], tuple[dict[bytes, int], Jet, Any, bool, Any, Any]] = {}
 
 
 def _cached_rows(key: tuple[Any, ...], xu: np.ndarray) -> np.ndarray | None:
@@ -178,6 +182,9 @@ class _Position:
         self.jet: Jet | None = None
         self.derived: Any = None
         self.derived_ok = True
+        # Group structure of the per-vertex jets' derivatives (graphopt.autodiff.structure).
+        self.struct: Structure | None = None
+        self.dstruct: Structure | None = None
         if not self.vector:
             first, inv = _unique_rows(vtype, x)
             if len(first) < len(x):
@@ -186,21 +193,26 @@ class _Position:
                 rows = _cached_rows(key, x[first])
                 if rows is not None:  # vertices seen by another chunk of the group
                     self.inverse = rows[inv]
-                    self.jet, self.derived, self.derived_ok = _VERTEX_JETS[key][1:]
+                    (self.jet, self.derived, self.derived_ok, self.struct,
+                     self.dstruct) = _VERTEX_JETS[key][1:]
                     return
                 self.jet = seeded(vtype, x[first], lo, n)
             else:
                 self.jet = seeded(vtype, x, lo, n)
             _columns(self.jet)
+            self.struct = detect(self.jet)
         if derived:
             self.derived = self._derived(self.jet if self.jet is not None
                                          else Jet.seeded(x, lo, n))
+            if type(self.derived) is Jet and not self.vector:
+                self.dstruct = detect(self.derived)
         if self.inverse is not None:  # only read afterwards (gathers copy), so reusable
             if len(_VERTEX_JETS) >= 4:
                 _VERTEX_JETS.pop(next(iter(_VERTEX_JETS)))
             xs = x[first].reshape(len(first), -1)
             where = {r.tobytes(): i for i, r in enumerate(xs)} if len(xs) <= 4096 else {}
-            _VERTEX_JETS[key] = (where, self.jet, self.derived, self.derived_ok)
+            _VERTEX_JETS[key] = (where, self.jet, self.derived, self.derived_ok, self.struct,
+                                 self.dstruct)
 
     def _derived(self, j: Jet) -> Any:
         try:
@@ -218,7 +230,8 @@ class _Position:
             j, d = Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
         else:
             index = sl if self.inverse is None else self.inverse[sl]
-            j, d = _gather(self.jet, index, self.x[sl]), _gather(self.derived, index)
+            j = _gather(self.jet, index, self.x[sl], self.struct)
+            d = _gather(self.derived, index, None, self.dstruct)
         j.rows = (0, sl.stop - sl.start)
         if type(d) is Jet:
             d.rows = j.rows

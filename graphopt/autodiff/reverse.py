@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from graphopt.autodiff import structure
 from graphopt.autodiff.jet import Jet
 from graphopt.autodiff.tape import _ancestors, _Node, _unbroadcast
 
@@ -26,6 +27,7 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
     if out.value.ndim != 2 or out._tape.root is not None:
         return None
     _SOURCES.clear()
+    structure.clear()
     m, r = out.value.shape
     nodes = _ancestors(out)
     leaves = {id(p): p for a in nodes for p in _inputs(a)
@@ -175,8 +177,14 @@ def _contract_gathered(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
     contracted with the adjoint in one ``einsum``; nothing is gathered for entries without
     derivatives."""
     node = leaf._tape
-    t, ent, first = _source_rows(node.source)
     a, b = leaf.rows  # type: ignore[misc]
+    if node.struct is not None:
+        entries = node.entries if node.entries is not None else np.arange(
+            int(np.prod(leaf.value.shape[1:])))
+        if structure.cheaper(node.struct, entries, len(node.source)):
+            structure.contract(J, node.struct, node.full, entries, g, a, b)
+            return
+    t, ent, first = _source_rows(node.source)
     r, m = g.shape[:2]
     if not len(ent):
         return

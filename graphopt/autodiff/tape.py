@@ -49,6 +49,11 @@ class _Node:
     chain: tuple[Any, ...] = ()
     source: np.ndarray | None = None
     index: np.ndarray | None = None
+    # Gathered rows of a structured per-vertex matrix (graphopt.autodiff.structure): the
+    # structure, each edge's whole matrix and the flat entries of it these rows are.
+    struct: Any = None
+    full: np.ndarray | None = None
+    entries: np.ndarray | None = None
 
     def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
                  replay: Callable[[], Any] | None, special: bool = False) -> None:
@@ -112,24 +117,44 @@ def _operand(a: Any) -> Any:
 
 # --- gathered rows ----------------------------------------------------------------------------
 
-def gathered(value: np.ndarray, source: Jet, index: np.ndarray) -> Jet:
+_ALL = slice(None)
+
+
+def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = None) -> Jet:
     """Rows ``index`` of a per-vertex jet ``source`` as a per-edge jet whose tangent is gathered
     only when used: ``x[:, j]`` gathers column ``j``'s own directions (none for a column whose
-    derivative is one direction with value 1, as ``t`` of ``x + δ``)."""
-    return _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+    derivative is one direction with value 1, as ``t`` of ``x + δ``). ``struct``: the
+    source's :class:`~graphopt.autodiff.structure.Structure`, if it has one."""
+    j = _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+    if struct is not None:
+        j._tape.struct, j._tape.full = struct, value
+    return j
 
 
 def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: int,
-              columns: Any) -> Jet:
+              columns: Any, parent: _Node | None = None, entries: np.ndarray | None = None,
+              rows: slice = _ALL) -> Jet:
+    """A gathered jet (``parent``: the gathered rows it is a piece of, ``entries`` of)."""
     j = Jet(value, None, lo, n)
     node = _Node((), None, None, True)
     node.source, node.index = t, index
     node.replay = lambda: Jet(value, np.take(t, index, axis=1), lo, n)
+    if parent is not None and parent.struct is not None:
+        node.struct, node.entries = parent.struct, entries
+        node.full = parent.full if rows == _ALL else parent.full[rows]  # type: ignore[index]
     j._tape, j.columns = node, columns
     return j
 
 
-_ALL = slice(None)
+def _piece(node: _Node, shape: tuple[int, ...], key: tuple[Any, ...]) -> np.ndarray:
+    """The flat entries of the whole matrix that ``rows[(:,) + key]`` of gathered rows with
+    trailing ``shape`` are."""
+    base = node.entries
+    if base is None:
+        base = np.arange(int(np.prod(shape))).reshape(shape)
+    return np.asarray(base[key])
+
+
 _ONES: dict[int, np.ndarray] = {}
 
 
@@ -160,6 +185,12 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         m = len(j.value)
         if len(j.columns[c]) > 2 and j.columns[c][2]:
             t = ones(m)
+        elif node.struct is not None:  # a leaf contracted through the structure
+            out = _gathered(j.value[:, c], node.source[lo - j._lo: hi - j._lo, :, c],
+                            node.index, lo, j.n, None, node, _piece(node, j.value.shape[1:],
+                                                                    (slice(c, c + 1),)))
+            out.rows = j.rows
+            return out
         else:
             t = np.take(node.source[lo - j._lo: hi - j._lo, :, c], node.index, axis=1)
         out = Jet(j.value[:, c], t, lo, j.n)
@@ -172,7 +203,9 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1))
         first, last = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
         src, lo = src[first:last], lo + first
-    out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns)
+    out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns,
+                    node, _piece(node, j.value.shape[1:], rest) if node.struct is not None
+                    else None, k[0])
     out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
     return out
 

@@ -1,0 +1,148 @@
+"""Group-structured tangents of matrix-valued per-vertex jets, found and used by the tape.
+
+A pose updated by ``exp(δ) · T`` has the derivative ``∂T/∂δ_k = G_k T`` at ``δ = 0`` for
+fixed generators ``G_k`` (a rotation's: the cross-product matrices ``[e_k]×``); one updated
+by ``T · exp(δ)`` has ``T G_k``. Matrices derived from such an estimate inherit it (a BAL
+camera's rotation matrix, computed from its angle-axis after the left update). Nothing has
+to be declared: :func:`detect` fits ``G`` to the per-vertex derivatives that ``oplus`` and
+``derived`` produced on jets, and keeps it only if it reproduces every vertex's derivatives
+to 1e-12 relative — a verified factorisation of the tangent, not an assumption.
+
+The reverse pass then contracts an edge's adjoint ``g`` of entries ``(a, b)`` of such a
+matrix ``V`` as ``Σ g_ab (G_k V)_ab = Σ_(a,j) G_k[a, j] Σ_b g_ab V_jb`` (left): a generator
+is sparse (a ``[e_k]×`` has two entries), so this costs a few products per entry, read from
+the edge's own values, where the general contraction gathers ``k`` derivatives per entry and
+edge from the vertices and multiplies each.
+"""
+
+from __future__ import annotations
+
+from math import isqrt
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Structure", "cheaper", "clear", "contract", "detect"]
+
+#: Relative agreement required between ``G V`` (or ``V G``) and the derivatives.
+TOLERANCE = 1e-12
+
+
+class Structure:
+    """``∂V/∂δ_(lo+k) = G_k V`` (``left``) or ``V G_k`` for ``(N, N)`` values ``V``.
+
+    Args:
+        G: ``(k, N, N)`` generators.
+        lo: The first direction.
+        left: Left (``G_k V``) or right (``V G_k``) structure.
+        zero: ``(N·N,)`` entries of ``V`` that are 0 at every vertex (skipped).
+    """
+
+    def __init__(self, G: np.ndarray, lo: int, left: bool, zero: np.ndarray) -> None:
+        self.G, self.lo, self.left, self.zero = G, lo, left, zero
+        self.N = G.shape[1]
+        self._terms: dict[bytes, list[tuple[int, int, list[tuple[int, float]]]]] = {}
+
+    def terms(self, entries: np.ndarray) -> list[tuple[int, int, list[tuple[int, float]]]]:
+        """For the flat entries ``p`` of a piece of ``V``: ``(i, column, [(k, coefficient)])``,
+        the product of adjoint ``i`` with ``V``'s flat ``column`` adds into direction ``k``."""
+        key = entries.tobytes()
+        hit = self._terms.get(key)
+        if hit is not None:
+            return hit
+        N, out = self.N, []
+        for i, p in enumerate(entries.ravel().tolist()):
+            a, b = divmod(int(p), N)
+            for j in range(N):
+                coef = self.G[:, a, j] if self.left else self.G[:, j, b]
+                col = j * N + b if self.left else a * N + j
+                ks = np.flatnonzero(coef)
+                if len(ks) and not self.zero[col]:
+                    out.append((i, col, [(int(k), float(coef[k])) for k in ks]))
+        self._terms[key] = out
+        return out
+
+
+def detect(j: Any) -> Structure | None:
+    """The structure of a per-vertex jet ``(vertices, N, N)`` or ``(vertices, N·N)``, or
+    ``None`` (not square, ``N`` outside 2…4, or no generators fit every vertex)."""
+    v, t = j.value, j.tangent
+    nv = len(v)
+    if v.dtype.kind != "f" or nv == 0 or v.ndim not in (2, 3) or t.shape[1:] != v.shape:
+        return None
+    S = v[0].size
+    N = isqrt(S)
+    if N * N != S or not 2 <= N <= 4 or (v.ndim == 3 and v.shape[1] != N):
+        return None
+    V = v.reshape(nv, N, N)
+    T = t.reshape(len(t), nv, N, N)
+    scale = float(np.max(np.abs(T), initial=0.0))
+    if scale == 0.0 or not np.all(np.isfinite(T)):
+        return None
+    for left in (True, False):
+        if left:  # G (Σ V Vᵀ) = Σ T Vᵀ
+            A = np.einsum("vij,vlj->il", V, V)
+            B = np.einsum("kvij,vlj->kil", T, V)
+        else:  # (Σ Vᵀ V) G = Σ Vᵀ T
+            A = np.einsum("vji,vjl->il", V, V)
+            B = np.einsum("vji,kvjl->kil", V, T)
+        if np.linalg.cond(A) > 1e8:
+            return None
+        G = B @ np.linalg.inv(A) if left else np.linalg.inv(A) @ B
+        G[np.abs(G) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))] = 0.0
+        fit = np.matmul(G[:, None], V[None]) if left else np.matmul(V[None], G[:, None])
+        if float(np.max(np.abs(fit - T))) <= TOLERANCE * scale:
+            zero = np.all(v.reshape(nv, S) == 0.0, axis=0)
+            return Structure(G, j.lo, left, zero)
+    return None
+
+
+_COLUMNS: dict[tuple[Any, ...], np.ndarray] = {}
+
+
+def clear() -> None:
+    """Forget the transposed values of :func:`contract` (at the start of a reverse pass)."""
+    _COLUMNS.clear()
+
+
+def _columns(full: np.ndarray) -> np.ndarray:
+    """``full`` ``(m, …)`` as ``(entries, m)`` rows, contiguous (transposed once per block)."""
+    key = (full.__array_interface__["data"][0], full.shape, full.strides)
+    hit = _COLUMNS.get(key)
+    if hit is None:
+        hit = _COLUMNS[key] = np.ascontiguousarray(full.reshape(len(full), -1).T)
+    return hit
+
+
+def cheaper(s: Structure, entries: np.ndarray, k: int) -> bool:
+    """Whether contracting ``entries`` through ``s`` costs fewer products than gathering
+    ``k`` derivatives per entry (dense generators: no)."""
+    return sum(1 + len(c) for _, _, c in s.terms(entries)) <= 2 * k * entries.size
+
+
+def contract(J: np.ndarray, s: Structure, full: np.ndarray, entries: np.ndarray,
+             g: np.ndarray, a: int, b: int) -> None:
+    """``J[:, lo+k, a:b] += Σ_p g[:, :, p] (G_k V)_p`` for a piece ``entries`` of ``V``.
+
+    Args:
+        J: ``(r, n, block)`` Jacobian rows being accumulated.
+        s: The structure of ``V``.
+        full: ``(m, N, N)`` or ``(m, N·N)``: each edge's whole ``V``.
+        entries: The piece's flat entries of ``V``, in the adjoint's order.
+        g: ``(r, m, *piece)`` the piece's adjoint.
+        a: First edge of the block the piece's rows are.
+        b: One past the last.
+    """
+    r, m = g.shape[:2]
+    gf = g.reshape(r, m, -1)
+    V = _columns(full)
+    for i, col, ks in s.terms(entries):
+        prod = gf[:, :, i] * V[col]
+        for k, c in ks:
+            target = J[:, s.lo + k, a:b]
+            if c == 1.0:
+                target += prod
+            elif c == -1.0:
+                target -= prod
+            else:
+                target += c * prod
