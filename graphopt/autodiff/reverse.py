@@ -181,8 +181,9 @@ def _contract_gathered(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
     if node.struct is not None:
         entries = node.entries if node.entries is not None else np.arange(
             int(np.prod(leaf.value.shape[1:])))
-        if structure.cheaper(node.struct, entries, len(node.source)):
-            structure.contract(J, node.struct, node.full, entries, g, a, b)
+        plan = node.struct.plan(entries, len(node.source))
+        if plan is not None:
+            structure.contract(J, node.struct.lo, plan, node.full, g, a, b)
             return
     t, ent, first = _source_rows(node.source)
     r, m = g.shape[:2]

@@ -22,7 +22,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Structure", "cheaper", "clear", "contract", "detect"]
+__all__ = ["Plan", "Structure", "clear", "contract", "detect"]
+
+#: ``(adjoint entry, column of V, [(direction, coefficient)])`` per product.
+Plan = list[tuple[int, int, list[tuple[int, float]]]]
 
 #: Relative agreement required between ``G V`` (or ``V G``) and the derivatives.
 TOLERANCE = 1e-12
@@ -41,15 +44,24 @@ class Structure:
     def __init__(self, G: np.ndarray, lo: int, left: bool, zero: np.ndarray) -> None:
         self.G, self.lo, self.left, self.zero = G, lo, left, zero
         self.N = G.shape[1]
-        self._terms: dict[bytes, list[tuple[int, int, list[tuple[int, float]]]]] = {}
+        self._plans: dict[tuple[bytes, int], Plan | None] = {}
 
-    def terms(self, entries: np.ndarray) -> list[tuple[int, int, list[tuple[int, float]]]]:
+    def plan(self, entries: np.ndarray, k: int) -> Plan | None:
+        """How to contract the flat entries ``entries`` of ``V`` through the generators, or
+        ``None`` when that costs more products than gathering ``k`` derivatives per entry
+        (dense generators)."""
+        key = (entries.tobytes(), k)
+        if key in self._plans:
+            return self._plans[key]
+        terms = self.terms(entries)
+        cost = sum(1 + len(c) for _, _, c in terms)
+        plan = terms if cost <= 2 * k * entries.size else None
+        self._plans[key] = plan
+        return plan
+
+    def terms(self, entries: np.ndarray) -> Plan:
         """For the flat entries ``p`` of a piece of ``V``: ``(i, column, [(k, coefficient)])``,
         the product of adjoint ``i`` with ``V``'s flat ``column`` adds into direction ``k``."""
-        key = entries.tobytes()
-        hit = self._terms.get(key)
-        if hit is not None:
-            return hit
         N, out = self.N, []
         for i, p in enumerate(entries.ravel().tolist()):
             a, b = divmod(int(p), N)
@@ -59,7 +71,6 @@ class Structure:
                 ks = np.flatnonzero(coef)
                 if len(ks) and not self.zero[col]:
                     out.append((i, col, [(int(k), float(coef[k])) for k in ks]))
-        self._terms[key] = out
         return out
 
 
@@ -97,7 +108,7 @@ def detect(j: Any) -> Structure | None:
     return None
 
 
-_COLUMNS: dict[tuple[Any, ...], np.ndarray] = {}
+_COLUMNS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
 
 def clear() -> None:
@@ -107,28 +118,21 @@ def clear() -> None:
 
 def _columns(full: np.ndarray) -> np.ndarray:
     """``full`` ``(m, …)`` as ``(entries, m)`` rows, contiguous (transposed once per block)."""
-    key = (full.__array_interface__["data"][0], full.shape, full.strides)
-    hit = _COLUMNS.get(key)
+    hit = _COLUMNS.get(id(full))  # (full itself is kept: its id stays its own)
     if hit is None:
-        hit = _COLUMNS[key] = np.ascontiguousarray(full.reshape(len(full), -1).T)
-    return hit
+        hit = _COLUMNS[id(full)] = (full, np.ascontiguousarray(full.reshape(len(full), -1).T))
+    return hit[1]
 
 
-def cheaper(s: Structure, entries: np.ndarray, k: int) -> bool:
-    """Whether contracting ``entries`` through ``s`` costs fewer products than gathering
-    ``k`` derivatives per entry (dense generators: no)."""
-    return sum(1 + len(c) for _, _, c in s.terms(entries)) <= 2 * k * entries.size
-
-
-def contract(J: np.ndarray, s: Structure, full: np.ndarray, entries: np.ndarray,
-             g: np.ndarray, a: int, b: int) -> None:
-    """``J[:, lo+k, a:b] += Σ_p g[:, :, p] (G_k V)_p`` for a piece ``entries`` of ``V``.
+def contract(J: np.ndarray, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: int,
+             b: int) -> None:
+    """``J[:, lo+k, a:b] += Σ_p g[:, :, p] (G_k V)_p`` for a piece of ``V``.
 
     Args:
         J: ``(r, n, block)`` Jacobian rows being accumulated.
-        s: The structure of ``V``.
+        lo: The structure's first direction.
+        plan: :meth:`Structure.plan` of the piece's entries.
         full: ``(m, N, N)`` or ``(m, N·N)``: each edge's whole ``V``.
-        entries: The piece's flat entries of ``V``, in the adjoint's order.
         g: ``(r, m, *piece)`` the piece's adjoint.
         a: First edge of the block the piece's rows are.
         b: One past the last.
@@ -136,10 +140,10 @@ def contract(J: np.ndarray, s: Structure, full: np.ndarray, entries: np.ndarray,
     r, m = g.shape[:2]
     gf = g.reshape(r, m, -1)
     V = _columns(full)
-    for i, col, ks in s.terms(entries):
+    for i, col, ks in plan:
         prod = gf[:, :, i] * V[col]
         for k, c in ks:
-            target = J[:, s.lo + k, a:b]
+            target = J[:, lo + k, a:b]
             if c == 1.0:
                 target += prod
             elif c == -1.0:

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic
+from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
 
 __all__ = ["ENABLED", "clear", "container", "gathered", "recording"]
 
@@ -146,26 +146,22 @@ def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: i
     return j
 
 
+_PIECES: dict[tuple[Any, ...], np.ndarray] = {}
+
+
 def _piece(node: _Node, shape: tuple[int, ...], key: tuple[Any, ...]) -> np.ndarray:
     """The flat entries of the whole matrix that ``rows[(:,) + key]`` of gathered rows with
     trailing ``shape`` are."""
     base = node.entries
-    if base is None:
-        base = np.arange(int(np.prod(shape))).reshape(shape)
+    if base is None:  # the whole matrix: the same few pieces in every block
+        ck = (shape, repr(key))
+        hit = _PIECES.get(ck)
+        if hit is None:
+            if len(_PIECES) > 256:
+                _PIECES.clear()
+            hit = _PIECES[ck] = np.arange(int(np.prod(shape))).reshape(shape)[key]
+        return hit
     return np.asarray(base[key])
-
-
-_ONES: dict[int, np.ndarray] = {}
-
-
-def ones(m: int) -> np.ndarray:
-    """``(1, m)`` ones, read-only (the derivative of a unit column), one array per ``m``."""
-    t = _ONES.get(m)
-    if t is None:
-        if len(_ONES) > 16:
-            _ONES.clear()
-        t = _ONES[m] = np.broadcast_to(np.ones(1), (1, m))
-    return t
 
 
 def _gathered_item(j: Jet, key: Any) -> Jet | None:
@@ -184,7 +180,7 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         lo, hi = j.columns[c][:2]
         m = len(j.value)
         if len(j.columns[c]) > 2 and j.columns[c][2]:
-            t = ones(m)
+            t = unit_row(m)
         elif node.struct is not None:  # a leaf contracted through the structure
             out = _gathered(j.value[:, c], node.source[lo - j._lo: hi - j._lo, :, c],
                             node.index, lo, j.n, None, node, _piece(node, j.value.shape[1:],
@@ -293,7 +289,9 @@ def _key(key: Any, ndim: int) -> tuple[Any, ...] | None:
 def getitem(j: Jet, key: Any) -> Jet | None:
     """``j[key]`` recorded (a basic index of a recorded jet, or a view of a container), or
     ``None`` for the forward rule."""
-    if j._tape is not None and j._tape.source is not None:
+    if j._tape is None:  # a leaf: the forward rule (nothing recorded reads it as a whole)
+        return None
+    if j._tape.source is not None:
         return _gathered_item(j, key)
     k = _key(key, j.value.ndim)
     if k is None:
@@ -306,7 +304,7 @@ def getitem(j: Jet, key: Any) -> Jet | None:
         v = Jet(j.value[k], None, 0, j.n)
         v._tape = node
         return v
-    if j._tape is None or not Tape.active:
+    if not Tape.active:
         return None
     sl = (slice(None),) + k
     return _record(j.value[k], j.n, _Node((j,), lambda g: [(j, g, sl)], lambda: j[key]))
