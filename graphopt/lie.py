@@ -130,6 +130,10 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     Returns:
         ``(n, 3)`` rotation vectors with angle in ``[0, π]``.
     """
+    if type(R) is not np.ndarray and "so3_log" in JET_RULES:
+        out = JET_RULES["so3_log"](R)
+        if out is not None:
+            return out  # type: ignore[no-any-return]
     tr = np.einsum("nii->n", R)
     cos = np.clip(0.5 * (tr - 1.0), -1.0, 1.0)
     theta = np.arccos(cos)
