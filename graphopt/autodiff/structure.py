@@ -97,9 +97,11 @@ def detect(j: Any) -> Structure | None:
         else:  # (Σ Vᵀ V) G = Σ Vᵀ T
             A = np.einsum("vji,vjl->il", V, V)
             B = np.einsum("vji,kvjl->kil", V, T)
-        if np.linalg.cond(A) > 1e8:
+        try:  # (a singular A: the fit below fails, or solve raises)
+            Ainv = np.linalg.inv(A)
+        except np.linalg.LinAlgError:
             return None
-        G = B @ np.linalg.inv(A) if left else np.linalg.inv(A) @ B
+        G = B @ Ainv if left else Ainv @ B
         G[np.abs(G) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))] = 0.0
         fit = np.matmul(G[:, None], V[None]) if left else np.matmul(V[None], G[:, None])
         if float(np.max(np.abs(fit - T))) <= TOLERANCE * scale:
