@@ -9,6 +9,7 @@ differentiated as written (a series exact to first order at 0 gives the exact de
 
 from __future__ import annotations
 
+import gc
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, Protocol
@@ -243,6 +244,11 @@ def autodiff_linearize(
 ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray | None]:
     """Errors and exact Jacobians of every edge of a group, from ``evaluate`` on jets.
 
+    Python's cyclic garbage collector is paused for the call: the tape allocates thousands
+    of small objects (jets, recorded operations), which would trigger collections that
+    traverse them all, while none of them form cycles (freed by reference counting). The
+    collector's state is restored afterwards.
+
     The edges are evaluated in blocks of :data:`BLOCK_EDGES`. The vertex types' ``derived``
     values (for types with ``uses_derived``) are recomputed from the jets of ``x ⊞ δ``, so
     that the error sees the same cache it would in the optimizer, with derivatives; a
@@ -262,6 +268,19 @@ def autodiff_linearize(
         JetError: a NumPy function without a derivative rule (the caller names the type).
         GraphError: an ``oplus`` or ``error`` result of the wrong shape or without derivatives.
     """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return _linearize(edge_type, x, measurement, ctx)
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def _linearize(
+    edge_type: type[_EdgeType], x: Sequence[np.ndarray], measurement: np.ndarray, ctx: Any
+) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray | None]:
+    """:func:`autodiff_linearize` (the collector paused)."""
     dims = [vt.dimension for vt in edge_type.vertex_types]
     n = int(sum(dims))
     offsets = np.concatenate([[0], np.cumsum(dims)]).astype(int).tolist()
