@@ -1,5 +1,6 @@
 """Group-structured tangents (``graphopt.autodiff.structure``): found where they hold, not
-elsewhere, and the Jacobians contracted through them equal the general contraction's.
+elsewhere, and the Jacobians contracted through them (entry by entry, and through a product
+``T[:, :3, :3] @ X`` of a left-structured pose) equal the general contraction's.
 
 Vertex types with a left update (``exp(δ) T``), a right update (``T exp(δ)``) and an
 additive angle-axis (no generators fit) are used by many edges each, so that their rows are
@@ -118,10 +119,21 @@ def test_structured_contraction_equals_general(edge: type, monkeypatch: Any) -> 
         used.append(plan(*args) is not None)
         return plan(*args)
 
+    products: list[bool] = []
+    product_plan = structure.Structure.product_plan
+
+    def spy_product(*args: Any) -> Any:
+        products.append(product_plan(*args) is not None)
+        return product_plan(*args)
+
     monkeypatch.setattr(structure.Structure, "plan", spy)
+    monkeypatch.setattr(structure.Structure, "product_plan", spy_product)
     auto = edge_jacobians(edge, x, z)
+    # The translation column and the rotation block's product (left: rows of exp(δ) T).
     assert any(used) == (edge is not EdgeAdditive)
+    assert any(products) == (edge is EdgeLeft)
     monkeypatch.setattr(structure.Structure, "plan", lambda *a: None)
+    monkeypatch.setattr(structure.Structure, "product_plan", lambda *a: None)
     general = edge_jacobians(edge, x, z)
     numeric = edge_jacobians(edge, x, z, method="numeric")
     for a, b, c in zip(auto, general, numeric, strict=True):

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff import structure
+import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import Jet
 from graphopt.autodiff.tape import _ancestors, _Node, _unbroadcast
 
@@ -47,6 +47,11 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
         J = np.zeros((r, n, m))
     for ent in adj.values():
         _contract(J, ent[0], ent[1])
+    for p in leaves.values():  # products of structured blocks (graphopt.autodiff.structure)
+        node = p._tape
+        if node is not None and node.direct:
+            for plan, g, y in node.direct:
+                structure.contract_product(J, node.struct.lo, plan, g, y, *p.rows)
     return J
 
 

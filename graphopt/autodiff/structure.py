@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Plan", "Structure", "clear", "contract", "detect"]
+__all__ = ["Plan", "Structure", "clear", "contract", "contract_product", "detect"]
 
 #: ``(adjoint entry, column of V, [(direction, coefficient)])`` per product.
 Plan = list[tuple[int, int, list[tuple[int, float]]]]
@@ -45,6 +45,43 @@ class Structure:
         self.G, self.lo, self.left, self.zero = G, lo, left, zero
         self.N = G.shape[1]
         self._plans: dict[tuple[bytes, int], Plan | None] = {}
+        self._products: dict[tuple[bytes, tuple[int, ...]], Plan | None] = {}
+
+    def product_plan(self, entries: np.ndarray) -> Plan | None:
+        """For ``Y = A B`` with ``A`` the rectangular block ``entries`` ``(rows, cols)`` of a
+        left-structured ``V``: ``(row a of A, row j of Y, [(k, c)])`` such that the product
+        adds ``c Σ_l g[a, l] Y[j, l]`` into direction ``k`` — as ``(G_k V)[rows, cols] B =
+        G_k[rows, :] V[:, cols] B`` and ``V[j, cols] B`` is ``Y[j]`` for ``j`` in the block.
+        ``None`` for a right structure, a piece that is not a block, or a generator that
+        reaches a row of ``V`` outside the block whose entries in its columns are not all 0.
+        """
+        key = (entries.tobytes(), entries.shape)
+        if key in self._products:
+            return self._products[key]
+        plan = self._product_plan(entries) if self.left and entries.ndim == 2 else None
+        self._products[key] = plan
+        return plan
+
+    def _product_plan(self, entries: np.ndarray) -> Plan | None:
+        N = self.N
+        r0, c0 = divmod(int(entries[0, 0]), N)
+        nr, nc = entries.shape
+        block = (r0 + np.arange(nr))[:, None] * N + (c0 + np.arange(nc))[None, :]
+        if r0 + nr > N or c0 + nc > N or not np.array_equal(entries, block):
+            return None
+        zero = self.zero.reshape(N, N)
+        out: Plan = []
+        for i in range(nr):
+            for j in range(N):
+                coef = self.G[:, r0 + i, j]
+                ks = np.flatnonzero(coef)
+                if not len(ks):
+                    continue
+                if r0 <= j < r0 + nr:
+                    out.append((i, j - r0, [(int(k), float(coef[k])) for k in ks]))
+                elif not zero[j, c0:c0 + nc].all():
+                    return None
+        return out
 
     def plan(self, entries: np.ndarray, k: int) -> Plan | None:
         """How to contract the flat entries ``entries`` of ``V`` through the generators, or
@@ -108,6 +145,32 @@ def detect(j: Any) -> Structure | None:
             zero = np.all(v.reshape(nv, S) == 0.0, axis=0)
             return Structure(G, j.lo, left, zero)
     return None
+
+
+def contract_product(J: np.ndarray, lo: int, plan: Plan, g: np.ndarray, Y: np.ndarray,
+                     a: int, b: int) -> None:
+    """``J[:, lo+k, a:b] += c Σ_l g[:, :, i, l] Y[:, j, l]`` for a :meth:`product_plan`.
+
+    Args:
+        J: ``(r, n, block)`` Jacobian rows being accumulated.
+        lo: The structure's first direction.
+        plan: The product's plan.
+        g: ``(r, m, rows, q)`` the adjoint of ``Y``.
+        Y: ``(m, rows, q)`` the product.
+        a: First edge of the block the rows are.
+        b: One past the last.
+    """
+    for i, j, ks in plan:
+        for col in range(Y.shape[2]):
+            prod = g[:, :, i, col] * Y[:, j, col]
+            for k, c in ks:
+                target = J[:, lo + k, a:b]
+                if c == 1.0:
+                    target += prod
+                elif c == -1.0:
+                    target -= prod
+                else:
+                    target += c * prod
 
 
 _COLUMNS: dict[int, tuple[np.ndarray, np.ndarray]] = {}

@@ -54,6 +54,9 @@ class _Node:
     struct: Any = None
     full: np.ndarray | None = None
     entries: np.ndarray | None = None
+    # Products with these rows whose contribution the reverse pass adds directly (a
+    # structured A in A @ B): (plan, adjoint of the product, the product).
+    direct: list[tuple[Any, np.ndarray, np.ndarray]] | None = None
 
     def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
                  replay: Callable[[], Any] | None, special: bool = False) -> None:
@@ -441,67 +444,6 @@ _BINARY: dict[Any, Callable[..., np.ndarray]] = {
     np.power: _power,
     np.float_power: _power,
 }
-
-
-def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
-    """A recorded ``a @ b`` of stacks of matrices (``mm``: the product), or ``None``."""
-    a, b = _operand(a), _operand(b)
-    va = a.value if type(a) is Jet else np.array(a, copy=True)  # plain: as it is now
-    vb = b.value if type(b) is Jet else np.array(b, copy=True)
-    if not (isinstance(va, np.ndarray) and isinstance(vb, np.ndarray)) or min(
-            va.ndim, vb.ndim) < 2 or va.dtype.kind != "f" or vb.dtype.kind != "f":
-        return None
-    y = mm(va, vb)
-
-    def back(g: np.ndarray) -> list[Any]:
-        out = []
-        if type(a) is Jet:
-            out.append((a, _unbroadcast(mm(g, np.swapaxes(vb, -1, -2)), va.shape), None))
-        if type(b) is Jet:
-            out.append((b, _unbroadcast(mm(np.swapaxes(va, -1, -2), g), vb.shape), None))
-        return out
-
-    parents = tuple(x for x in (a, b) if type(x) is Jet)
-    return _record(y, parents[0].n, _Node(parents, back, replay))
-
-
-def concatenate(arrays: list[Any], axis: int, stack: bool, replay: Callable[[], Any]) -> Any:
-    """A recorded ``np.concatenate`` (``stack``: ``np.stack``) of jets and arrays."""
-    arrays = [_operand(a) for a in arrays]
-    values = [a.value if type(a) is Jet else np.asarray(a) for a in arrays]
-    y = np.stack(values, axis=axis) if stack else np.concatenate(values, axis=axis)
-    ax = axis % y.ndim + 1
-    spans, start = [], 0
-    for v in values:
-        w = 1 if stack else v.shape[ax - 1]
-        spans.append(start if stack else slice(start, start + w))
-        start += w
-
-    def back(g: np.ndarray) -> list[Any]:
-        pre = (slice(None),) * ax
-        return [(a, g[pre + (s,)], None) for a, s in zip(arrays, spans, strict=True)
-                if type(a) is Jet]
-
-    jets = tuple(a for a in arrays if type(a) is Jet)
-    return _record(y, max(j.n for j in jets), _Node(jets, back, replay))
-
-
-def reduce(fn: Any, a: Jet, axis: Any, keepdims: bool, replay: Callable[[], Any]) -> Any:
-    """A recorded ``np.sum``/``np.mean`` over axes other than the edges' (axis 0)."""
-    a = _operand(a)
-    nd = a.value.ndim
-    axes = tuple(x % nd for x in (axis if isinstance(axis, tuple) else (axis,)))
-    if 0 in axes or a.value.dtype.kind != "f":
-        return None
-    y = fn(a.value, axis=axes, keepdims=keepdims)
-    scale = 1.0 if fn is np.sum else 1.0 / np.prod([a.value.shape[x] for x in axes])
-
-    def back(g: np.ndarray) -> list[Any]:
-        gk = g if keepdims else np.expand_dims(g, tuple(x + 1 for x in axes))
-        c = np.broadcast_to(gk if scale == 1.0 else gk * scale, (g.shape[0],) + a.value.shape)
-        return [(a, c, None)]
-
-    return _record(np.asarray(y), a.n, _Node((a,), back, replay))
 
 
 HOOKS["materialise"] = materialise
