@@ -188,7 +188,7 @@ def _contract_gathered(J: np.ndarray, leaf: Jet, g: np.ndarray) -> None:
             int(np.prod(leaf.value.shape[1:])))
         plan = node.struct.plan(entries, len(node.source))
         if plan is not None:
-            structure.contract(J, node.struct.lo, plan, node.full, g, a, b)
+            structure.contract(J, node.struct.lo, plan, node.full, g, a, b, node.struct.one)
             return
     t, ent, first = _source_rows(node.source)
     r, m = g.shape[:2]

@@ -39,10 +39,12 @@ class Structure:
         lo: The first direction.
         left: Left (``G_k V``) or right (``V G_k``) structure.
         zero: ``(N·N,)`` entries of ``V`` that are 0 at every vertex (skipped).
+        one: ``(N·N,)`` entries of ``V`` that are 1 at every vertex (no product).
     """
 
-    def __init__(self, G: np.ndarray, lo: int, left: bool, zero: np.ndarray) -> None:
-        self.G, self.lo, self.left, self.zero = G, lo, left, zero
+    def __init__(self, G: np.ndarray, lo: int, left: bool, zero: np.ndarray,
+                 one: np.ndarray) -> None:
+        self.G, self.lo, self.left, self.zero, self.one = G, lo, left, zero, one
         self.N = G.shape[1]
         self._plans: dict[tuple[bytes, int], Plan | None] = {}
         self._products: dict[tuple[bytes, tuple[int, ...]], Plan | None] = {}
@@ -142,8 +144,9 @@ def detect(j: Any) -> Structure | None:
         G[np.abs(G) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))] = 0.0
         fit = np.matmul(G[:, None], V[None]) if left else np.matmul(V[None], G[:, None])
         if float(np.max(np.abs(fit - T))) <= TOLERANCE * scale:
-            zero = np.all(v.reshape(nv, S) == 0.0, axis=0)
-            return Structure(G, j.lo, left, zero)
+            flat = v.reshape(nv, S)
+            return Structure(G, j.lo, left, np.all(flat == 0.0, axis=0),
+                             np.all(flat == 1.0, axis=0))
     return None
 
 
@@ -173,24 +176,25 @@ def contract_product(J: np.ndarray, lo: int, plan: Plan, g: np.ndarray, Y: np.nd
                     target += c * prod
 
 
-_COLUMNS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+_COLUMNS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
 
 def clear() -> None:
-    """Forget the transposed values of :func:`contract` (at the start of a reverse pass)."""
+    """Forget the columns of :func:`contract` (at the start of a reverse pass)."""
     _COLUMNS.clear()
 
 
-def _columns(full: np.ndarray) -> np.ndarray:
-    """``full`` ``(m, …)`` as ``(entries, m)`` rows, contiguous (transposed once per block)."""
-    hit = _COLUMNS.get(id(full))  # (full itself is kept: its id stays its own)
+def _column(full: np.ndarray, col: int) -> np.ndarray:
+    """Flat entry ``col`` of every edge's ``V``, contiguous (gathered once per block)."""
+    hit = _COLUMNS.get((id(full), col))  # (full itself is kept: its id stays its own)
     if hit is None:
-        hit = _COLUMNS[id(full)] = (full, np.ascontiguousarray(full.reshape(len(full), -1).T))
+        hit = _COLUMNS[id(full), col] = (full, np.ascontiguousarray(
+            full.reshape(len(full), -1)[:, col]))
     return hit[1]
 
 
 def contract(J: np.ndarray, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: int,
-             b: int) -> None:
+             b: int, one: np.ndarray) -> None:
     """``J[:, lo+k, a:b] += Σ_p g[:, :, p] (G_k V)_p`` for a piece of ``V``.
 
     Args:
@@ -201,12 +205,12 @@ def contract(J: np.ndarray, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray
         g: ``(r, m, *piece)`` the piece's adjoint.
         a: First edge of the block the piece's rows are.
         b: One past the last.
+        one: ``(N·N,)`` entries of ``V`` that are 1 at every vertex (no product).
     """
     r, m = g.shape[:2]
     gf = g.reshape(r, m, -1)
-    V = _columns(full)
     for i, col, ks in plan:
-        prod = gf[:, :, i] * V[col]
+        prod = gf[:, :, i] if one[col] else gf[:, :, i] * _column(full, col)
         for k, c in ks:
             target = J[:, lo + k, a:b]
             if c == 1.0:
