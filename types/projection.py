@@ -196,6 +196,20 @@ def _pinhole(
     h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
 ) -> tuple[np.ndarray, np.ndarray]:
     """Error ``z − π(h)`` and ``∂e/∂h`` ``(m, 2, 3)`` for camera-frame (homogeneous) points."""
+    e, iz, u, v = _pinhole_terms(h, measurement, cam)
+    D = np.zeros((len(iz), 2, 3), like=iz)
+    D[:, 0, 0] = -cam.fx * iz
+    D[:, 0, 2] = cam.fx * u * iz
+    D[:, 1, 1] = -cam.fy * iz
+    D[:, 1, 2] = cam.fy * v * iz
+    return e, D
+
+
+def _pinhole_terms(
+    h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Error ``z − π(h)`` ``(m, 2)`` and the shared ``1/h_z``, ``u``, ``v`` ``(m,)`` (an error
+    alone needs no ``∂e/∂h``: on jets, automatic differentiation records none of it)."""
     hx, hy, hz = h
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1.0 / hz
@@ -203,12 +217,13 @@ def _pinhole(
     e = np.empty((len(hx), 2), like=hx)  # like=: jets stay jets (graphopt.autodiff)
     e[:, 0] = measurement[:, 0] - (cam.fx * u + cam.cx)
     e[:, 1] = measurement[:, 1] - (cam.fy * v + cam.cy)
-    D = np.zeros((len(hx), 2, 3), like=hx)
-    D[:, 0, 0] = -cam.fx * iz
-    D[:, 0, 2] = cam.fx * u * iz
-    D[:, 1, 1] = -cam.fy * iz
-    D[:, 1, 2] = cam.fy * v * iz
-    return e, D
+    return e, iz, u, v
+
+
+def _pinhole_error(P: np.ndarray, measurement: np.ndarray, ctx: EdgeContext) -> np.ndarray:
+    """The error of :func:`_pinhole_ctx` alone."""
+    cam = CameraParameters.coerce(ctx.params)
+    return _pinhole_terms((P[:, 0], P[:, 1], P[:, 2]), measurement, cam)[0]
 
 
 def _pinhole_ctx(
@@ -254,7 +269,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
             ctx: ``ctx.params`` holds the intrinsics.
         """
         P = transform_points(x[0], x[1])
-        return _pinhole_ctx(P, measurement, ctx)[0]
+        return _pinhole_error(P, measurement, ctx)
 
     @classmethod
     def linearize(
@@ -358,7 +373,7 @@ class EdgeInverseDepthProjection(BaseEdge):
             ctx: ``ctx.params`` holds the intrinsics.
         """
         h = cls._scaled_point(x)[0]
-        return _pinhole_ctx(h, measurement, ctx)[0]
+        return _pinhole_error(h, measurement, ctx)
 
     @classmethod
     def linearize(
