@@ -283,10 +283,18 @@ def flush() -> None:
 def _key(key: Any, ndim: int) -> tuple[Any, ...] | None:
     """A basic index as a tuple, or ``None`` for anything else."""
     k = key if isinstance(key, tuple) else (key,)
+    for x in k:  # the common keys (slices, ints, None) are basic as they are
+        if type(x) not in _SIMPLE:
+            break
+    else:
+        return k
     if any(type(x) is Jet or isinstance(x, np.ndarray | list) for x in k):
         return None
     k = _expand_key(k, ndim)
     return k if _is_basic(k) else None
+
+
+_SIMPLE = (slice, int, type(None))
 
 
 def getitem(j: Jet, key: Any) -> Jet | None:
