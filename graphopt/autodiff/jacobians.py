@@ -291,7 +291,9 @@ def _linearize(
     want = want and all(p.derived_ok for p in pos)
     dim = edge_type.dimension
     e = np.empty((m, dim))
-    jac = [np.zeros((m, dim, d)) for d in dims]
+    # Written block by block (zeros where a block has no derivative): memory that malloc
+    # reuses is not cleared first, as np.zeros would.
+    jac = [np.empty((m, dim, d)) for d in dims]
     active: np.ndarray | None = None
     buffer: np.ndarray | None = None
     for s in range(0, max(m, 1), BLOCK_EDGES):
@@ -313,6 +315,8 @@ def _linearize(
             active[sl] = ab
         if type(eb) is not Jet:  # the error does not depend on the estimates
             e[sl] = eb
+            for Ji in jac:
+                Ji[sl] = 0.0
             continue
         e[sl] = eb.value
         if eb._tape is not None and buffer is None:
@@ -326,6 +330,7 @@ def _linearize(
             continue
         t, lo = eb.tangent, eb.lo
         for i, d in enumerate(dims):
+            jac[i][sl] = 0.0
             a, b = max(offsets[i], lo), min(offsets[i] + d, lo + len(t))
             if a < b:
                 jac[i][sl, :, a - offsets[i]: b - offsets[i]] = np.moveaxis(
