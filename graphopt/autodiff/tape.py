@@ -152,12 +152,13 @@ def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: i
 _PIECES: dict[tuple[Any, ...], np.ndarray] = {}
 
 
-def _piece(node: _Node, shape: tuple[int, ...], key: tuple[Any, ...]) -> np.ndarray:
+def _piece(node: _Node, shape: tuple[int, ...], key: tuple[Any, ...],
+           ck: Any = None) -> np.ndarray:
     """The flat entries of the whole matrix that ``rows[(:,) + key]`` of gathered rows with
-    trailing ``shape`` are."""
+    trailing ``shape`` are (``ck``: a hashable name of ``key``, if it has a cheap one)."""
     base = node.entries
     if base is None:  # the whole matrix: the same few pieces in every block
-        ck = (shape, repr(key))
+        ck = (shape, repr(key) if ck is None else ck)
         hit = _PIECES.get(ck)
         if hit is None:
             if len(_PIECES) > 256:
@@ -186,8 +187,8 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
             t = unit_row(m)
         elif node.struct is not None:  # a leaf contracted through the structure
             out = _gathered(j.value[:, c], node.source[lo - j._lo: hi - j._lo, :, c],
-                            node.index, lo, j.n, None, node, _piece(node, j.value.shape[1:],
-                                                                    (slice(c, c + 1),)))
+                            node.index, lo, j.n, None, node,
+                            _piece(node, j.value.shape[1:], (slice(c, c + 1),), c))
             out.rows = j.rows
             return out
         else:
