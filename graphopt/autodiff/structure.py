@@ -150,12 +150,12 @@ def detect(j: Any) -> Structure | None:
     return None
 
 
-def contract_product(J: np.ndarray, lo: int, plan: Plan, g: np.ndarray, Y: np.ndarray,
+def contract_product(J: Any, lo: int, plan: Plan, g: np.ndarray, Y: np.ndarray,
                      a: int, b: int) -> None:
     """``J[:, lo+k, a:b] += c Σ_l g[:, :, i, l] Y[:, j, l]`` for a :meth:`product_plan`.
 
     Args:
-        J: ``(r, n, block)`` Jacobian rows being accumulated.
+        J: The block's Jacobian rows (:class:`graphopt.autodiff.reverse.Rows`).
         lo: The structure's first direction.
         plan: The product's plan.
         g: ``(r, m, rows, q)`` the adjoint of ``Y``.
@@ -165,15 +165,9 @@ def contract_product(J: np.ndarray, lo: int, plan: Plan, g: np.ndarray, Y: np.nd
     """
     for i, j, ks in plan:
         for col in range(Y.shape[2]):
-            prod = g[:, :, i, col] * Y[:, j, col]
+            prod = (g[:, :, i, col] * Y[:, j, col])[:, None, :]
             for k, c in ks:
-                target = J[:, lo + k, a:b]
-                if c == 1.0:
-                    target += prod
-                elif c == -1.0:
-                    target -= prod
-                else:
-                    target += c * prod
+                J.add(lo + k, lo + k + 1, a, b, prod, c)
 
 
 _COLUMNS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
@@ -193,12 +187,12 @@ def _column(full: np.ndarray, col: int) -> np.ndarray:
     return hit[1]
 
 
-def contract(J: np.ndarray, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: int,
+def contract(J: Any, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: int,
              b: int, one: np.ndarray) -> None:
     """``J[:, lo+k, a:b] += Σ_p g[:, :, p] (G_k V)_p`` for a piece of ``V``.
 
     Args:
-        J: ``(r, n, block)`` Jacobian rows being accumulated.
+        J: The block's Jacobian rows (:class:`graphopt.autodiff.reverse.Rows`).
         lo: The structure's first direction.
         plan: :meth:`Structure.plan` of the piece's entries.
         full: ``(m, N, N)`` or ``(m, N·N)``: each edge's whole ``V``.
@@ -210,12 +204,6 @@ def contract(J: np.ndarray, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray
     r, m = g.shape[:2]
     gf = g.reshape(r, m, -1)
     for i, col, ks in plan:
-        prod = gf[:, :, i] if one[col] else gf[:, :, i] * _column(full, col)
+        prod = (gf[:, :, i] if one[col] else gf[:, :, i] * _column(full, col))[:, None, :]
         for k, c in ks:
-            target = J[:, lo + k, a:b]
-            if c == 1.0:
-                target += prod
-            elif c == -1.0:
-                target -= prod
-            else:
-                target += c * prod
+            J.add(lo + k, lo + k + 1, a, b, prod, c)
