@@ -140,3 +140,24 @@ def test_structured_contraction_equals_general(edge: type, monkeypatch: Any) -> 
         scale = np.max(np.abs(b))
         assert np.max(np.abs(a - b)) <= 1e-12 * scale
         assert np.max(np.abs(a - c)) <= 1e-6 * scale
+
+
+class EdgeLeftFormed(EdgeLeft):
+    """The rotation block is also read by forward rules (``trace`` of a product forms its
+    derivatives) after its product was recorded: the structured product's shortcut must not
+    be taken for a block that is no longer a gathered leaf."""
+
+    @classmethod
+    def error(cls, x: Any, z: np.ndarray, ctx: Any) -> Any:
+        R = x[0][:, :3, :3]
+        P = np.matmul(R, x[1][:, :, None])[:, :, 0] + x[0][:, :3, 3]
+        s = np.trace(R @ R, axis1=1, axis2=2)  # forward rules: R's derivatives formed
+        return P[:, :2] / P[:, 2:3] + 0.01 * s[:, None] - z
+
+
+def test_structured_block_formed_after_its_product() -> None:
+    x, z = _inputs(VertexSE3Expmap)
+    auto = edge_jacobians(EdgeLeftFormed, x, z)
+    numeric = edge_jacobians(EdgeLeftFormed, x, z, method="numeric")
+    for a, c in zip(auto, numeric, strict=True):
+        assert np.max(np.abs(a - c)) <= 1e-6 * np.max(np.abs(c))

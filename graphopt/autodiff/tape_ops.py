@@ -25,12 +25,14 @@ def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], A
         return None
     y = mm(va, vb)
     direct = _product_plan(a, va, vb)
+    leaf = a._tape if direct is not None else None
 
     def back(g: np.ndarray) -> list[Any]:
         out = []
-        if direct is not None:  # a structured A: its contribution from g and y directly
-            node = a._tape
-            node.direct = (node.direct or []) + [(direct, g, y)]
+        # A structured A adds its contribution from g and y directly — unless its derivatives
+        # were formed since (read by a forward rule): then it is an ordinary leaf.
+        if direct is not None and a._tape is leaf:
+            leaf.direct = (leaf.direct or []) + [(direct, g, y)]
         elif type(a) is Jet:
             out.append((a, _unbroadcast(mm(g, np.swapaxes(vb, -1, -2)), va.shape), None))
         if type(b) is Jet:
