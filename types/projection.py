@@ -208,11 +208,24 @@ def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
     return e, iz, uv
 
 
-def _pinhole_error(
+def _pinhole(
+    h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
+) -> tuple[np.ndarray, np.ndarray]:
+    """Error ``z − π(h)`` and ``∂e/∂h`` ``(m, 2, 3)`` for camera-frame (homogeneous) points."""
+    e, iz, u, v = _pinhole_terms(h, measurement, cam)
+    D = np.zeros((len(iz), 2, 3), like=iz)
+    D[:, 0, 0] = -cam.fx * iz
+    D[:, 0, 2] = cam.fx * u * iz
+    D[:, 1, 1] = -cam.fy * iz
+    D[:, 1, 2] = cam.fy * v * iz
+    return e, D
+
+
+def _pinhole_terms(
     h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Error ``z − π(h)`` ``(m, 2)`` of camera-frame (homogeneous) points, with the ``1/z``
-    and the normalised coordinates ``u, v`` its derivatives take."""
+    """Error ``z − π(h)`` ``(m, 2)`` and the shared ``1/h_z``, ``u``, ``v`` ``(m,)`` (an error
+    alone needs no ``∂e/∂h``: on jets, automatic differentiation records none of it)."""
     hx, hy, hz = h
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1.0 / hz
@@ -223,18 +236,10 @@ def _pinhole_error(
     return e, iz, u, v
 
 
-def _pinhole(
-    h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
-) -> tuple[np.ndarray, np.ndarray]:
-    """Error ``z − π(h)`` and ``∂e/∂h`` ``(m, 2, 3)`` for camera-frame (homogeneous) points."""
-    e, iz, u, v = _pinhole_error(h, measurement, cam)
-    hx = h[0]
-    D = np.zeros((len(hx), 2, 3), like=hx)
-    D[:, 0, 0] = -cam.fx * iz
-    D[:, 0, 2] = cam.fx * u * iz
-    D[:, 1, 1] = -cam.fy * iz
-    D[:, 1, 2] = cam.fy * v * iz
-    return e, D
+def _pinhole_error(P: np.ndarray, measurement: np.ndarray, ctx: EdgeContext) -> np.ndarray:
+    """The error of :func:`_pinhole_ctx` alone."""
+    cam = CameraParameters.coerce(ctx.params)
+    return _pinhole_terms((P[:, 0], P[:, 1], P[:, 2]), measurement, cam)[0]
 
 
 def _pinhole_ctx(
@@ -280,8 +285,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
             ctx: ``ctx.params`` holds the intrinsics.
         """
         P = transform_points(x[0], x[1])
-        return _pinhole_error((P[:, 0], P[:, 1], P[:, 2]), measurement,
-                              CameraParameters.coerce(ctx.params))[0]
+        return _pinhole_error(P, measurement, ctx)
 
     @classmethod
     def linearize(
@@ -301,7 +305,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
         P = transform_points(T, X)
         px, py, pz = P[:, 0], P[:, 1], P[:, 2]
         cam = CameraParameters.coerce(ctx.params)
-        e, iz, u, v = _pinhole_error((px, py, pz), measurement, cam)
+        e, iz, u, v = _pinhole_terms((px, py, pz), measurement, cam)
         # ∂e/∂P has two zeros, rows (a, 0, b) and (0, c, d): the pose block [−[P]× rows, ∂e/∂P]
         # and the point block ∂e/∂P·R written entry by entry (no (m, 2, 3) products, no stacking:
         # the most frequent call of a BA; the pose block has the bits of the general formula).
@@ -403,7 +407,7 @@ class EdgeInverseDepthProjection(BaseEdge):
             ctx: ``ctx.params`` holds the intrinsics.
         """
         h = cls._scaled_point(x)[0]
-        return _pinhole_ctx(h, measurement, ctx)[0]
+        return _pinhole_error(h, measurement, ctx)
 
     @classmethod
     def linearize(
