@@ -77,11 +77,10 @@ class EdgeGroup:
         self.measured: np.ndarray | None = None  # the type's measurement_derived values
         self.last_chi2 = np.zeros(0)
         self.active_count = 0
-        #: The last evaluation of every edge, whatever its level: ``((versions of the stores
-        #: of the vertex positions, next_uid, removals), errors (m, dimension), e'Ωe (m,))`` —
-        #: what :func:`~graphopt.edge_set.group_errors` reuses at the same estimates.
-        self.raw_eval: tuple[tuple[tuple[int, ...], int, int], np.ndarray, np.ndarray] | None = (
-            None)
+        #: The errors of every edge at the last evaluation, whatever its level: ``((versions
+        #: of the stores of the vertex positions, next_uid, removals), errors (m, dimension))``
+        #: — what :func:`~graphopt.edge_set.group_errors` reuses at the same estimates.
+        self.raw_eval: tuple[tuple[tuple[int, ...], int, int], np.ndarray] | None = None
         #: The initialised level, the ``(m,)`` mask of the edges at that level (``None``: all
         #: are), and a counter of its changes.
         self.level = 0

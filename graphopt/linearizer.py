@@ -332,20 +332,14 @@ class Linearizer:
     def _weigh(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...]
                ) -> tuple[Linearization, np.ndarray, np.ndarray]:
         """``(out with inactive rows zeroed, Ωe, e'Ωe)`` of group ``gi``; every edge's errors
-        and ``e'Ωe`` are kept on the group (``raw_eval``) for the edge-set queries that
-        usually follow an optimisation at the same estimates (ORB-SLAM's outlier checks)."""
-        oe, s = self._sq(g, out.error)
+        are kept on the group (``raw_eval``) for the edge-set queries that usually follow an
+        optimisation at the same estimates (ORB-SLAM's outlier checks)."""
         g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
-                       g.removals), out.error, s)
+                       g.removals), out.error)
         act = g.active_edges
         if act is not None:  # edges of other levels: zero rows (also where not finite)
-            if out.jacobians:
-                out = only_active(out, act)
-            else:  # errors only: nothing reads the error rows past Ωe and e'Ωe
-                out = out._replace(active=act if out.active is None
-                                   else act & np.asarray(out.active, dtype=bool))
-            oe = np.where(act[:, None], oe, 0.0)
-            s = np.where(act, s, 0.0)
+            out = only_active(out, act)
+        oe, s = self._sq(g, out.error)
         return out, oe, s
 
     def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
