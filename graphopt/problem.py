@@ -271,6 +271,9 @@ class Problem:
         total = 0.0
         for st, up in zip(self.stores, self._updates, strict=True):
             est = st.estimates
+            if up.whole is not None:  # every slot: no gather
+                total += float(np.vdot(est, est))
+                continue
             for slots in (up.uslots, up.vslots):
                 if len(slots):
                     x = est[slots]
@@ -285,7 +288,7 @@ class Problem:
             step: A vector in the step layout.
         """
         du, dv = step
-        parts = [float(np.max(np.abs(a))) for a in (du, *dv) if a.size]
+        parts = [float(np.abs(a).max()) for a in (du, *dv) if a.size]
         return max(parts, default=0.0)
 
     def push(self) -> None:
