@@ -36,7 +36,6 @@ from typing import Any, ClassVar
 import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
-from graphopt.lie import hat
 from graphopt.types.projection import (
     CameraParameters,
     _cross_matrix_rows,
@@ -239,24 +238,28 @@ class _Sim3Projection(BaseEdge):
     inverse: ClassVar[bool] = False
 
     @classmethod
-    def _camera_point(cls, x: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """``(P (m, 3), M (m, 3, 3))``: the camera-frame points and ``∂P/∂X``.
-
-        ``S`` broadcast over the edges (stride 0: one Sim(3), as in ``OptimizeSim3``) is one
-        ``(m, 3) × (3, 3)`` product, not ``m`` small ones.
+    def _camera_point(cls, x: Sequence[np.ndarray]
+                      ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """``(P (m, 3), M, shared)``: the camera-frame points, ``∂P/∂X`` and, when every edge
+        has the same Sim(3) (``S`` broadcast over the edges with stride 0, as in
+        ``OptimizeSim3``), ``S``'s ``(R (3, 3), t (3,))`` for the inverse edge
+        (the forward edge reads neither) — then ``M`` is that one ``(3, 3)`` and
+        ``P`` one ``(m, 3) × (3, 3)`` product, not ``m`` small ones; else ``M`` is
+        ``(m, 3, 3)`` and ``shared`` ``None``.
         """
         X, S = x
-        m = len(X)
-        one = type(S) is np.ndarray and type(X) is np.ndarray and m > 0 and S.strides[0] == 0
+        one = type(S) is np.ndarray and type(X) is np.ndarray and len(X) > 0 and S.strides[0] == 0
         S1 = S[:1] if one else S
         if cls.inverse:                          # P = S⁻¹X = Rᵀ(X − t)/s
             R, t, s = sim3_parts(S1)
             M = np.swapaxes(R, 1, 2) / s[:, None, None]
-            P = (X - t) @ M[0].T if one else np.matmul(M, (X - t)[:, :, None])[:, :, 0]
-        else:                                    # P = sRX + t
-            M = S1[:, :3, :3]
-            P = (X @ M[0].T if one else np.matmul(M, X[:, :, None])[:, :, 0]) + S1[:, :3, 3]
-        return P, (np.broadcast_to(M, (m, 3, 3)) if one else M)
+            if one:
+                return (X - t) @ M[0].T, M[0], (R[0], t[0])
+            return np.matmul(M, (X - t)[:, :, None])[:, :, 0], M, None
+        M = S1[:, :3, :3]                        # P = sRX + t
+        if one:
+            return X @ M[0].T + S1[0, :3, 3], M[0], (M[0], S1[0, :3, 3])
+        return np.matmul(M, X[:, :, None])[:, :, 0] + S[:, :3, 3], M, None
 
     @classmethod
     def error(
@@ -289,10 +292,10 @@ class _Sim3Projection(BaseEdge):
         """
         X, S = x
         cam = camera_params(cls, ctx.params)
-        P, M = cls._camera_point(x)
+        P, M, shared = cls._camera_point(x)
         e, iz, uv = normalised_projection(P, measurement, cam)
-        if M.strides[0] == 0 and len(X) and type(S) is np.ndarray:
-            return Linearization(e, cls._shared_jacobians(S[0], M[0], iz, uv, cam))
+        if shared is not None:
+            return Linearization(e, cls._shared_jacobians(S[0], M, shared, iz, uv, cam))
         # ∂e/∂P = −f·iz·[[1, 0, −u], [0, 1, −v]], times ∂P/∂X = M row by row.
         J_point = (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
                                                                   * cam.focal[:, None])
@@ -311,9 +314,11 @@ class _Sim3Projection(BaseEdge):
         return Linearization(e, (J_point, J_sim))
 
     @classmethod
-    def _shared_jacobians(cls, S: np.ndarray, M: np.ndarray, iz: np.ndarray, uv: np.ndarray,
-                          cam: CameraParameters) -> tuple[np.ndarray, np.ndarray]:
-        """The Jacobians when every edge has the same Sim(3) ``S`` (``M = ∂P/∂X``), from
+    def _shared_jacobians(cls, S: np.ndarray, M: np.ndarray, Rt: tuple[np.ndarray, np.ndarray],
+                          iz: np.ndarray, uv: np.ndarray, cam: CameraParameters
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians when every edge has the same Sim(3) ``S`` (``M = ∂P/∂X``, ``Rt`` its
+        rotation and translation), from
         the pose Jacobian's rows ``[−D[P]×, D]`` (``D = ∂e/∂P``) by two ``(2m, 6)``
         products instead of per-edge cross products.
 
@@ -328,12 +333,13 @@ class _Sim3Projection(BaseEdge):
             J_sim = np.zeros((m, 2, 7))
             J_sim[:, :, :6] = pj.reshape(m, 2, 6)
             return J_point, J_sim
-        R, t, _ = sim3_parts(S[None])
+        R, t = Rt
+        tx, ty, tz = t.tolist()
         B = np.zeros((6, 7))
-        B[:3, :3] = -R[0].T
-        B[3:, :3] = M @ hat(t)[0]
+        B[:3, :3] = -R.T
+        B[3:, :3] = M @ np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]])  # M[t]×
         B[3:, 3:6] = -M
-        B[3:, 6] = -(M @ t[0]) * (1.0 - S[3, 0])  # the free-scale flag
+        B[3:, 6] = -(M @ t) * (1.0 - S[3, 0])  # the free-scale flag
         return J_point, (pj @ B).reshape(m, 2, 7)
 
     @classmethod
