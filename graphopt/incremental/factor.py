@@ -65,12 +65,16 @@ class GrowingFactor:
     Args:
         H: ``(n, n)`` symmetric positive definite matrix (CSC, both triangles or lower).
         reserve: Trailing unknowns to decouple with an identity.
+        supernodal: Factorise supernodally (CHOLMOD converts the factor to simplicial
+            ``LDLᵀ`` at its first rank update). With 6x6 blocks (the sphere's final system)
+            this factorises in 80 ms against 210 ms, conversion included; with 3x3 blocks
+            (w10000) it is no faster.
 
     Raises:
         NotPositiveDefiniteError: ``H`` does not factorise with positive pivots.
     """
 
-    def __init__(self, H: sp.csc_matrix, reserve: int) -> None:
+    def __init__(self, H: sp.csc_matrix, reserve: int, supernodal: bool = False) -> None:
         if not HAVE_CHOLMOD:
             raise ImportError("the incremental optimizer needs CHOLMOD (scikit-sparse)")
         n = H.shape[0]
@@ -85,7 +89,8 @@ class GrowingFactor:
              np.r_[low.indptr, low.indptr[-1] + np.arange(1, reserve + 1)]),
             shape=(n + reserve, n + reserve))
         try:
-            self._f = cholesky(full, mode="simplicial", ordering_method="natural")
+            self._f = cholesky(full, mode="supernodal" if supernodal else "simplicial",
+                               ordering_method="natural")
         except CholmodNotPositiveDefiniteError as exc:
             raise NotPositiveDefiniteError(f"the system is not positive definite: {exc}"
                                            ) from None
