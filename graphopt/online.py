@@ -367,8 +367,8 @@ class IncrementalOptimizer:
                 continue
 
     def _large(self) -> bool:
-        """Whether a vertex type has more than 3 unknowns (nested dissection and a
-        supernodal factorisation pay off)."""
+        """Whether a vertex type has more than 3 unknowns (a supernodal factorisation pays
+        off)."""
         return max((s.vtype.dimension for s in self._state.stores), default=1) > 3
 
     def _renumber(self, batches: list[Batch]) -> None:
@@ -393,7 +393,7 @@ class IncrementalOptimizer:
                     cols.append(blk[c][ok])
         # The newest vertices of every store go last, in the order they came (new vertices'
         # edges mostly reach them: an update then touches the tail of the factor, as iSAM2's
-        # constrained ordering keeps them at the root); AMD orders the others among
+        # constrained ordering keeps them at the root); nested dissection orders the others among
         # themselves.
         recent = np.zeros(total, bool)
         for block in base:
@@ -405,9 +405,7 @@ class IncrementalOptimizer:
         r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
         c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
         inside = (where[r] >= 0) & (where[c] >= 0)
-        large = self._large()
-        order = np.concatenate([old[block_order(len(old), where[r[inside]], where[c[inside]],
-                                                large)],
+        order = np.concatenate([old[block_order(len(old), where[r[inside]], where[c[inside]])],
                                 np.flatnonzero(recent)])
         dims = np.concatenate([np.full(int(f.sum()), s.vtype.dimension) for s, f in
                                zip(st.stores, counts, strict=True)] or [np.zeros(0, np.int64)])

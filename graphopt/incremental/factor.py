@@ -33,18 +33,18 @@ EPSILON = 1e-12
 PIVOT_FACTOR = 1e3
 
 
-def block_order(n_blocks: int, rows: np.ndarray, cols: np.ndarray, large: bool = False
-                ) -> np.ndarray:
-    """A fill-reducing order of the blocks from the block graph's edges: CHOLMOD's default
-    (AMD, METIS where AMD fills badly), or nested dissection (NESDIS) for large blocks, as
-    :class:`~graphopt.solvers.cholmod.LinearSolverCholmod` chooses (on the sphere's 6x6
-    blocks the factor holds 2.04M entries against AMD's 2.51M, and solves in half the time).
+def block_order(n_blocks: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """A fill-reducing order of the blocks from the block graph's edges: nested dissection
+    (CHOLMOD's NESDIS). Its balanced separators keep the paths from a vertex to the root of
+    the elimination tree cheap, which every rank update walks: against AMD, w10000's replay
+    took 27.6 s of CPU instead of 33.7 s, Victoria Park's 0.6 s instead of 0.95 s, the
+    Manhattan world's 2.1 s instead of 2.2 s; and the sphere's final factor holds 2.04M
+    entries instead of 2.51M.
 
     Args:
         n_blocks: Number of blocks.
         rows: ``(k,)`` block of one end of each coupling.
         cols: ``(k,)`` block of the other end.
-        large: The blocks have more than 3 unknowns.
 
     Returns:
         ``(n_blocks,)`` the block eliminated at each position.
@@ -55,8 +55,8 @@ def block_order(n_blocks: int, rows: np.ndarray, cols: np.ndarray, large: bool =
     diag = np.arange(n_blocks)
     pattern = sp.csc_matrix((np.ones(len(lo) + n_blocks), (np.r_[hi, diag], np.r_[lo, diag])),
                             shape=(n_blocks, n_blocks))
-    return np.asarray(cholmod_analyze(pattern, mode="simplicial", ordering_method=(
-        "nesdis" if large else "default")).P(), np.int64)
+    return np.asarray(cholmod_analyze(pattern, mode="simplicial", ordering_method="nesdis"
+                                      ).P(), np.int64)
 
 
 class GrowingFactor:
