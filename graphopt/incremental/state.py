@@ -83,7 +83,8 @@ class State:
     known_edges: dict[int, int] = field(default_factory=dict)
     taken: dict[int, list[Batch]] = field(default_factory=dict)
     linear: dict[int, list[Whitened]] = field(default_factory=dict)
-    _free: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    _free: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, slice | np.ndarray]] = field(
+        default_factory=dict)
     flags: list[int] = field(default_factory=list)
 
     def store_index(self, st: VertexStore) -> int:
@@ -200,27 +201,45 @@ class State:
                 step changed are written.
         """
         worst = 0.0
-        for si, (st, th, off) in enumerate(zip(self.stores, self.theta, self.offsets,
-                                               strict=True)):
-            hit = self._free.get(si)
-            if hit is None or hit[0] is not off:  # offsets are replaced, never edited
-                free = np.flatnonzero(off >= 0)
-                hit = self._free[si] = (off, free, off[free][:, None]
-                                        + np.arange(st.vtype.dimension))
-            _, free, cols = hit
+        changed = None
+        if old is not None and len(old) == len(delta):
+            # Per vertex, whether any of its unknowns changed: a prefix count of the changed
+            # unknowns, differenced over each vertex's run (cheaper than comparing the
+            # gathered (v, d) steps).
+            changed = np.zeros(len(delta) + 1, np.int64)
+            np.cumsum(delta != old, out=changed[1:])
+        for si, (st, th) in enumerate(zip(self.stores, self.theta, strict=True)):
+            free, cols, rows = self.free_vertices(si)
             if not len(free):
                 continue
             step = delta[cols]
             worst = max(worst, float(np.abs(step).max()))
-            if old is not None and len(old) == len(delta):
-                moved = (step != old[cols]).any(axis=1)
-                free, step = free[moved], step[moved]
-                if not len(free):
-                    continue
+            if changed is not None:
+                moved = changed[cols[:, -1] + 1] != changed[cols[:, 0]]
+                if not moved.all():
+                    rows, step = free[moved], step[moved]
+                    if not len(rows):
+                        continue
             est = st.estimates
-            est[free] = st.vtype.oplus(th[free].copy(), step)
+            est[rows] = st.vtype.oplus(th[rows], step)  # oplus returns a new array
             st.estimates = est
         return worst
+
+    def free_vertices(self, si: int) -> tuple[np.ndarray, np.ndarray, slice | np.ndarray]:
+        """The store's slots with unknowns ``(v,)``, their unknowns ``(v, d)``, and the slots
+        as a slice when they are a run (they mostly are: indexing by a slice is a view).
+
+        Args:
+            si: The store index.
+        """
+        off = self.offsets[si]
+        hit = self._free.get(si)
+        if hit is None or hit[0] is not off:  # offsets are replaced, never edited
+            free = np.flatnonzero(off >= 0)
+            hit = self._free[si] = (off, free, off[free][:, None]
+                                    + np.arange(self.stores[si].vtype.dimension),
+                                    _as_slice(free))
+        return hit[1], hit[2], hit[3]
 
     def relinearize_all(self) -> None:
         """``θ ←`` the current estimates."""
@@ -237,7 +256,15 @@ class State:
         off = np.full(stop - start, -1, np.int64)
         off[free] = first + d * np.arange(int(free.sum()))
         self.theta[si] = np.concatenate([self.theta[si], est])
+        hit = self._free.get(si)
+        fresh = hit is not None and hit[0] is self.offsets[si]
         self.offsets[si] = np.concatenate([self.offsets[si], off])
+        if fresh:  # grow the cache of free_vertices by the new slots (no scan of the store)
+            new = start + np.flatnonzero(free)
+            idx = np.concatenate([hit[1], new])
+            self._free[si] = (self.offsets[si], idx,
+                              np.concatenate([hit[2], off[free][:, None] + np.arange(d)]),
+                              _as_slice(idx))
         return d * int(free.sum())
 
     def unconstrained(self, new: list[tuple[int, int, int]], batches: list[Batch]
@@ -253,6 +280,13 @@ class State:
                 if not fixed and vid not in seen:
                     return st, int(vid)
         return None
+
+
+def _as_slice(idx: np.ndarray) -> slice | np.ndarray:
+    """``idx`` as a slice if it is a run of consecutive integers, else itself."""
+    if len(idx) and int(idx[-1]) - int(idx[0]) == len(idx) - 1:
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
 
 
 def join_batches(chunks: list[Batch]) -> Batch:
