@@ -38,7 +38,13 @@ import scipy.sparse as sp
 from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.incremental.factor import GrowingFactor, block_order
 from graphopt.incremental.state import Batch, State, by_group
-from graphopt.incremental.whitened import gradient_into, hessian, robust_cost, update_columns
+from graphopt.incremental.whitened import (
+    gradient_into,
+    hessian,
+    negated,
+    robust_cost,
+    update_columns,
+)
 from graphopt.optimizer import SparseOptimizer
 
 __all__ = ["IncrementalConfig", "IncrementalOptimizer", "UpdateReport"]
@@ -62,6 +68,9 @@ class IncrementalConfig:
         model_tolerance: See ``relinearize_threshold``.
         check_every: While a vertex stays past the threshold, the model is checked again
             after this many solves (or once the largest step grew by half).
+        partial_fraction: A relinearisation whose vertices' edges hold at most this share
+            of the rows relinearises only them (a downdate and an update of the factor, as
+            iSAM2 does); a larger one is a batch step.
         solve_threshold: New edges whose chi2 at the current estimate is at most this are
             taken in without a solve.
         check_chi2: Also check the chi2 of every incremental solve (a full evaluation), not
@@ -79,6 +88,7 @@ class IncrementalConfig:
     relinearize_threshold: float = 0.1
     model_tolerance: float = 1e-4
     check_every: int = 20
+    partial_fraction: float = 0.02
     solve_threshold: float = 1e-9
     check_chi2: bool = False
     max_batch_iterations: int = 5
@@ -260,12 +270,51 @@ class IncrementalOptimizer:
             # stale with any step).
             true, model = self._state.model_check(delta)
             self._checked, self._since_check = worst, 0
-            if abs(true - model) > cfg.model_tolerance * max(true, 1.0):
+            if abs(true - model) > cfg.model_tolerance * max(true, 1.0) and (
+                    robust or not self._relinearize_partly(report)):
                 self._rebuild(report, "relinearize")
         elif before is not None and self.chi2() > before:
             self._delta = old
             self._state.apply(old)
             self._rebuild(report, "chi2")
+
+    def _relinearize_partly(self, report: UpdateReport) -> bool:
+        """iSAM2's partial relinearisation: the vertices whose step exceeds the threshold
+        move their linearisation point to their estimate, the rows of their edges leave the
+        factor (a downdate) and enter it relinearised (an update), and the system is solved
+        again. Only when those edges hold at most ``partial_fraction`` of the rows (else a
+        batch step costs less); returns whether it ran and the linear model then predicts
+        the chi2 (else the caller's batch step starts afresh)."""
+        st, cfg = self._state, self.config
+        masks, count = st.moved(self._delta, cfg.relinearize_threshold)
+        if not count:
+            return False
+        edges = st.touching(masks)
+        rows = sum(int(hit.sum()) * b.info.shape[1] for b, hit in edges)
+        total = sum(len(b.vids) * b.info.shape[1] for b in st.all_edges())
+        if rows > cfg.partial_fraction * total:
+            return False
+        out = st.relinearize_partly(masks, edges)
+        if out is None:
+            return False
+        old, new = out
+        try:
+            self._factor.update(update_columns(new, self._factor.size))
+            self._factor.downdate(update_columns(old, self._factor.size))
+            gradient_into(self._g, new)
+            gradient_into(self._g, [negated(w) for w in old])
+            self._delta = -self._factor.solve(self._g)
+        except NotPositiveDefiniteError:
+            return False  # the caller's batch step starts afresh
+        self._checked = st.apply(self._delta)
+        # As a batch step, done once the linear model predicts the chi2 (the vertices left
+        # below the threshold may still be off: then the batch step relinearises all).
+        true, model = st.model_check(self._delta)
+        if abs(true - model) > cfg.model_tolerance * max(true, 1.0):
+            return False
+        report.relinearized = count
+        report.reason = "relinearize"
+        return True
 
     def _rebuild(self, report: UpdateReport, reason: str) -> None:
         """A batch step: relinearise everything at the current estimate, reorder,

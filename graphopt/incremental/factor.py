@@ -20,7 +20,7 @@ import scipy.sparse as sp
 from graphopt.errors import NotPositiveDefiniteError
 
 try:  # scikit-sparse is optional (see graphopt.solvers.cholmod)
-    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+    from sksparse.cholmod import CholmodError, CholmodNotPositiveDefiniteError, cholesky
     from sksparse.cholmod import analyze as cholmod_analyze
 
     HAVE_CHOLMOD = True
@@ -111,6 +111,21 @@ class GrowingFactor:
         """
         if C.nnz:
             self._f.update_inplace(C)
+
+    def downdate(self, C: sp.csc_matrix) -> None:
+        """``LLᵀ ← LLᵀ − CCᵀ``.
+
+        Args:
+            C: ``(size, k)`` columns (whitened rows the factor holds).
+
+        Raises:
+            NotPositiveDefiniteError: CHOLMOD reports the result not positive definite.
+        """
+        if C.nnz:
+            try:
+                self._f.update_inplace(C, subtract=True)
+            except CholmodError as exc:
+                raise NotPositiveDefiniteError(f"a downdate failed: {exc}") from None
 
     def take(self, count: int) -> np.ndarray:
         """Hand out the next ``count`` reserved unknowns (after :meth:`update` has added the

@@ -174,6 +174,68 @@ class State:
             model += float(np.square(linear_residual(joined, delta)).sum())
         return true, model
 
+    def moved(self, delta: np.ndarray, threshold: float) -> tuple[list[np.ndarray], int]:
+        """Per store, ``(slots,)`` whether the vertex's step exceeds ``threshold`` (largest
+        tangent component), and how many do.
+
+        Args:
+            delta: The step from the linearisation points, by unknown.
+            threshold: The relinearisation threshold.
+        """
+        masks, count = [], 0
+        for si, off in enumerate(self.offsets):
+            mask = np.zeros(len(off), bool)
+            free, cols, _ = self.free_vertices(si)
+            if len(free):
+                hit = np.abs(delta[cols]).max(axis=1) > threshold
+                mask[free[hit]] = True
+                count += int(hit.sum())
+            masks.append(mask)
+        return masks, count
+
+    def touching(self, masks: list[np.ndarray]) -> list[tuple[Batch, np.ndarray]]:
+        """Per group with any, the batch of every edge taken in and ``(m,)`` whether the edge
+        has a vertex in ``masks`` (from :meth:`moved`)."""
+        out = []
+        for b in self.all_edges():
+            hit = np.zeros(len(b.vids), bool)
+            for si, s in zip(b.stores, b.slots, strict=True):
+                hit |= masks[si][s]
+            if hit.any():
+                out.append((b, hit))
+        return out
+
+    def relinearize_partly(self, masks: list[np.ndarray],
+                           edges: list[tuple[Batch, np.ndarray]]
+                           ) -> tuple[list[Whitened], list[Whitened]] | None:
+        """``θ ←`` the current estimate of the vertices in ``masks``, and the rows of the
+        edges ``edges`` names relinearised there: returns ``(old rows, new rows)`` (the kept
+        rows are replaced), or ``None`` (nothing changed) when the kept rows do not line up
+        with the edges (edges still wait to enter the factor).
+
+        Args:
+            masks: Per store, ``(slots,)`` the vertices to relinearise.
+            edges: From :meth:`touching` with the same masks.
+        """
+        keep = []
+        for b, _ in edges:
+            rows = self.linear.get(id(b.group), [])
+            joined = join(rows) if rows else None
+            if joined is None or len(joined.chi2) != len(b.vids):
+                return None
+            keep.append(joined)
+        for si, mask in enumerate(masks):
+            if mask.any():
+                self.theta[si][mask] = self.stores[si].estimates[: len(mask)][mask]
+        old, new = [], []
+        for (b, hit), joined in zip(edges, keep, strict=True):
+            fresh = self.whiten(subset(b, hit))
+            old.append(pick(joined, hit))
+            put(joined, hit, fresh)
+            self.linear[id(b.group)] = [joined]
+            new.append(fresh)
+        return old, new
+
     def cols(self, b: Batch) -> list[np.ndarray]:
         """Per position, the first unknown of each edge's vertex (``-1``: fixed)."""
         return [self.offsets[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
@@ -287,6 +349,29 @@ def _as_slice(idx: np.ndarray) -> slice | np.ndarray:
     if len(idx) and int(idx[-1]) - int(idx[0]) == len(idx) - 1:
         return slice(int(idx[0]), int(idx[-1]) + 1)
     return idx
+
+
+def subset(b: Batch, mask: np.ndarray) -> Batch:
+    """The edges of ``b`` where ``mask`` (``(m,)``) is true, as a batch (their kernel slots
+    read now)."""
+    return Batch(b.group, b.vids[mask], b.measurements[mask], b.info[mask],
+                 b.kernel_index[mask], {k: v[mask] for k, v in b.data.items()}, b.stores,
+                 [s[mask] for s in b.slots], b.start, b.group.activity_version[0])
+
+
+def pick(w: Whitened, mask: np.ndarray) -> Whitened:
+    """The rows of ``w`` where ``mask`` is true (copies)."""
+    return Whitened([c[mask] for c in w.cols], [A[mask] for A in w.blocks], w.residual[mask],
+                    w.chi2[mask], w.weight[mask])
+
+
+def put(w: Whitened, mask: np.ndarray, rows: Whitened) -> None:
+    """Overwrite the rows of ``w`` where ``mask`` is true with ``rows``."""
+    for a in range(len(w.cols)):
+        w.blocks[a][mask] = rows.blocks[a]
+    w.residual[mask] = rows.residual
+    w.chi2[mask] = rows.chi2
+    w.weight[mask] = rows.weight
 
 
 def join_batches(chunks: list[Batch]) -> Batch:

@@ -54,6 +54,11 @@ def join(parts: Sequence[Whitened]) -> Whitened:
                       for f in ("residual", "chi2", "weight")))
 
 
+def negated(w: Whitened) -> Whitened:
+    """``w`` with its residual negated (:func:`gradient_into` then subtracts ``Aᵀr``)."""
+    return Whitened(w.cols, w.blocks, -w.residual, w.chi2, w.weight)
+
+
 def sqrt_information(info: np.ndarray) -> np.ndarray:
     """``U`` with ``UᵀU = Ω`` for ``(m, e, e)`` information matrices (Cholesky; an
     eigen-decomposition for semi-definite ones).
