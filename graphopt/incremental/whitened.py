@@ -255,7 +255,7 @@ def gradient_into(g: np.ndarray, batches: Sequence[Whitened]) -> None:
         keep = i < n
         np.add.at(g, i[keep], v[keep])
     else:
-        g += np.bincount(i, weights=v, minlength=int(i.max()) + 1)[:n]
+        g += np.bincount(i, weights=v, minlength=n)[:n]
 
 
 def hessian(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
