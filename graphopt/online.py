@@ -87,7 +87,7 @@ class IncrementalConfig:
     reserve_fraction: float = 0.0
     relinearize_threshold: float = 0.1
     model_tolerance: float = 1e-4
-    check_every: int = 20
+    check_every: int = 40
     partial_fraction: float = 0.02
     solve_threshold: float = 1e-9
     check_chi2: bool = False
