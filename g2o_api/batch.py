@@ -5,19 +5,25 @@ once per state; ``set_level`` and ``set_robust_kernel`` as one entry of an array
 
 from __future__ import annotations
 
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
 
 from graphopt.edge import EdgeContext
 from graphopt.edge_group import EdgeGroup
+from graphopt.edge_set import group_errors
 from graphopt.errors import GraphError
 
 from .edges import BaseEdge
 from .solvers import RobustKernelBase, graphopt_kernel
 from .vertices import Bank
 
-__all__ = ["Batch", "stack_information", "stack_measurements"]
+__all__ = ["Batch", "bucket_edges", "stack_information", "stack_measurements"]
+
+_LEVEL = attrgetter("_level")
+_KERNEL = attrgetter("_kernel")
+_INFO = attrgetter("_info")
 
 
 def kernel_key(kernel: Any) -> Any:
@@ -62,10 +68,10 @@ class Batch:
                 raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
                                  f"{int(vids[i, p])} is not a {b.gtype.__name__} like the "
                                  "other edges' vertices at its position")
-        self.levels = np.fromiter((r._level for r in records), dtype=np.int64, count=m)
+        self.levels = np.fromiter(map(_LEVEL, records), dtype=np.int64, count=m)
         self.kernels: list[Any] = []  # graphopt kernels by code
         self._codes: dict[Any, int] = {}
-        kernels = [r._kernel for r in records]
+        kernels = list(map(_KERNEL, records))
         first = kernels[0] if m else None
         if all(k is first for k in kernels) or (  # one object (or None) for all: one code
                 isinstance(first, RobustKernelBase) and self._one_key(kernels)):
@@ -81,8 +87,10 @@ class Batch:
         # getters index, valid while the state is.
         self._lists: tuple[Any, list[float], list[bool] | None] | None = None
         self._bank1 = banks[0] if len(banks) == 1 else None
+        self._bank2 = (banks[0], banks[1]) if len(banks) == 2 else None
         for i, r in enumerate(records):
-            r._batch, r._idx = self, i
+            r._batch = self
+            r._idx = i
 
     # --- kernels and levels ------------------------------------------------------------------
 
@@ -95,9 +103,9 @@ class Batch:
 
     def code(self, kernel: Any) -> int:
         """The batch's code of a kernel (-1: none)."""
-        key = kernel_key(kernel)
-        if key is None:
+        if kernel is None:
             return -1
+        key = kernel_key(kernel)
         c = self._codes.get(key)
         if c is None:
             c = self._codes[key] = len(self.kernels)
@@ -178,8 +186,12 @@ class Batch:
         if b is not None:  # one vertex type (the pose-only edges): no loop
             s = b.store
             return (s, s.version if s is not None else -1)
-        return tuple((b.store, b.store.version if b.store is not None else -1)
-                     for b in self.banks)
+        if self._bank2 is not None:  # two (the projections): no loop either
+            s0, s1 = self._bank2[0].store, self._bank2[1].store
+            if s0 is not None and s1 is not None:
+                return (s0, s0.version, s1, s1.version)
+        return tuple([(b.store, b.store.version if b.store is not None else -1)
+                      for b in self.banks])
 
     def chi2_of(self, i: int) -> float:
         """Edge ``i``'s ``eᵀΩe`` (no kernel) at the current estimates: one state check and a
@@ -208,20 +220,35 @@ class Batch:
             lists = self._lists = (state, lists[1], self.depth_positive().tolist())
         return lists[2][i]
 
-    def _evaluate(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    def _evaluate(self) -> tuple[np.ndarray, np.ndarray]:
+        """Errors and ``eᵀΩe`` of every edge at the current estimates, once per state: the
+        optimizer's own evaluation of the group when it has one at this state (it keeps every
+        edge's, whatever its level), else the batch's."""
         state = self._state()
         if self._cache is None or self._cache[0] != state:
-            x = [b.estimates()[s] for b, s in zip(self.banks, self.slots, strict=True)]
-            ctx = EdgeContext(self.params, self.data, measured=self.measured)
-            e = np.asarray(self.gtype.error(x, self.meas, ctx), dtype=float)
-            if self.info is None:
-                chi2 = np.einsum("mi,mi->m", e, e)
-            elif self.info.ndim == 2:
-                chi2 = np.einsum("mi,ij,mj->m", e, self.info, e)
+            g, core = self.group, self.owner._core
+            if g is not None and core is not None and self.banks[0].store is not None:
+                e_all, s_all = group_errors(core.graph, g)
+                r = self.rows  # (sorted, unique) the group is this batch, in order:
+                whole = len(r) == len(e_all) and (not len(r) or int(r[-1]) == len(r) - 1)
+                e, chi2 = (e_all, s_all) if whole else (e_all[self.rows], s_all[self.rows])
+                self._cache = (state, e, chi2, None, None)
             else:
-                chi2 = np.einsum("mi,mij,mj->m", e, self.info, e)
-            self._cache = (state, e, chi2, x, None)
-        return self._cache[1], self._cache[2], self._cache[3]
+                x = self._gather()
+                ctx = EdgeContext(self.params, self.data, measured=self.measured)
+                e = np.asarray(self.gtype.error(x, self.meas, ctx), dtype=float)
+                if self.info is None:
+                    chi2 = np.einsum("mi,mi->m", e, e)
+                elif self.info.ndim == 2:
+                    chi2 = np.einsum("mi,ij,mj->m", e, self.info, e)
+                else:
+                    chi2 = np.einsum("mi,mij,mj->m", e, self.info, e)
+                self._cache = (state, e, chi2, x, None)
+        return self._cache[1], self._cache[2]
+
+    def _gather(self) -> list[np.ndarray]:
+        """The estimates of every position, ``(m, *shape)`` each."""
+        return [b.estimates()[s] for b, s in zip(self.banks, self.slots, strict=True)]
 
     def errors(self) -> np.ndarray:
         """``(m, e)`` errors at the current estimates."""
@@ -236,7 +263,7 @@ class Batch:
         self._evaluate()
         assert self._cache is not None
         if self._cache[4] is None:
-            x = self._cache[3]
+            x = self._cache[3] if self._cache[3] is not None else self._gather()
             if self.cls._depth is not BaseEdge._depth:  # the g2o class's own test
                 ok = self.cls._depth(x, self.data, self.params)
             else:  # graphopt's type's (the Sim3 projections, ...)
@@ -254,6 +281,37 @@ class Batch:
         if self.info is None:
             return np.eye(self.gtype.dimension)
         return (self.info if self.info.ndim == 2 else self.info[i]).copy()
+
+
+def bucket_edges(edges: Any) -> dict[tuple[Any, ...], list[Any]]:
+    """The edges by class and parameter key, in the order added (one batch each).
+
+    Args:
+        edges: The edge records (an iterable, in the order added).
+    """
+    edges = list(edges)
+    classes = set(map(type, edges))
+    by_class: dict[type, list[Any]] = {}
+    if len(classes) == 1:
+        by_class[classes.pop()] = edges
+    else:
+        for e in edges:
+            b = by_class.get(type(e))
+            if b is None:
+                by_class[type(e)] = b = []
+            b.append(e)
+    buckets: dict[tuple[Any, ...], list[Any]] = {}
+    for cls, recs in by_class.items():
+        keys = list(map(cls._key_of(), recs))
+        if keys.count(keys[0]) == len(keys):  # the usual case: one key for the class
+            buckets[(cls, keys[0])] = recs
+            continue
+        for e, key in zip(recs, keys, strict=True):
+            b = buckets.get((cls, key))
+            if b is None:
+                buckets[(cls, key)] = b = []
+            b.append(e)
+    return buckets
 
 
 def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
@@ -280,6 +338,15 @@ def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
         raise
 
 
+def _checked_one(cls: type, rec: Any, info: np.ndarray, d: int) -> np.ndarray:
+    """A copy of the one information matrix of a batch, or a GraphError if it is not
+    ``(d, d)``."""
+    if info.shape != (d, d):
+        raise GraphError(f"{cls.__name__} on vertices {[v._id for v in rec._v]}: "
+                         f"information has shape {info.shape}, expected {(d, d)}")
+    return info.copy()
+
+
 def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
     """The information matrices of a batch's records: ``None`` (all identity, unset), one
     ``(d, d)`` shared by all, or ``(m, d, d)``.
@@ -289,10 +356,12 @@ def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
         recs: Its records.
         d: The error dimension.
     """
-    infos = [e._info for e in recs]
+    infos = list(map(_INFO, recs))
+    first = infos[0]
+    if len(set(map(id, infos))) == 1:  # one object (set_information's shared copies), or None
+        return None if first is None else _checked_one(cls, recs[0], first, d)
     if all(i is None for i in infos):
         return None
-    first = infos[0]
     if first is not None and first.shape == (d, d) and bool((first == first).all()):
         # The usual case, one matrix value for all: compared as bytes (equal bytes, equal
         # values), without stacking m copies first.

@@ -10,6 +10,7 @@ entry. Each class maps g2o's vertex order onto the graphopt type's (``_perm``: g
 
 from __future__ import annotations
 
+from operator import attrgetter, methodcaller
 from typing import Any
 
 import numpy as np
@@ -17,6 +18,12 @@ import numpy as np
 from .vertices import BaseVertex
 
 __all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
+
+#: The parameter ids of an edge whose ``set_parameter_id`` was not called, by slot count.
+_ZEROS: tuple[tuple[int, ...], ...] = tuple((0,) * n for n in range(8))
+_F8 = np.dtype(np.float64)
+#: The last information matrix set (its bytes and the shared read-only copy).
+_LAST_INFO: list[tuple[bytes, np.ndarray] | None] = [None]
 
 
 class BaseEdge:
@@ -42,7 +49,7 @@ class BaseEdge:
         self._info: Any = None
         self._kernel: Any = None
         self._level = 0
-        self._pids = [0] * self._nparams
+        self._pids = _ZEROS[self._nparams]  # a shared tuple: no container per edge
         self._id = -1
         self._opt: Any = None
         self._batch: Any = None
@@ -104,8 +111,20 @@ class BaseEdge:
         Args:
             information: ``(d, d)`` (nested lists accepted).
         """
-        self._info = (information.copy() if type(information) is np.ndarray
-                      and information.dtype == np.float64 else np.array(information, dtype=float))
+        if type(information) is np.ndarray and information.dtype is _F8:
+            # Programs give every edge the same matrix: consecutive equal values share one
+            # read-only copy, which initialize_optimization recognises by identity.
+            raw = information.tobytes()
+            last = _LAST_INFO[0]
+            if last is not None and last[0] == raw and last[1].shape == information.shape:
+                self._info = last[1]
+            else:
+                info = information.copy()
+                info.flags.writeable = False
+                _LAST_INFO[0] = (raw, info)
+                self._info = info
+        else:
+            self._info = np.array(information, dtype=float)
         if self._batch is not None:
             self._structure_changed()
 
@@ -113,7 +132,7 @@ class BaseEdge:
         """The information matrix (identity when unset)."""
         if self._batch is not None:
             return self._batch.information_of(self._idx)
-        return self._info if self._info is not None else np.eye(self._dim)
+        return self._info.copy() if self._info is not None else np.eye(self._dim)
 
     def set_robust_kernel(self, kernel: Any) -> None:
         """Set (or with ``None`` drop) the robust kernel; after initialisation the change reaches
@@ -136,6 +155,8 @@ class BaseEdge:
         Args:
             level: An integer.
         """
+        if level == self._level and type(level) is int:  # unchanged (outlier loops): nothing
+            return
         self._level = int(level)
         if self._batch is not None:
             self._batch.set_level(self._idx, self._level)
@@ -151,11 +172,17 @@ class BaseEdge:
             slot: The parameter slot (0).
             pid: The parameter's id.
         """
-        if not 0 <= int(slot) < max(self._nparams, 1):
-            raise ValueError(f"{type(self).__name__} has {self._nparams} parameter slots")
-        if self._nparams:
-            self._pids[int(slot)] = int(pid)
-        self._structure_changed()
+        n = self._nparams
+        if n == 1 and slot == 0:  # the usual call: set_parameter_id(0, pid)
+            self._pids = (int(pid),)
+        elif not 0 <= int(slot) < max(n, 1):
+            raise ValueError(f"{type(self).__name__} has {n} parameter slots")
+        elif n:
+            pids = list(self._pids)
+            pids[int(slot)] = int(pid)
+            self._pids = tuple(pids)
+        if self._batch is not None:
+            self._structure_changed()
 
     def set_id(self, eid: int) -> None:
         """Set the edge's id.
@@ -187,7 +214,12 @@ class BaseEdge:
     def chi2(self) -> float:
         """``eᵀΩe`` at the current estimates, without the kernel (g2o's ``chi2()``)."""
         b = self._batch
-        return (b if b is not None else self._need_batch()).chi2_of(self._idx)
+        if b is not None:
+            lists = b._lists  # the batch's chi2s while the estimates are unchanged
+            if lists is not None and lists[0] == b._state():
+                return lists[1][self._idx]
+            return b.chi2_of(self._idx)
+        return self._need_batch().chi2_of(self._idx)
 
     def error(self) -> np.ndarray:
         """The error at the current estimates."""
@@ -208,7 +240,22 @@ class BaseEdge:
     # --- conversion (overridden per type) ----------------------------------------------------
 
     def _params_key(self) -> tuple[Any, ...]:
-        return tuple(self._pids)
+        return self._pids
+
+    #: The attributes :meth:`_params_key` returns (its tuple), for a C-level getter over many
+    #: records; ``None`` where a class computes its key otherwise.
+    _key_attrs: tuple[str, ...] | None = ("_pids",)
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "_params_key" in cls.__dict__ and "_key_attrs" not in cls.__dict__:
+            cls._key_attrs = None
+
+    @classmethod
+    def _key_of(cls) -> Any:
+        """A callable giving a record's :meth:`_params_key` (C-level where it can be)."""
+        a = cls._key_attrs
+        return attrgetter(*a) if a else methodcaller("_params_key")
 
     @classmethod
     def _core_name(cls, key: tuple[Any, ...]) -> str:

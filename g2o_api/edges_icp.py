@@ -26,6 +26,13 @@ class EdgeGICP:
         self.R0 = np.eye(3)
         self.R1 = np.eye(3)
 
+    def copy(self) -> EdgeGICP:
+        """A copy (g2o copies the measurement into the edge)."""
+        m = EdgeGICP()
+        for name in ("pos0", "pos1", "normal0", "normal1", "R0", "R1"):
+            setattr(m, name, np.array(getattr(self, name), dtype=float))
+        return m
+
     @staticmethod
     def _n(normal: Any) -> np.ndarray:
         return np.asarray(normal, dtype=float).reshape(1, 3)
@@ -89,6 +96,20 @@ class EdgeVVGicp(BaseEdge):
         self.pl_pl = False
         self.cov0 = np.eye(3)
         self.cov1 = np.eye(3)
+
+    def set_measurement(self, measurement: Any) -> None:
+        """Set the measurement (copied).
+
+        Args:
+            measurement: An :class:`EdgeGICP` (or ``(2, 3)`` ``[pos0, pos1]``).
+        """
+        super().set_measurement(measurement.copy() if isinstance(measurement, EdgeGICP)
+                                else measurement)
+
+    def measurement(self) -> Any:
+        """The measurement: an :class:`EdgeGICP` with its normals (``load`` keeps the file's)."""
+        m = self._meas
+        return m.copy() if isinstance(m, EdgeGICP) else super().measurement()
 
     def _params_key(self) -> tuple[Any, ...]:
         return (bool(self.pl_pl),)

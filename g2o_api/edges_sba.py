@@ -12,6 +12,9 @@ from .edges import BaseEdge
 
 __all__ = ["SBA_EDGES"]
 
+_ORIGIN = np.zeros(3)
+_ORIGIN.flags.writeable = False
+
 
 def _depth_pose_point(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any
                       ) -> np.ndarray:
@@ -34,6 +37,8 @@ class EdgeSE3ProjectXYZ(BaseEdge):
 
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy)
+
+    _key_attrs = ("fx", "fy", "cx", "cy")
 
     def cam_project(self, p: Any) -> np.ndarray:
         """Pixel of a camera-frame point.
@@ -63,7 +68,7 @@ class EdgeSE3ProjectXYZOnlyPose(EdgeSE3ProjectXYZ):
 
     def __init__(self) -> None:
         super().__init__()
-        self.Xw = np.zeros(3)
+        self.Xw = _ORIGIN  # g2o's default; programs assign their point
 
     @classmethod
     def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
@@ -88,6 +93,8 @@ class EdgeStereoSE3ProjectXYZ(EdgeSE3ProjectXYZ):
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy, self.bf)
 
+    _key_attrs = ("fx", "fy", "cx", "cy", "bf")
+
 
 class EdgeStereoSE3ProjectXYZOnlyPose(EdgeStereoSE3ProjectXYZ):
     """g2o's ``EdgeStereoSE3ProjectXYZOnlyPose``: one pose vertex, the point in ``Xw``."""
@@ -99,7 +106,7 @@ class EdgeStereoSE3ProjectXYZOnlyPose(EdgeStereoSE3ProjectXYZ):
 
     def __init__(self) -> None:
         super().__init__()
-        self.Xw = np.zeros(3)
+        self.Xw = _ORIGIN  # g2o's default; programs assign their point
 
     _data = EdgeSE3ProjectXYZOnlyPose._data
     _depth = staticmethod(_depth_pose_only)

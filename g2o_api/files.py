@@ -25,9 +25,11 @@ from graphopt.types.isometry3 import pose_from_qt, pose_to_qt
 from graphopt.types.slam_graph import build_graph
 
 from .batch import Batch
+from .edges_icp import ICP_EDGES, EdgeGICP
 from .edges_sba import SBA_EDGES
-from .edges_slam import SLAM_EDGES as EDGE_CLASSES
-from .params import CameraParameters, ParameterSE3Offset
+from .edges_slam import SLAM_EDGES
+from .params import CameraParameters, ParameterCamera, ParameterSE2Offset, ParameterSE3Offset
+from .sba_cam import SBA_CAM_CLASSES
 from .vertices import VERTEX_CLASSES, Bank
 
 __all__ = ["load", "save"]
@@ -37,6 +39,13 @@ _VERTICES = {"VertexSE2": ("VertexSE2", "VERTEX_SE2"), "VertexPointXY": ("Vertex
              "VERTEX_XY"), "VertexSE3": ("VertexSE3", "VERTEX_SE3:QUAT"),
              "VertexPointXYZ": ("VertexPointXYZ", "VERTEX_TRACKXYZ")}
 _VERTEX_TAGS = {tag for _, tag in _VERTICES.values()}
+#: The g2o classes load() may create (the file's types), by kind.
+_VERTEX_CLASSES = [*VERTEX_CLASSES.values(), SBA_CAM_CLASSES["VertexCam"],
+                   SBA_CAM_CLASSES["VertexIntrinsics"]]
+_EDGE_CLASSES = [c for c in (*SLAM_EDGES.values(), *SBA_EDGES.values(), *ICP_EDGES.values(),
+                             *SBA_CAM_CLASSES.values()) if hasattr(c, "_perm")]
+_GICP = "EDGE_V_V_GICP"
+_GICP_TYPES = ("EdgeVVGicp", "EdgeVVGicpPlaneToPlane")
 #: graphopt edge type name → (g2o class name, file tag).
 _EDGES = {"EdgeSE2": ("EdgeSE2", "EDGE_SE2"), "EdgeSE2PointXY": ("EdgeSE2PointXY", "EDGE_SE2_XY"),
           "EdgeSE3": ("EdgeSE3", "EDGE_SE3:QUAT"),
@@ -82,7 +91,7 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
     core = slam.optimizer
     banks: dict[type, Bank] = {}
     for gtype, store in core.graph.stores.items():
-        cls = _api_class(gtype.__name__, VERTEX_CLASSES.values(), "vertices")
+        cls = _api_class(gtype.__name__, _VERTEX_CLASSES, "vertices")
         recs = []
         for vid, fixed in zip(store.ids.tolist(), store.fixed.tolist(), strict=True):
             r = cls()
@@ -98,15 +107,11 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
         opt._parameters[pid] = par
         offsets[id(p)] = pid
     for pid, (tag, v) in graph.parameters.items():
-        if tag != "PARAMS_CAMERAPARAMETERS":
-            raise NotImplementedError(f"load: graphopt.g2o has no class for {tag} parameters")
-        cam = CameraParameters(v[0], v[1:3], v[3])
-        cam.set_id(pid)
-        opt._parameters[pid] = cam
+        opt._parameters[pid] = _parameter(pid, tag, np.asarray(v, float))
     batches = []
     for g in core.edge_groups():
         g.finalize()
-        cls = _api_class(g.etype.__name__, [*EDGE_CLASSES.values(), *SBA_EDGES.values()], "edges")
+        cls = _api_class(g.etype.__name__, _EDGE_CLASSES, "edges")
         if cls._nparams == 0 and cls._param_type and g.params is not None:
             # Intrinsics on the edge (or, for the Sim3 projections, on g2o's Sim3 vertex): the
             # batch's key is their numbers, no parameter ids.
@@ -119,13 +124,17 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
         meas = g.measurements.copy()  # the records keep row views of it
         infos = [info] * len(meas) if info.ndim == 2 else list(info)
         vmap, edges = opt._vertices, opt._edges
+        k = g.vertex_ids.shape[1]  # the class's count, or the edges' own (the LotsOf edges)
+        where = [cls._perm.index(q) for q in range(k)] if len(cls._perm) == k else range(k)
+        raws = (_gicp_measurements(graph, g.vertex_ids, meas) if cls._gname == "EdgeVVGicp"
+                else list(meas))
         recs = []
-        for row, z, inf in zip(g.vertex_ids.tolist(), list(meas), infos, strict=True):
+        for row, z, inf in zip(g.vertex_ids.tolist(), raws, infos, strict=True):
             e = cls()
-            e._v = [vmap[row[cls._perm.index(q)]] for q in range(len(row))]
+            e._v = [vmap[row[p]] for p in where]
             e._meas, e._info, e._opt = z, inf, opt
             if pids:
-                e._pids = list(pids)
+                e._pids = tuple(pids)
             edges[e] = None
             recs.append(e)
         banks_of = [opt._vertices[v]._bank for v in g.vertex_ids[0].tolist()]
@@ -136,9 +145,50 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
     opt._records_dirty, opt._core = False, None
 
 
+def _parameter(pid: int, tag: str, v: np.ndarray) -> Any:
+    """The g2o parameter record of a parameter line (the values as the builder reads them).
+
+    Args:
+        pid: The id.
+        tag: ``PARAMS_CAMERAPARAMETERS``, ``PARAMS_SE2OFFSET`` or ``PARAMS_CAMERACALIB``.
+        v: The line's values after the id.
+    """
+    if tag == "PARAMS_CAMERAPARAMETERS":
+        par: Any = CameraParameters(v[0], v[1:3], v[3])
+    elif tag == "PARAMS_SE2OFFSET":
+        par = ParameterSE2Offset()
+        par.set_offset(v[:3])
+    elif tag == "PARAMS_CAMERACALIB":
+        par = ParameterCamera()
+        par.set_offset(np.vstack([pose_from_qt(v[None, :7])[0], [0, 0, 0, 1]]))
+        par.set_kcam(*v[7:11].tolist())
+    else:
+        raise NotImplementedError(f"load: graphopt.g2o has no class for {tag} parameters")
+    par.set_id(pid)
+    return par
+
+
+def _gicp_measurements(graph: GraphFile, vids: np.ndarray, meas: np.ndarray) -> list[Any]:
+    """``EdgeGICP`` measurements of the file's GICP lines, with their normals (graphopt's
+    type reads the points only; save() writes the normals back)."""
+    block = graph.edges[_GICP]
+    if block.ids.shape != vids.shape or not np.array_equal(block.ids, vids):
+        raise GraphError(f"{graph.path}: {_GICP} edges were built in another order")
+    out = []
+    for row in np.asarray(block.measurements, float):
+        m = EdgeGICP()
+        m.pos0, m.normal0, m.pos1, m.normal1 = row[0:3], row[3:6], row[6:9], row[9:12]
+        out.append(m)
+    return out
+
+
 def _api_class(name: str, classes: Any, what: str) -> Any:
-    """The g2o class of a graphopt type (by its ``_gname``); a clear error when there is none."""
+    """The g2o class of a graphopt type (by its ``_gname``; ``EdgeSE2LotsOfXY_3`` is
+    ``EdgeSE2LotsOfXY``'s); a clear error when there is none."""
     name = _VERTICES.get(name, _EDGES.get(name, (name,)))[0]
+    base, _, k = name.rpartition("_")
+    if base and k.isdigit():
+        name = base
     found = next((c for c in classes if getattr(c, "_gname", None) == name), None)
     if found is None:
         raise NotImplementedError(f"load: graphopt.g2o has no class for {name} {what} yet")
@@ -153,6 +203,8 @@ def _param_ids(params: Any, offsets: dict[int, int], known: dict[int, Any]) -> l
     out = []
     for p in objs:
         pid = offsets.get(id(p))
+        if pid is None and getattr(p, "id", None) in known:  # SE2 offsets, cameras on a pose
+            pid = p.id
         if pid is None:  # a camera (PARAMS_CAMERAPARAMETERS): the one with its numbers
             pid = next(k for k, c in known.items() if isinstance(c, CameraParameters)
                        and (c.focal_length, *c.principle_point.tolist(), c.baseline)
@@ -207,7 +259,10 @@ def save(opt: Any, filename: str | os.PathLike[str]) -> None:
         if name not in _EDGES:
             pids = np.array([list(r._pids) for r in b.records], np.int64).reshape(m, -1)
             try:
-                key, block = slam_tags.edge_block(name, b.vids, b.meas, info, pids)
+                if name in _GICP_TYPES:
+                    key, block = _GICP, _gicp_block(b, info)
+                else:
+                    key, block = slam_tags.edge_block(name, b.vids, b.meas, info, pids)
             except NotImplementedError:
                 raise NotImplementedError(f"save: no g2o file line for {b.cls.__name__} "
                                           "edges") from None
@@ -231,12 +286,39 @@ def save(opt: Any, filename: str | os.PathLike[str]) -> None:
                               None if params is None else np.concatenate([old.params, params]))
         edges[tag] = block
     offsets = {pid: pose_to_qt(p.offset().matrix()[None, :3])[0]
-               for pid, p in opt._parameters.items() if isinstance(p, ParameterSE3Offset)}
-    cameras = {pid: ("PARAMS_CAMERAPARAMETERS", np.array([p.focal_length, *p.principle_point,
-                                                          p.baseline]))
-               for pid, p in opt._parameters.items() if isinstance(p, CameraParameters)}
+               for pid, p in opt._parameters.items() if type(p) is ParameterSE3Offset}
+    others = {pid: _parameter_line(p) for pid, p in opt._parameters.items()
+              if type(p) is not ParameterSE3Offset}
     graph = GraphFile(path="<generated>", vertices=vertices, edges=edges, offsets=offsets,
-                      parameters=cameras,
+                      parameters={pid: v for pid, v in others.items() if v is not None},
                       fixed=np.concatenate(fixed) if fixed else np.zeros(0, np.int64))
     write_g2o(filename, graph)
 
+
+
+def _parameter_line(p: Any) -> tuple[str, np.ndarray] | None:
+    """A parameter's file line: ``(tag, values after the id)``; ``None`` for a parameter g2o
+    files have no line for."""
+    if isinstance(p, CameraParameters):
+        return "PARAMS_CAMERAPARAMETERS", np.array([p.focal_length, *p.principle_point,
+                                                    p.baseline])
+    if isinstance(p, ParameterSE2Offset):
+        return "PARAMS_SE2OFFSET", p.offset().to_vector()
+    if isinstance(p, ParameterCamera):
+        qt = pose_to_qt(p.offset().matrix()[None, :3])[0]
+        return "PARAMS_CAMERACALIB", np.concatenate([qt, p._k])
+    return None
+
+
+def _gicp_block(b: Batch, info: np.ndarray) -> EdgeBlock:
+    """The ``EDGE_V_V_GICP`` lines of a GICP batch: ``pos0 normal0 pos1 normal1`` (the
+    normals the records hold; g2o's defaults ``(0, 0, 1)`` where a vector was given)."""
+    m = len(b.records)
+    normals = np.tile([0.0, 0.0, 1.0, 0.0, 0.0, 1.0], (m, 1))
+    for i, r in enumerate(b.records):
+        if isinstance(r._meas, EdgeGICP):
+            normals[i] = [*np.ravel(r._meas.normal0), *np.ravel(r._meas.normal1)]
+    pos = np.asarray(b.meas, float).reshape(m, 6)
+    values = np.column_stack([pos[:, :3], normals[:, :3], pos[:, 3:], normals[:, 3:]])
+    return EdgeBlock(b.vids.copy(), values, info, np.zeros(m, np.int64), np.zeros((m, 0),
+                                                                                  np.int64))

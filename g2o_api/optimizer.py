@@ -19,6 +19,7 @@ from __future__ import annotations
 import gc
 import os
 import sys
+from operator import attrgetter, itemgetter
 from typing import Any
 
 import numpy as np
@@ -28,13 +29,16 @@ from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
 from graphopt.stopping import StoppingConfig
 
-from .batch import Batch, stack_information, stack_measurements
+from .batch import Batch, bucket_edges, stack_information, stack_measurements
 from .edges import BaseEdge
 from .params import Parameter
 from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
 from .vertices import Bank, BaseVertex, core_type
 
 __all__ = ["SparseOptimizer"]
+
+_VERTICES_OF = attrgetter("_v")
+_ID = attrgetter("_id")
 
 
 class SparseOptimizer:
@@ -249,9 +253,10 @@ class SparseOptimizer:
         return self._core_params[full]
 
     def _file_vertices(self) -> None:
-        for e in self._edges:  # vertices that an edge type reads differently (inverse depth)
-            for pos, name in type(e)._vertex_as.items():
-                e._v[pos]._as = name
+        if any(c._vertex_as for c in set(map(type, self._edges))):
+            for e in self._edges:  # vertices an edge type reads differently (inverse depth)
+                for pos, name in type(e)._vertex_as.items():
+                    e._v[pos]._as = name
         buckets: dict[str, list[BaseVertex]] = {}
         for v in self._vertices.values():
             buckets.setdefault(v._as or v._gname, []).append(v)
@@ -276,21 +281,16 @@ class SparseOptimizer:
         self._banks = banks
 
     def _file_edges(self) -> None:
-        buckets: dict[tuple[Any, ...], list[BaseEdge]] = {}
-        for e in self._edges:
-            key = (type(e), e._params_key())
-            b = buckets.get(key)
-            if b is None:
-                buckets[key] = b = []
-            b.append(e)
         batches = []
         known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
-        for (cls, pkey), recs in buckets.items():
+        for (cls, pkey), recs in bucket_edges(self._edges).items():
             gtype = cls._core_type(pkey)
-            k = len(recs[0]._v)  # the class's count, or the edges' own (EdgeSE2LotsOfXY)
+            m, k = len(recs), len(recs[0]._v)  # the class's count, or the edges' own (LotsOf)
             perm = cls._perm if len(cls._perm) == k else tuple(range(k))
-            vids = np.fromiter((v._id for e in recs for v in e._v), dtype=np.int64,
-                               count=k * len(recs)).reshape(-1, k)
+            vs = list(map(_VERTICES_OF, recs))
+            vids = np.empty((m, k), dtype=np.int64)
+            for g in range(k):  # vertex ids column by column, in C loops
+                vids[:, g] = np.fromiter(map(_ID, map(itemgetter(g), vs)), np.int64, count=m)
             missing = ~np.isin(vids, known)
             if missing.any():
                 i, g = (int(a[0]) for a in np.nonzero(missing))

@@ -64,7 +64,15 @@ class CameraParameters(Parameter):
         """
         if type(p) is not np.ndarray or p.shape != (3,):
             p = vector(p, 3, "cam_map")
-        return p[:2] * (self.focal_length / p[2]) + self.principle_point
+        x, y, z = p.tolist()
+        c = self.principle_point
+        if z == 0.0 or type(c) is not np.ndarray or c.shape != (2,):
+            return p[:2] * (self.focal_length / p[2]) + c
+        # Python floats: the numpy expression's operations in its order (the same bits) without
+        # its four array temporaries — called once per point and pose by g2o's demos.
+        s = self.focal_length / z
+        cx, cy = c.tolist()
+        return np.array((x * s + cx, y * s + cy))
 
     def stereocam_uvu_map(self, p: Any) -> np.ndarray:
         """``(u, v, u − f·b / z)``.

@@ -24,6 +24,8 @@ from .sim3 import Sim3
 
 __all__ = ["BaseVertex", "VERTEX_CLASSES"]
 
+_F8 = np.dtype(np.float64)
+
 
 class Bank:
     """The graphopt store behind all records of one graphopt vertex type (replaced when the
@@ -79,6 +81,14 @@ class BaseVertex:
     #: graphopt's vertex type (name in graphopt.types) and its estimate shape.
     _gname = ""
     _shape: tuple[int, ...] = ()
+    #: Whether the estimate is the plain vector (the base class's conversions).
+    _vector = True
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls._vector = (cls._to_array.__func__ is BaseVertex._to_array.__func__  # type: ignore
+                       and cls._from_row.__func__ is BaseVertex._from_row.__func__  # type: ignore
+                       and cls._finish.__func__ is BaseVertex._finish.__func__)  # type: ignore
 
     def __init__(self) -> None:
         self._id = -1
@@ -131,9 +141,13 @@ class BaseVertex:
         """The estimate (read from the store after ``initialize_optimization``)."""
         bank = self._bank
         if bank is None:
-            if self._est is None:
+            est = self._est
+            if est is None:
                 return None
-            return self._from_row(self._to_array([self._est], [self._id])[0])
+            if (self._vector and type(est) is np.ndarray and est.shape == self._shape
+                    and est.dtype is _F8):  # a vector type given an array: its copy
+                return est.copy()
+            return self._from_row(self._to_array([est], [self._id])[0])
         return self._from_row(bank.estimates()[self._slot])
 
     def set_fixed(self, fixed: bool) -> None:

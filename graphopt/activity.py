@@ -63,7 +63,8 @@ class IdleAnchors:
 
     def _update(self) -> None:
         ix = self.index
-        key = tuple(g.activity_version for g in ix.groups)
+        # Levels and kernel assignments (a kernel's width does not make a vertex idle).
+        key = tuple([g.activity_count for g in ix.groups])
         if key == self._key:
             return
         self._key = key

@@ -165,6 +165,9 @@ class Algorithm:
         # accepted trial (the Jacobians are then reused), no after a rejected one (errors only,
         # as Ceres' unsuccessful step costs).
         self.trial_linearizes = True
+        #: Set by the optimizer on the last iteration a run allows: no trial then linearises
+        #: (nothing would read its Jacobians; the next run evaluates afresh).
+        self.final_iteration = False
         #: Polled between the trials of an iteration; ``True`` ends the iteration with the
         #: estimate restored and the stop reason ``interrupted`` (the optimizer's ``stop()``).
         self.interrupted: Callable[[], bool] = _never
@@ -188,7 +191,7 @@ class Algorithm:
         """Apply a trial step (after :meth:`Problem.push`) and return the new robust chi2."""
         p.push()
         p.apply(step)
-        return p.robust_chi2(self.trial_linearizes)
+        return p.robust_chi2(self.trial_linearizes and not self.final_iteration)
 
     def line_fields(self, info: IterationInfo) -> str:
         """The algorithm's fields of g2o's iteration line (after ``schur=``).

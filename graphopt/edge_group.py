@@ -77,13 +77,19 @@ class EdgeGroup:
         self.measured: np.ndarray | None = None  # the type's measurement_derived values
         self.last_chi2 = np.zeros(0)
         self.active_count = 0
+        #: The errors of every edge at the last evaluation, whatever its level: ``((versions
+        #: of the stores of the vertex positions, next_uid, removals), errors (m, dimension))``
+        #: — what :func:`~graphopt.edge_set.group_errors` reuses at the same estimates.
+        self.raw_eval: tuple[tuple[tuple[int, ...], int, int], np.ndarray] | None = None
         #: The initialised level, the ``(m,)`` mask of the edges at that level (``None``: all
         #: are), and a counter of its changes.
         self.level = 0
         self._active: np.ndarray | None = None
         self._activity_stale = False  # the mask is recomputed when next read
         self._kernels_stale = False  # unused kernels are dropped when next read
-        self._activity = 0
+        #: Counts the changes of levels, of the initialised level and of which kernel each
+        #: edge has (see :attr:`activity_version`).
+        self.activity_count = 0
         self._finalized_size = -1
 
     # --- adding ----------------------------------------------------------------------------
@@ -306,7 +312,7 @@ class EdgeGroup:
         """Changes whenever what weighs the edges changes — levels, the initialised level,
         which kernel each edge has, any kernel's width (``robust_kernel.kernel_changes``) —
         so that evaluations cached by it are stale."""
-        return self._activity, kernel_changes()
+        return self.activity_count, kernel_changes()
 
     @property
     def active_edges(self) -> np.ndarray | None:
@@ -339,7 +345,7 @@ class EdgeGroup:
             self._kern = [self._kidx]
         self._kidx[i] = slot
         self._kernels_stale = True
-        self._activity += 1  # evaluations at the old kernels are stale
+        self.activity_count += 1  # evaluations at the old kernels are stale
 
     def _stale_kernels(self) -> None:
         """Compact the kernels after an edit, with the edges appended since taken in first
@@ -378,7 +384,7 @@ class EdgeGroup:
             self._lvl = [self.levels]
         self.levels[i] = levels
         self._activity_stale = True
-        self._activity += 1
+        self.activity_count += 1
 
     def apply_level(self, level: int, force: bool = False) -> None:
         """Make the edges of ``level`` the active ones.
@@ -391,7 +397,7 @@ class EdgeGroup:
             return
         self.level = level
         self._activity_stale = True
-        self._activity += 1
+        self.activity_count += 1
 
     def remove(self, index: np.ndarray) -> None:
         """Remove edges; the others keep their order and uids (the structure is stale).
@@ -421,7 +427,7 @@ class EdgeGroup:
         self._finalized_size = -1
         self._active = None
         self.finalize()
-        self._activity += 1
+        self.activity_count += 1
 
 
 def kernel_key(kernel: RobustKernel) -> Any:

@@ -16,6 +16,7 @@ import numpy as np
 
 from graphopt.activity import only_active
 from graphopt.edge import EdgeContext, Linearization
+from graphopt.edge_output import checked_output, raise_non_finite_edge, reduced_error, where
 from graphopt.errors import GraphError
 from graphopt.storage import EdgeGroup, VertexStore
 
@@ -68,6 +69,21 @@ class WeightedLinearization:
     weighted_errors: list[np.ndarray]
 
 
+def _broadcast_row(a: np.ndarray, one: int, m: int, transposed: bool) -> np.ndarray:
+    """Row ``one`` of ``a`` (column ``one`` of a transposed store) repeated ``m`` times, as a
+    read-only view with stride 0 (1 µs; ``np.broadcast_to`` takes 4)."""
+    if not a.flags.c_contiguous:
+        row = a[:, one] if transposed else a[one]
+        return np.broadcast_to(row, (m, *row.shape))
+    if transposed:
+        shape, offset, strides = (m, a.shape[0]), one * a.strides[1], (0, a.strides[0])
+    else:
+        shape, offset, strides = (m, *a.shape[1:]), one * a.strides[0], (0, *a.strides[1:])
+    view = np.ndarray(shape, a.dtype, a, offset, strides)
+    view.flags.writeable = False
+    return view
+
+
 class Linearizer:
     """Evaluates and linearises every edge group.
 
@@ -100,6 +116,14 @@ class Linearizer:
         # change builds a new problem).
         self._live = [tuple(bool(len(slots)) and not stores[si].fixed[slots].all()
                             for si, slots in pos) for pos in positions]
+        # Per group, per position: the one slot every edge has there (a pose's unary edges, the
+        # Sim(3) of OptimizeSim3), or -1. Such a position is gathered as a read-only broadcast
+        # of that vertex's estimate (stride 0), which batched code can treat as one transform
+        # (graphopt.lie: one (m, 3) x (3, 3) product instead of m small ones). ``None``: the
+        # type wrote into its inputs once, so the group gets copies.
+        self._one: list[tuple[int, ...] | None] = [
+            tuple(int(slots[0]) if len(slots) > 1 and not np.any(slots != slots[0]) else -1
+                  for _, slots in pos) for pos in positions]
         self.last_state: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         # Per group, what a trial that linearised computed besides the linearisation — Ωe,
         # e'Ωe, ρ, ρ' — keyed by (state, activity version): the next linearize reuses it.
@@ -109,20 +133,27 @@ class Linearizer:
     # --- gathering ---------------------------------------------------------------------------
 
     def gather(self, gi: int) -> tuple[np.ndarray, ...]:
-        """Estimates of group ``gi``'s vertices, one ``(m, *estimate_shape)`` array per position.
+        """Estimates of group ``gi``'s vertices, one ``(m, *estimate_shape)`` array per position
+        (read-only where every edge has the same vertex there).
 
         Args:
             gi: Group index.
         """
-        return tuple(self._gather_rows(si, "estimates", slots)  # type: ignore[misc]
-                     for si, slots in self.positions[gi])
+        one = self._one[gi]
+        if one is None:
+            return tuple(self._gather_rows(si, "estimates", slots)  # type: ignore[misc]
+                         for si, slots in self.positions[gi])
+        return tuple(self._gather_rows(si, "estimates", slots, o)  # type: ignore[misc]
+                     for (si, slots), o in zip(self.positions[gi], one, strict=True))
 
-    def _gather_rows(self, si: int, what: str, slots: np.ndarray) -> np.ndarray | None:
+    def _gather_rows(self, si: int, what: str, slots: np.ndarray, one: int = -1
+                     ) -> np.ndarray | None:
         """Rows ``slots`` of a store's estimates or derived values, cached per state.
 
         2-D arrays ``(n, d)`` are gathered coordinate by coordinate from a transposed copy: the
         result ``(m, d)`` is in Fortran order, so each coordinate over the edges is one
-        contiguous array — what batched edge code reads, and a cheaper gather.
+        contiguous array — what batched edge code reads, and a cheaper gather. With ``one``
+        (every slot equal to it) the result is a read-only broadcast of that row.
         """
         st = self.stores[si]
         key = (si, what)
@@ -135,9 +166,11 @@ class Linearizer:
         _, a, transposed = hit
         if a is None:
             return None
-        # np.take, not a[slots]: 4x faster on (n, 4, 4) poses (a 33 against 8 µs gather of
-        # 4,807 edges' poses).
-        return np.take(a, slots, axis=1).T if transposed else np.take(a, slots, axis=0)
+        if one >= 0:
+            return _broadcast_row(a, one, len(slots), transposed)
+        # take, not a[slots]: 4x faster on (n, 4, 4) poses (a 33 against 8 µs gather of
+        # 4,807 edges' poses); the method, not np.take: 1 against 2.5 µs a call.
+        return a.take(slots, axis=1).T if transposed else a.take(slots, axis=0)
 
     def context(self, gi: int) -> EdgeContext:
         """Group ``gi``'s context, with the vertices' derived values if its type uses them.
@@ -194,7 +227,13 @@ class Linearizer:
         """
         g = self.groups[gi]
         if g.size <= CHUNK_EDGES:
-            return self._call(g, method, self.gather(gi), self.context(gi))
+            try:
+                return self._call(g, method, self.gather(gi), self.context(gi))
+            except ValueError as exc:  # a type that writes into a broadcast input: copies
+                if self._one[gi] is None or "read-only" not in str(exc):
+                    raise
+                self._one[gi] = None
+                return self._call(g, method, self.gather(gi), self.context(gi))
         full: list[np.ndarray | None] = []
         for c0 in range(0, g.size, CHUNK_EDGES):
             sl = slice(c0, min(c0 + CHUNK_EDGES, g.size))
@@ -244,68 +283,14 @@ class Linearizer:
         try:
             out = getattr(g.etype, method)(x, meas, ctx)
         except GraphError as exc:
-            raise GraphError(f"{exc} ({self._where(g)})") from exc
+            raise GraphError(f"{exc} ({where(g)})") from exc
         key = (id(g), method, len(meas))
         if type(out) is Linearization and key in self._trusted:
             return out
-        checked = self._checked(g, out, method, len(meas))
+        checked = checked_output(g, out, method, len(meas))
         if checked is out:
             self._trusted.add(key)
         return checked
-
-    @staticmethod
-    def _where(g: EdgeGroup) -> str:
-        ids = g.vertex_ids[0].tolist() if g.size else []
-        return f"{g.size} edges of the group, the first on vertices {ids}"
-
-    def _checked(self, g: EdgeGroup, out: object, method: str, m: int) -> Linearization:
-        """``out`` as a :class:`Linearization` whose arrays have the documented shapes.
-
-        Shape and dtype comparisons only, once per group and call. An error that is not an
-        ndarray (a list) is converted with ``np.asarray`` and accepted if its shape is right;
-        integer errors become float. Jacobians must be ndarrays, one per vertex position.
-        """
-        et = g.etype
-        name = f"{et.__name__}.{method}"
-        if not isinstance(out, Linearization):
-            if not isinstance(out, tuple) or not 1 <= len(out) <= 4:
-                raise GraphError(f"{name} returned a {type(out).__name__}, expected a "
-                                 f"Linearization ({self._where(g)})")
-            out = Linearization(*out)  # a plain (error, jacobians[, ...]) tuple
-        dim = et.dimension
-        e = out.error
-        if type(e) is not np.ndarray or e.dtype.kind != "f":
-            try:
-                e = np.asarray(e, dtype=float)
-            except (TypeError, ValueError):
-                e = np.zeros(0)  # reported below with the original's type
-        if e.shape != (m, dim):
-            got = (f"shape {out.error.shape}" if isinstance(out.error, np.ndarray)
-                   else f"a {type(out.error).__name__}")
-            raise GraphError(f"{name} returned an error of {got}, expected ({m}, {dim}) "
-                             f"({self._where(g)})")
-        if e is not out.error:
-            out = out._replace(error=e)
-        if out.active is not None and np.shape(out.active) != (m,):
-            raise GraphError(f"{name} returned an active mask of shape {np.shape(out.active)}, "
-                             f"expected ({m},) ({self._where(g)})")
-        if method == "linearize":
-            J = out.jacobians
-            vts = et.vertex_types
-            if not isinstance(J, tuple | list) or len(J) != len(vts):
-                got = (f"{len(J)} Jacobians" if isinstance(J, tuple | list)
-                       else f"a {type(J).__name__}")
-                raise GraphError(f"{name} returned {got}, expected a tuple of {len(vts)} (one "
-                                 f"per vertex position) ({self._where(g)})")
-            rows = et.jacobian_rows()
-            for i, (j, vt) in enumerate(zip(J, vts, strict=True)):
-                if type(j) is not np.ndarray or j.shape != (m, rows, vt.dimension):
-                    got = (f"shape {j.shape}" if isinstance(j, np.ndarray)
-                           else f"a {type(j).__name__}")
-                    raise GraphError(f"{name} returned a Jacobian of {got} for position {i} "
-                                     f"({vt.__name__}), expected ({m}, {rows}, {vt.dimension}) "
-                                     f"({self._where(g)})")
-        return out
 
     # --- weighting ---------------------------------------------------------------------------
 
@@ -344,25 +329,18 @@ class Linearizer:
               else np.einsum("mij,mj->mi", info, e))
         return oe, np.einsum("me,me->m", e, oe)
 
-    @staticmethod
-    def _reduced(g: EdgeGroup, out: Linearization) -> np.ndarray:
-        """Check and return ``e_lin`` of a reduced linearisation."""
-        r = g.etype.linearization_rows
-        name = g.etype.__name__
-        if out.reduced_error is None:
-            raise GraphError(f"{name}: linearization_rows is set, so linearize must return a "
-                             "Linearization with reduced_error (e_lin)")
-        e_lin = out.reduced_error
-        # The Jacobians' (m, r, d) shapes were checked with the rest of the output (_checked).
-        if np.shape(e_lin) != (g.size, r):
-            raise GraphError(f"{name}: a reduced linearisation needs e_lin ({g.size}, {r}), got "
-                             f"shape {np.shape(e_lin)}")
-        if not g.info_is_identity:
-            raise GraphError(f"{name}: a reduced linearisation needs an identity information "
-                             "matrix")
-        if not np.isfinite(e_lin.sum()):
-            raise FloatingPointError(f"{name}: non-finite reduced error at linearisation")
-        return e_lin
+    def _weigh(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...]
+               ) -> tuple[Linearization, np.ndarray, np.ndarray]:
+        """``(out with inactive rows zeroed, Ωe, e'Ωe)`` of group ``gi``; every edge's errors
+        are kept on the group (``raw_eval``) for the edge-set queries that usually follow an
+        optimisation at the same estimates (ORB-SLAM's outlier checks)."""
+        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
+                       g.removals), out.error)
+        act = g.active_edges
+        if act is not None:  # edges of other levels: zero rows (also where not finite)
+            out = only_active(out, act)
+        oe, s = self._sq(g, out.error)
+        return out, oe, s
 
     def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
                 active: np.ndarray | None, totals: list[float], chi2: float | None = None
@@ -410,9 +388,7 @@ class Linearizer:
             on_trial = linearize_trial and self.on_trial[gi]
             out = (self._linearization(gi, key=state) if on_trial
                    else self._run(gi, "evaluate"))
-            if g.active_edges is not None:  # edges of other levels: zero rows
-                out = only_active(out, g.active_edges)
-            oe, s = self._sq(g, out.error)
+            out, oe, s = self._weigh(gi, g, out, state)
             rho, w = self._robustify(g, s, weights=on_trial)
             if on_trial:  # the next linearize at this state takes all of it
                 self._weights[gi] = ((state, g.activity_version), out, oe, s, rho, w)
@@ -432,27 +408,33 @@ class Linearizer:
         jac, wjac, wes = [], [], []
         totals = [0.0, 0.0, 0.0]
         state = self._state()
+        versions = tuple(g.activity_version for g in self.groups)
+        hits = [self._weights.pop(gi, None) for gi in range(len(self.groups))]
+        # Every group linearised by the last trial at this state: its evaluation's totals
+        # (finite: the trial was accepted) and per-group records stand.
+        reuse = (self.last is not None and self.last_state == (state, versions)
+                 and all(h is not None and h[0] == (state, v)
+                         for h, v in zip(hits, versions, strict=True)))
         for gi, g in enumerate(self.groups):
-            hit = self._weights.pop(gi, None)
-            if hit is not None and hit[0] == (state, g.activity_version):
+            hit = hits[gi]
+            if hit is not None and hit[0] == (state, versions[gi]):
                 # The trial's linearisation at this state, weighted already.
                 self._lin_cache.pop(gi, None)
                 _, out, oe, s, rho, w = hit
             else:
                 out = self._linearization(gi, consume=True, key=state)
-                if g.active_edges is not None:  # edges of other levels: zero rows
-                    out = only_active(out, g.active_edges)
-                oe, s = self._sq(g, out.error)
+                out, oe, s = self._weigh(gi, g, out, state)
                 rho, w = self._robustify(g, s)
-            del hit
+            hits[gi] = hit = None
             e, J = out.error, out.jacobians
             if g.etype.linearization_rows is not None:
-                oe = self._reduced(g, out)
+                oe = reduced_error(g, out)
             assert w is not None
-            chi2 = float(s.sum())
-            if not math.isfinite(chi2):  # one sum is cheaper than isfinite().all()
-                self._raise_non_finite(g, e, J)
-            self._record(g, s, rho, out.active, totals, chi2)
+            if not reuse:
+                chi2 = float(s.sum())
+                if not math.isfinite(chi2):  # one sum is cheaper than isfinite().all()
+                    raise_non_finite_edge(g, e, J)
+                self._record(g, s, rho, out.active, totals, chi2)
             J = tuple(np.ascontiguousarray(j) for j in J)
             weighted = bool(g.kernels)
             live = self._live[gi]
@@ -470,7 +452,8 @@ class Linearizer:
             jac.append(J)
             wjac.append(wj)
             wes.append(oe * w[:, None] if weighted else oe)
-        return WeightedLinearization(jac, wjac, wes), self._finish(totals, state)
+        ev = self.last if reuse and self.last is not None else self._finish(totals, state)
+        return WeightedLinearization(jac, wjac, wes), ev
 
     def raise_non_finite(self, lin: WeightedLinearization) -> None:
         """Raise naming the first edge with a non-finite error or Jacobian.
@@ -482,18 +465,5 @@ class Linearizer:
             FloatingPointError: always (naming the edge where one is found).
         """
         for g, J, e in zip(self.groups, lin.jacobians, lin.weighted_errors, strict=True):
-            self._raise_non_finite(g, e, J)
+            raise_non_finite_edge(g, e, J)
         raise FloatingPointError("the normal equations are not finite (overflow)")
-
-    @staticmethod
-    def _raise_non_finite(g: EdgeGroup, e: np.ndarray, J: tuple[np.ndarray, ...]) -> None:
-        """Raise naming the first edge of ``g`` with a non-finite error or Jacobian, if any."""
-        ok = np.isfinite(e.reshape(len(e), -1)).all(axis=1)
-        for j in J:
-            ok &= np.isfinite(j.reshape(len(j), -1)).all(axis=1)
-        if ok.all():
-            return
-        ids = g.vertex_ids[int(np.flatnonzero(~ok)[0])].tolist()
-        raise FloatingPointError(
-            f"{g.etype.__name__} on vertices {ids}: non-finite error or Jacobian at linearisation"
-        )

@@ -373,10 +373,9 @@ class SparseOptimizer(GraphEditing):
         t_start = time.perf_counter()
         p = self._ensure_problem()
         self._stop = self._interrupt = False
-        # A weak reference: a bound method would make the optimizer and its algorithm a
-        # reference cycle, which keeps the whole problem (w10000: 72 MB of arrays and CHOLMOD's
-        # 15 MB factor) alive until the garbage collector runs, and the next problem built
-        # pays for fresh memory.
+        # A weak reference: a bound method would make the optimizer and its algorithm a cycle,
+        # which keeps the whole problem (w10000: 72 MB of arrays, CHOLMOD's 15 MB factor) alive
+        # until the garbage collector runs, and the next problem built pays for fresh memory.
         self.algorithm.interrupted = _weak_call(weakref.WeakMethod(self._interrupted))
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
@@ -392,6 +391,7 @@ class SparseOptimizer(GraphEditing):
                 cb(self, IterationInfo(it, last))
             p.reset_timing()
             t0 = time.perf_counter()
+            self.algorithm.final_iteration = it == iterations - 1
             info = self.algorithm.iterate(p, it, self.stopping)
             info.seconds = time.perf_counter() - t0
             if info.trials == 0:  # converged at the linearisation: not an iteration

@@ -53,6 +53,9 @@ class _StoreUpdate:
     upos: np.ndarray  # (k, d) their columns in the u part
     vclass: int  # V class of the store's marginalised vertices, or -1
     vslots: np.ndarray  # (n_c,) store slots of the V class, by V block
+    # Every slot a U block whose columns are one contiguous run: the step's part is a
+    # reshaped slice, the update needs no gather or scatter (a motion-only BA's one pose).
+    whole: slice | None = None
 
 
 #: A trial linearises only while one set of its Jacobians takes at most this share of the
@@ -121,7 +124,11 @@ class Problem:
             upos = index.uoffset[ub[uslots]][:, None] + np.arange(st.vtype.dimension)
             vc = index.vclass_of_store[si]
             vslots = index.vclasses[vc].slots if vc >= 0 else np.zeros(0, dtype=np.int64)
-            self._updates.append(_StoreUpdate(uslots, upos, vc, vslots))
+            whole = None
+            if (vc < 0 and len(uslots) == len(st.ids) and len(uslots)
+                    and np.array_equal(upos.ravel(), np.arange(upos[0, 0], upos[-1, -1] + 1))):
+                whole = slice(int(upos[0, 0]), int(upos[-1, -1]) + 1)
+            self._updates.append(_StoreUpdate(uslots, upos, vc, vslots, whole))
         # The stores a step changes: push, pop and apply leave the others (fixed points) alone,
         # so that their gathered copies stay valid from one state to the next.
         self._free = [i for i, up in enumerate(self._updates)
@@ -264,6 +271,9 @@ class Problem:
         total = 0.0
         for st, up in zip(self.stores, self._updates, strict=True):
             est = st.estimates
+            if up.whole is not None:  # every slot: no gather
+                total += float(np.vdot(est, est))
+                continue
             for slots in (up.uslots, up.vslots):
                 if len(slots):
                     x = est[slots]
@@ -278,12 +288,13 @@ class Problem:
             step: A vector in the step layout.
         """
         du, dv = step
-        parts = [float(np.max(np.abs(a))) for a in (du, *dv) if a.size]
+        parts = [float(np.abs(a).max()) for a in (du, *dv) if a.size]
         return max(parts, default=0.0)
 
     def push(self) -> None:
-        """Save the estimates of every store with free vertices (g2o's ``push``)."""
-        self._saved = [self.stores[i].estimates.copy() for i in self._free]
+        """Save the estimates of every store with free vertices (g2o's ``push``): the arrays
+        themselves, since :meth:`apply` replaces them instead of writing into them."""
+        self._saved = [self.stores[i].estimates for i in self._free]
 
     def pop(self) -> None:
         """Restore the estimates saved by :meth:`push` (g2o's ``pop``)."""
@@ -308,6 +319,11 @@ class Problem:
         new = []
         for i in self._free:
             st, up = self.stores[i], self._updates[i]
+            if up.whole is not None:
+                est = st.estimates
+                new.append(checked_oplus(st.vtype, est.copy(),
+                                         du[up.whole].reshape(len(est), -1)))
+                continue
             est = st.estimates.copy()
             if len(up.uslots):
                 est[up.uslots] = checked_oplus(st.vtype, est[up.uslots], du[up.upos])

@@ -101,6 +101,31 @@ def test_chi2_per_edge_is_the_kernel_free_error_of_every_level(scene) -> None:
     np.testing.assert_allclose(sub.chi2(), es.chi2()[scene.outlier])
 
 
+def test_chi2_after_a_run_with_inactive_edges_is_every_edges_own(scene) -> None:
+    """The queries after a run reuse the run's last evaluation (ORB-SLAM's outlier checks):
+    inactive edges get their own chi2 too, not the zero the optimiser weighs them with, and an
+    edge removed and added again is not given another edge's value."""
+    opt, es = build(scene)
+    es.set_level(scene.outlier.astype(int))
+    opt.initialize_optimization(0)
+    opt.optimize(3)
+    g = es.group
+    assert g.raw_eval is not None and g.raw_eval[1].shape == (len(es), 2)  # reused below
+    chi2 = es.chi2()
+    np.testing.assert_allclose(chi2, _chi2_by_hand(scene, opt), rtol=1e-10)
+    assert chi2[scene.outlier].min() > 100.0  # the gross outliers, not zeroed
+    assert opt.chi2() == pytest.approx(chi2[~scene.outlier].sum(), rel=1e-12)
+    first = np.arange(len(es)) == 0
+    rest = es[~first]
+    es[first].remove()
+    again = opt.add_edges(EdgeSE3ProjectXYZ, scene.ids[:1], scene.meas[:1], params=CAMERA)
+    assert again.group is g
+    opt.optimize(1)
+    by_hand = _chi2_by_hand(scene, opt)
+    np.testing.assert_allclose(rest.chi2(), by_hand[1:], rtol=1e-10)
+    np.testing.assert_allclose(again.chi2(), by_hand[:1], rtol=1e-10)
+
+
 def test_dropping_the_kernel_reaches_the_kernel_free_optimum_on_the_same_structure(scene):
     inl = np.flatnonzero(~scene.outlier)
     ref, _ = build(scene, inl, kernel=False)

@@ -485,3 +485,28 @@ def test_non_numeric_information_and_flags_of_the_wrong_length_are_graph_errors(
     with pytest.raises(GraphError, match=r"VertexSE2: marginalized must be one flag or 2"):
         opt.add_vertices(VertexSE2, [5, 6], np.zeros((2, 3)), marginalized=[[True, False]])
     assert opt.vertex(5) is None  # nothing added
+
+
+class EdgeSquare2InPlace(EdgeSquare2):
+    """Writes into its gathered input (allowed: the input is its own copy)."""
+
+    @classmethod
+    def error(cls, x, z, ctx):
+        x0 = x[0]
+        x0 *= 1.0
+        return x0 ** 2 - z
+
+
+@pytest.mark.parametrize("etype", [EdgeSquare2, EdgeSquare2InPlace,
+                                   unary_on(VertexMutating, False)])
+def test_edges_sharing_one_vertex_may_write_into_their_inputs(etype) -> None:
+    """Edges that all have the same vertex get it as a read-only broadcast; a type that writes
+    into it (or a numeric Jacobian through a mutating oplus) gets copies instead, and the
+    same answer: x² = mean(z) in each coordinate."""
+    opt = SparseOptimizer("lm", "dense")
+    opt.add_vertices(etype.vertex_types[0], [0], np.full((1, 2), 3.0))
+    z = np.full((6, 2), 2.0) + 0.1 * np.arange(6)[:, None]
+    opt.add_edges(etype, np.zeros((6, 1), dtype=int), z)
+    res = opt.optimize(20)
+    np.testing.assert_allclose(opt.vertex(0).estimate, [1.5, 1.5], rtol=1e-9)
+    assert res.final_chi2 == pytest.approx(float(np.sum((2.25 - z) ** 2)), rel=1e-9)

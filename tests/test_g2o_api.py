@@ -699,3 +699,101 @@ def test_edge_chi2_follows_the_estimates() -> None:
     moved = [e for e in edges if e.vertex(0) is v]
     assert moved and all(e.chi2() != a for e, a in zip(edges, after, strict=True)
                          if e.vertex(0) is v)
+
+
+def test_save_then_load_keeps_gicp_normals_and_parameters(tmp_path: Path) -> None:
+    """A graph built object by object with GICP edges (their normals), an SE2-offset and a
+    camera-on-a-pose parameter: save() writes them, load() gives the same records and chi2."""
+    opt = g2o.SparseOptimizer()
+    cam = g2o.ParameterCamera()
+    cam.set_id(3)
+    cam.set_kcam(400.0, 410.0, 320.0, 240.0)
+    cam.set_offset(g2o.Isometry3d(np.eye(3), [0.1, 0.0, -0.2]))
+    off = g2o.ParameterSE2Offset()
+    off.set_id(4)
+    off.set_offset(g2o.SE2(0.2, -0.1, 0.3))
+    assert opt.add_parameter(cam) and opt.add_parameter(off)
+    poses = []
+    for i in range(3):
+        v = g2o.VertexSE3()
+        v.set_id(i)
+        v.set_estimate(g2o.Isometry3d(np.eye(3), [0.5 * i, 0.1 * i, 0.0]))
+        v.set_fixed(i == 0)
+        opt.add_vertex(v)
+        poses.append(v)
+    point = g2o.VertexPointXYZ()
+    point.set_id(10)
+    point.set_estimate([0.4, 0.3, 5.0])
+    opt.add_vertex(point)
+    rng = np.random.default_rng(5)
+    for i in range(2):
+        meas = g2o.EdgeGICP()
+        meas.pos0, meas.pos1 = rng.normal(size=3), rng.normal(size=3)
+        meas.normal0, meas.normal1 = np.array([0.0, 0.6, 0.8]), np.array([0.8, 0.0, 0.6])
+        e = g2o.Edge_V_V_GICP()
+        e.set_vertex(0, poses[i])
+        e.set_vertex(1, poses[i + 1])
+        e.set_measurement(meas)
+        e.set_information(meas.prec0(0.01))
+        opt.add_edge(e)
+    d = g2o.EdgeSE3PointXYZDepth()
+    d.set_vertex(0, poses[1])
+    d.set_vertex(1, point)
+    d.set_measurement([300.0, 250.0, 4.5])
+    d.set_parameter_id(0, 3)
+    opt.add_edge(d)
+    opt.initialize_optimization()
+    opt.compute_active_errors()
+    chi2 = opt.active_chi2()
+    opt.save(str(tmp_path / "out.g2o"))
+    again = g2o.SparseOptimizer()
+    again.load(str(tmp_path / "out.g2o"))
+    again.initialize_optimization()
+    again.compute_active_errors()
+    assert again.active_chi2() == pytest.approx(chi2, rel=1e-12)
+    gicp = [e for e in again.edges() if isinstance(e, g2o.EdgeVVGicp)]
+    assert len(gicp) == 2
+    np.testing.assert_array_equal(gicp[0].measurement().normal0, [0.0, 0.6, 0.8])
+    np.testing.assert_array_equal(gicp[1].measurement().normal1, [0.8, 0.0, 0.6])
+    loaded_cam, loaded_off = again.parameter(3), again.parameter(4)
+    assert isinstance(loaded_cam, g2o.ParameterCamera)
+    np.testing.assert_array_equal(loaded_cam.Kcam(), cam.Kcam())
+    np.testing.assert_allclose(loaded_cam.offset().translation(), [0.1, 0.0, -0.2])
+    assert isinstance(loaded_off, g2o.ParameterSE2Offset)
+    np.testing.assert_allclose(loaded_off.offset().to_vector(), [0.2, -0.1, 0.3])
+
+
+def test_chi2_of_inactive_edges_after_optimize() -> None:
+    """After optimize() an edge's chi2() (read from graphopt's own last evaluation) is its
+    eᵀΩe at the current estimate, also for an edge of another level (which the optimizer
+    weighs zero)."""
+    rng = np.random.default_rng(7)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(g2o.OptimizationAlgorithmLevenberg(
+        g2o.BlockSolverSE3(g2o.LinearSolverDenseSE3())))
+    v = g2o.VertexSE3Expmap()
+    v.set_id(0)
+    v.set_estimate(g2o.SE3Quat(np.eye(3), [0.05, -0.02, 0.1]))
+    opt.add_vertex(v)
+    X = rng.uniform(-1, 1, (12, 3)) + [0, 0, 5]
+    edges = []
+    for i, p in enumerate(X):
+        e = g2o.EdgeSE3ProjectXYZOnlyPose()
+        e.set_vertex(0, v)
+        e.set_measurement(500 * p[:2] / p[2] + [320, 240] + (40.0 if i == 3 else 0.0))
+        e.set_information(np.eye(2) * (1.0 + i))
+        e.fx = e.fy = 500.0
+        e.cx, e.cy = 320.0, 240.0
+        e.Xw = p
+        opt.add_edge(e)
+        edges.append(e)
+    edges[3].set_level(1)
+    opt.initialize_optimization(0)
+    opt.optimize(5)
+    T = v.estimate().matrix()
+    for i, e in enumerate(edges):
+        pc = T[:3, :3] @ X[i] + T[:3, 3]
+        err = e.measurement() - (500 * pc[:2] / pc[2] + [320, 240])
+        assert e.chi2() == pytest.approx(float(err @ (np.eye(2) * (1.0 + i)) @ err), rel=1e-9)
+        np.testing.assert_allclose(e.error(), err, rtol=1e-9, atol=1e-9)
+    assert edges[3].chi2() > 1000.0  # the 40-pixel outlier, not zeroed for its level

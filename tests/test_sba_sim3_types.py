@@ -314,3 +314,54 @@ def test_one_vertex_oplus_equals_the_batched_one() -> None:
             one = VertexSim3Expmap.oplus(Sf, np.array([d]))
             two = VertexSim3Expmap.oplus(np.repeat(Sf, 2, 0), np.array([d, d]))
             np.testing.assert_allclose(one[0], two[0], rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("name", ["EdgeSE3ProjectXYZOnlyPose", "EdgeStereoSE3ProjectXYZOnlyPose",
+                                  "EdgeSim3ProjectXYZ", "EdgeInverseSim3ProjectXYZ"])
+def test_one_vertex_broadcast_over_the_edges_equals_its_copies(name: str) -> None:
+    """The linearizer hands a vertex that every edge shares as a read-only stride-0 view; the
+    types that take a faster product for it give the copies' errors and Jacobians, and the
+    recorded g2o chi2."""
+    etype, x, z, ctx, info = _cases()[name]
+    pos = len(x) - 1  # the pose or the Sim(3)
+    for fixed_scale in ([False, True] if "Sim3" in name else [False]):
+        shared = x[pos][:1].copy()
+        if fixed_scale:
+            shared[0, 3, 0] = 1.0
+        _check_shared(etype, x, z, ctx, info, name, pos, shared)
+
+
+def _check_shared(etype, x, z, ctx, info, name, pos, shared) -> None:
+    copies = [*x[:pos], np.repeat(shared, C.M, axis=0)]
+    view = [*x[:pos], np.broadcast_to(shared, copies[pos].shape)]
+    assert view[pos].strides[0] == 0
+    a, b = etype.linearize(tuple(copies), z, ctx), etype.linearize(tuple(view), z, ctx)
+    np.testing.assert_allclose(b.error, a.error, rtol=1e-13, atol=1e-12)
+    for ja, jb in zip(a.jacobians, b.jacobians, strict=True):
+        np.testing.assert_allclose(jb, ja, rtol=1e-13, atol=1e-12 * np.abs(ja).max())
+    np.testing.assert_allclose(etype.error(tuple(view), z, ctx), a.error, rtol=1e-13,
+                               atol=1e-12)
+    if np.array_equal(copies[pos], x[pos]):
+        e = b.error
+        np.testing.assert_allclose(np.einsum("ni,ij,nj->n", e, info, e), G2O_CHI2[name],
+                                   rtol=1e-9)
+
+
+def test_one_pose_validation_equals_the_batched_one() -> None:
+    """One pose is checked in Python floats (a motion-only BA resets it every round): the same
+    verdicts as the batched check, at each test's threshold and past it."""
+    rng = np.random.default_rng(9)
+    for T in se3_exp(rng.normal(size=(20, 6))):
+        cases = [T]
+        for i, j, d in [(0, 0, 1e-5), (1, 2, 2e-7), (3, 0, 1e-11), (3, 3, 1e-13),
+                        (2, 1, np.nan), (0, 3, np.inf)]:
+            U = T.copy()
+            U[i, j] += d
+            cases.append(U)
+        U = T.copy()
+        U[:3, 0] *= -1.0  # a reflection
+        cases.append(U)
+        verdicts = [bool(VertexSE3Expmap.validate(c[None])[0]) for c in cases]
+        batched = VertexSE3Expmap.validate(np.stack(cases + [T]))[:-1]
+        assert verdicts == batched.tolist()
+        assert verdicts == [True, False, True, False, True, False, False, False]

@@ -137,15 +137,30 @@ def pose_jacobian_map(fx: float, fy: float, bf: float | None) -> tuple[np.ndarra
     return M, C
 
 
-#: Rows per product in :func:`pose_jacobian`: OpenBLAS runs a ``(rows, 12) × (12, 6k)``
+#: Rows per product in :func:`pose_jacobian`: OpenBLAS runs a ``(rows, 16) × (16, 6k)``
 #: product on several threads above ~4,000 rows, which costs milliseconds on a loaded machine.
 _CHUNK = 2048
+
+
+@lru_cache(maxsize=64)
+def _pose_jacobian_map16(fx: float, fy: float, bf: float | None) -> np.ndarray:
+    """:func:`pose_jacobian_map` as one ``(16, 6k)`` matrix over the products ``a_i a_j``
+    (index ``4i + j``) of ``a = [u, v, iz, 1]``: the constant ``C`` is the row of ``1·1``."""
+    M, C = pose_jacobian_map(fx, fy, bf)
+    M16 = np.zeros((4, 4, M.shape[1]))
+    M16[:, :3] = M.reshape(4, 3, -1)
+    M16[3, 3] = C
+    return M16.reshape(16, -1)
 
 
 def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
                   bf: float | None = None) -> np.ndarray:
     """g2o's pose Jacobian rows ``(m, 2|3, 6)`` of pinhole (or, with ``bf``, stereo)
     projections, as one product of per-edge monomials with :func:`pose_jacobian_map`.
+
+    The monomials are formed edge-last, ``(16, m)``: an outer product over a long contiguous
+    axis, 5x faster than over the 4 x 3 trailing axes at 500 edges (13 against 2.7 µs); the
+    product reads their transpose without a copy.
 
     Args:
         iz: ``(m,)`` inverse depths ``1/z`` of the camera-frame points.
@@ -154,15 +169,16 @@ def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
         bf: Stereo baseline × ``fx``, or ``None`` (mono).
     """
     m = len(iz)
-    a = np.empty((m, 4))                         # [u, v, iz, 1]
-    a[:, :2], a[:, 2], a[:, 3] = uv, iz, 1.0
-    F = (a[:, :, None] * a[:, None, :3]).reshape(m, 12)
-    M, C = pose_jacobian_map(cam.fx, cam.fy, bf)
+    a = np.empty((4, m))                         # [u, v, iz, 1], one row each
+    a[:2] = uv.T
+    a[2] = iz
+    a[3] = 1.0
+    F = (a[:, None, :] * a[None, :, :]).reshape(16, m)
+    M = _pose_jacobian_map16(cam.fx, cam.fy, bf)
     if m <= _CHUNK:
-        J = F @ M
+        J = F.T @ M
     else:
-        J = np.concatenate([F[i:i + _CHUNK] @ M for i in range(0, m, _CHUNK)])
-    J += C
+        J = np.concatenate([F[:, i:i + _CHUNK].T @ M for i in range(0, m, _CHUNK)])
     return J.reshape(m, 2 if bf is None else 3, 6)
 
 
@@ -196,6 +212,20 @@ def _pinhole(
     h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
 ) -> tuple[np.ndarray, np.ndarray]:
     """Error ``z − π(h)`` and ``∂e/∂h`` ``(m, 2, 3)`` for camera-frame (homogeneous) points."""
+    e, iz, u, v = _pinhole_terms(h, measurement, cam)
+    D = np.zeros((len(iz), 2, 3), like=iz)
+    D[:, 0, 0] = -cam.fx * iz
+    D[:, 0, 2] = cam.fx * u * iz
+    D[:, 1, 1] = -cam.fy * iz
+    D[:, 1, 2] = cam.fy * v * iz
+    return e, D
+
+
+def _pinhole_terms(
+    h: tuple[np.ndarray, np.ndarray, np.ndarray], measurement: np.ndarray, cam: CameraParameters
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Error ``z − π(h)`` ``(m, 2)`` and the shared ``1/h_z``, ``u``, ``v`` ``(m,)`` (an error
+    alone needs no ``∂e/∂h``: on jets, automatic differentiation records none of it)."""
     hx, hy, hz = h
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1.0 / hz
@@ -203,12 +233,13 @@ def _pinhole(
     e = np.empty((len(hx), 2), like=hx)  # like=: jets stay jets (graphopt.autodiff)
     e[:, 0] = measurement[:, 0] - (cam.fx * u + cam.cx)
     e[:, 1] = measurement[:, 1] - (cam.fy * v + cam.cy)
-    D = np.zeros((len(hx), 2, 3), like=hx)
-    D[:, 0, 0] = -cam.fx * iz
-    D[:, 0, 2] = cam.fx * u * iz
-    D[:, 1, 1] = -cam.fy * iz
-    D[:, 1, 2] = cam.fy * v * iz
-    return e, D
+    return e, iz, u, v
+
+
+def _pinhole_error(P: np.ndarray, measurement: np.ndarray, ctx: EdgeContext) -> np.ndarray:
+    """The error of :func:`_pinhole_ctx` alone."""
+    cam = CameraParameters.coerce(ctx.params)
+    return _pinhole_terms((P[:, 0], P[:, 1], P[:, 2]), measurement, cam)[0]
 
 
 def _pinhole_ctx(
@@ -254,7 +285,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
             ctx: ``ctx.params`` holds the intrinsics.
         """
         P = transform_points(x[0], x[1])
-        return _pinhole_ctx(P, measurement, ctx)[0]
+        return _pinhole_error(P, measurement, ctx)
 
     @classmethod
     def linearize(
@@ -272,9 +303,27 @@ class EdgeSE3ProjectXYZ(BaseEdge):
         """
         T, X = x
         P = transform_points(T, X)
-        e, D = _pinhole_ctx(P, measurement, ctx)
-        J_pose = np.concatenate([_cross_matrix_rows(D, P), D], axis=2)
-        J_point = D @ T[:, :3, :3]
+        px, py, pz = P[:, 0], P[:, 1], P[:, 2]
+        cam = CameraParameters.coerce(ctx.params)
+        e, iz, u, v = _pinhole_terms((px, py, pz), measurement, cam)
+        # ∂e/∂P has two zeros, rows (a, 0, b) and (0, c, d): the pose block [−[P]× rows, ∂e/∂P]
+        # and the point block ∂e/∂P·R written entry by entry (no (m, 2, 3) products, no stacking:
+        # the most frequent call of a BA; the pose block has the bits of the general formula).
+        a, b = -cam.fx * iz, cam.fx * u * iz
+        c, d = -cam.fy * iz, cam.fy * v * iz
+        J_pose = np.empty((len(P), 2, 6))
+        J_pose[:, 0, 0] = py * b
+        J_pose[:, 0, 1] = pz * a - px * b
+        J_pose[:, 0, 2] = -(py * a)
+        J_pose[:, 0, 3], J_pose[:, 0, 4], J_pose[:, 0, 5] = a, 0.0, b
+        J_pose[:, 1, 0] = py * d - pz * c
+        J_pose[:, 1, 1] = -(px * d)
+        J_pose[:, 1, 2] = px * c
+        J_pose[:, 1, 3], J_pose[:, 1, 4], J_pose[:, 1, 5] = 0.0, c, d
+        R = T[:, :3, :3]
+        J_point = np.empty((len(P), 2, 3))
+        J_point[:, 0] = a[:, None] * R[:, 0] + b[:, None] * R[:, 2]
+        J_point[:, 1] = c[:, None] * R[:, 1] + d[:, None] * R[:, 2]
         return Linearization(e, (J_pose, J_point))
 
     @classmethod
@@ -358,7 +407,7 @@ class EdgeInverseDepthProjection(BaseEdge):
             ctx: ``ctx.params`` holds the intrinsics.
         """
         h = cls._scaled_point(x)[0]
-        return _pinhole_ctx(h, measurement, ctx)[0]
+        return _pinhole_error(h, measurement, ctx)
 
     @classmethod
     def linearize(

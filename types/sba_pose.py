@@ -30,7 +30,7 @@ from graphopt.errors import GraphError
 from graphopt.lie import transform_inverse, transform_points
 from graphopt.types.projection import (
     CameraParameters,
-    _pinhole,
+    _pinhole_terms,
     camera_params,
     normalised_projection,
     pose_jacobian,
@@ -91,7 +91,7 @@ def _world_points(ctx: EdgeContext, etype: type, m: int) -> np.ndarray:
 
 def _stereo(P: np.ndarray, z: np.ndarray, cam: StereoCameraParameters) -> np.ndarray:
     """Error ``z − [u, v, u − bf/z]`` ``(m, 3)`` (the Jacobians: the edge's ``linearize``)."""
-    e2 = _pinhole((P[:, 0], P[:, 1], P[:, 2]), z, cam)[0]
+    e2 = _pinhole_terms((P[:, 0], P[:, 1], P[:, 2]), z, cam)[0]
     iz = 1.0 / P[:, 2]
     e = np.empty((len(P), 3), like=P)            # like=: jets stay jets (graphopt.autodiff)
     e[:, :2] = e2

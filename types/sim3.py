@@ -37,6 +37,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.types.projection import (
+    CameraParameters,
     _cross_matrix_rows,
     camera_params,
     normalised_projection,
@@ -237,12 +238,28 @@ class _Sim3Projection(BaseEdge):
     inverse: ClassVar[bool] = False
 
     @classmethod
-    def _camera_point(cls, x: Sequence[np.ndarray]) -> np.ndarray:
+    def _camera_point(cls, x: Sequence[np.ndarray]
+                      ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """``(P (m, 3), M, shared)``: the camera-frame points, ``∂P/∂X`` and, when every edge
+        has the same Sim(3) (``S`` broadcast over the edges with stride 0, as in
+        ``OptimizeSim3``), ``S``'s ``(R (3, 3), t (3,))`` for the inverse edge
+        (the forward edge reads neither) — then ``M`` is that one ``(3, 3)`` and
+        ``P`` one ``(m, 3) × (3, 3)`` product, not ``m`` small ones; else ``M`` is
+        ``(m, 3, 3)`` and ``shared`` ``None``.
+        """
         X, S = x
-        if cls.inverse:
-            R, t, s = sim3_parts(S)
-            return np.matmul(np.swapaxes(R, 1, 2), (X - t)[:, :, None])[:, :, 0] / s[:, None]
-        return np.matmul(S[:, :3, :3], X[:, :, None])[:, :, 0] + S[:, :3, 3]
+        one = type(S) is np.ndarray and type(X) is np.ndarray and len(X) > 0 and S.strides[0] == 0
+        S1 = S[:1] if one else S
+        if cls.inverse:                          # P = S⁻¹X = Rᵀ(X − t)/s
+            R, t, s = sim3_parts(S1)
+            M = np.swapaxes(R, 1, 2) / s[:, None, None]
+            if one:
+                return (X - t) @ M[0].T, M[0], (R[0], t[0])
+            return np.matmul(M, (X - t)[:, :, None])[:, :, 0], M, None
+        M = S1[:, :3, :3]                        # P = sRX + t
+        if one:
+            return X @ M[0].T + S1[0, :3, 3], M[0], (M[0], S1[0, :3, 3])
+        return np.matmul(M, X[:, :, None])[:, :, 0] + S[:, :3, 3], M, None
 
     @classmethod
     def error(
@@ -256,7 +273,7 @@ class _Sim3Projection(BaseEdge):
             ctx: ``ctx.params``: the camera's :class:`CameraParameters`.
         """
         cam = camera_params(cls, ctx.params)
-        P = cls._camera_point(x)
+        P = cls._camera_point(x)[0]
         return measurement - (P[:, :2] / P[:, 2:3] * cam.focal + cam.centre)
 
     @classmethod
@@ -275,14 +292,10 @@ class _Sim3Projection(BaseEdge):
         """
         X, S = x
         cam = camera_params(cls, ctx.params)
-        if cls.inverse:                          # P = S⁻¹X = Rᵀ(X − t)/s
-            R, t, s = sim3_parts(S)
-            M = np.swapaxes(R, 1, 2) / s[:, None, None]
-            P = np.matmul(M, (X - t)[:, :, None])[:, :, 0]
-        else:                                    # P = sRX + t
-            M = S[:, :3, :3]
-            P = np.matmul(M, X[:, :, None])[:, :, 0] + S[:, :3, 3]
+        P, M, shared = cls._camera_point(x)
         e, iz, uv = normalised_projection(P, measurement, cam)
+        if shared is not None:
+            return Linearization(e, cls._shared_jacobians(S[0], M, shared, iz, uv, cam))
         # ∂e/∂P = −f·iz·[[1, 0, −u], [0, 1, −v]], times ∂P/∂X = M row by row.
         J_point = (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
                                                                   * cam.focal[:, None])
@@ -301,6 +314,35 @@ class _Sim3Projection(BaseEdge):
         return Linearization(e, (J_point, J_sim))
 
     @classmethod
+    def _shared_jacobians(cls, S: np.ndarray, M: np.ndarray, Rt: tuple[np.ndarray, np.ndarray],
+                          iz: np.ndarray, uv: np.ndarray, cam: CameraParameters
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians when every edge has the same Sim(3) ``S`` (``M = ∂P/∂X``, ``Rt`` its
+        rotation and translation), from
+        the pose Jacobian's rows ``[−D[P]×, D]`` (``D = ∂e/∂P``) by two ``(2m, 6)``
+        products instead of per-edge cross products.
+
+        Inverse: ``M[X]× = [P]×Rᵀ + M[t]×`` (``X − t = sRP``) and ``D·P = 0`` (a pinhole
+        image does not change when the point is scaled), so ``D M [X]× = −(−D[P]×)Rᵀ +
+        D M[t]×`` and ``−D M X = −D M t``.
+        """
+        m = len(iz)
+        pj = pose_jacobian(iz, uv, cam).reshape(2 * m, 6)
+        J_point = (pj[:, 3:] @ M).reshape(m, 2, 3)
+        if not cls.inverse:
+            J_sim = np.zeros((m, 2, 7))
+            J_sim[:, :, :6] = pj.reshape(m, 2, 6)
+            return J_point, J_sim
+        R, t = Rt
+        tx, ty, tz = t.tolist()
+        B = np.zeros((6, 7))
+        B[:3, :3] = -R.T
+        B[3:, :3] = M @ np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]])  # M[t]×
+        B[3:, 3:6] = -M
+        B[3:, 6] = -(M @ t) * (1.0 - S[3, 0])  # the free-scale flag
+        return J_point, (pj @ B).reshape(m, 2, 7)
+
+    @classmethod
     def depth_positive(
         cls, x: Sequence[np.ndarray], measurement: np.ndarray, ctx: EdgeContext
     ) -> np.ndarray:
@@ -311,7 +353,7 @@ class _Sim3Projection(BaseEdge):
             measurement: ``(m, 2)`` (unused).
             ctx: Unused.
         """
-        return cls._camera_point(x)[:, 2] > 0
+        return cls._camera_point(x)[0][:, 2] > 0
 
 
 class EdgeSim3ProjectXYZ(_Sim3Projection):

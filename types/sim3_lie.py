@@ -198,11 +198,15 @@ def sim3_exp_one(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ra, rb = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
     else:
         ra, rb = math.sin(theta) / theta, (1.0 - math.cos(theta)) / th2
-    Om = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
-    Om2 = Om @ Om
-    R = np.eye(3) + ra * Om + rb * Om2
-    W = A * Om + B * Om2 + C * np.eye(3)
-    return s * R, W @ np.array([ux, uy, uz])
+    # Ω = [ω]×, Ω² = ωωᵀ − θ²I, entry by entry (Python floats: no 3 x 3 numpy calls).
+    xx, yy, zz, xy, xz, yz = wx * wx - th2, wy * wy - th2, wz * wz - th2, wx * wy, wx * wz, wy * wz
+    R = np.array([[1.0 + rb * xx, -ra * wz + rb * xy, ra * wy + rb * xz],
+                  [ra * wz + rb * xy, 1.0 + rb * yy, -ra * wx + rb * yz],
+                  [-ra * wy + rb * xz, ra * wx + rb * yz, 1.0 + rb * zz]])
+    t = np.array([(C + B * xx) * ux + (-A * wz + B * xy) * uy + (A * wy + B * xz) * uz,
+                  (A * wz + B * xy) * ux + (C + B * yy) * uy + (-A * wx + B * yz) * uz,
+                  (-A * wy + B * xz) * ux + (A * wx + B * yz) * uy + (C + B * zz) * uz])
+    return s * R, t
 
 
 def _delta_r(R: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
 import numpy as np
@@ -11,6 +12,20 @@ from graphopt.vertex import BaseVertex, VertexVector
 
 _I3 = np.eye(3)
 _BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])  # a homogeneous transform's last row
+
+
+def _valid_one(v: list[float]) -> bool:
+    """:meth:`VertexSE3Expmap.validate` of one ``(4, 4)`` transform given row by row."""
+    if not all(math.isfinite(x) for x in v):
+        return False
+    r0, r1, r2 = v[0:3], v[4:7], v[8:11]
+    for i, a in enumerate((r0, r1, r2)):  # R Rᵀ = I to 1e-6, entry by entry
+        for j, b in enumerate((r0, r1, r2)):
+            if abs(a[0] * b[0] + a[1] * b[1] + a[2] * b[2] - (i == j)) >= 1e-6:
+                return False
+    det = (r0[0] * (r1[1] * r2[2] - r1[2] * r2[1]) - r0[1] * (r1[0] * r2[2] - r1[2] * r2[0])
+           + r0[2] * (r1[0] * r2[1] - r1[1] * r2[0]))
+    return det > 0 and max(abs(v[12]), abs(v[13]), abs(v[14]), abs(v[15] - 1.0)) < 1e-12
 
 
 class VertexSE3Expmap(BaseVertex):
@@ -46,6 +61,9 @@ class VertexSE3Expmap(BaseVertex):
         Args:
             estimates: ``(n, 4, 4)`` transforms.
         """
+        if len(estimates) == 1 and type(estimates) is np.ndarray:
+            # One pose (a motion-only BA resets it every round): Python floats, 2 µs not 11.
+            return np.array([_valid_one(estimates[0].ravel().tolist())])
         ok = super().validate(estimates)
         R = estimates[:, :3, :3]
         if not ok.all():  # non-finite rotations checked as the identity (ok is False there)

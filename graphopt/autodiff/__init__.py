@@ -5,7 +5,7 @@
 call. What works and what does not: ``docs/autodiff.md``.
 """
 
-from graphopt.autodiff import functions, linalg, selection, ufuncs  # noqa: F401 - register the rules
+from graphopt.autodiff import functions, lie_rules, linalg, selection, ufuncs  # noqa: F401 - rules
 from graphopt.autodiff.jacobians import (
     autodiff_linearize,
     check_independent_edges,

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 import graphopt.autodiff.tape as tape
+import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, full, parts
 from graphopt.autodiff.ufuncs import write_out
 
@@ -186,7 +187,7 @@ def _reduction(fn: Any) -> Callable[..., Any]:
             raise JetError(f"{_fname(fn)}(..., where=...)")
         kw.pop("where", None)
         if Tape.active and type(a) is Jet and out is None and not kw and axis is not None:
-            rec = tape.reduce(fn, a, axis, keepdims, lambda: impl(a, axis, keepdims=keepdims))
+            rec = tape_ops.reduce(fn, a, axis, keepdims, lambda: impl(a, axis, keepdims=keepdims))
             if rec is not None:
                 return rec
         r = _linear(fn, a, {"axis": axis}, keepdims=keepdims, **kw)
@@ -400,7 +401,7 @@ def _concatenate(arrays: Sequence[Any], axis: Any = 0, out: Any = None, **kw: An
     if axis is None:
         arrays, axis = [np.ravel(a) for a in arrays], 0
     if Tape.active and out is None and any(type(a) is Jet for a in arrays):
-        return tape.concatenate(list(arrays), axis, False,
+        return tape_ops.concatenate(list(arrays), axis, False,
                                 lambda: _concatenate(arrays, axis))
     ps = [parts(a) for a in arrays]
     y = np.concatenate([p[0] for p in ps], axis=axis)
@@ -433,7 +434,7 @@ def _stack(arrays: Sequence[Any], axis: int = 0, out: Any = None, **kw: Any) -> 
     nd = np.ndim(arrays[0]) + 1
     ax = _pos(axis, nd)
     if Tape.active and out is None and not kw and any(type(a) is Jet for a in arrays):
-        return tape.concatenate(arrays, ax, True, lambda: _stack(arrays, ax))
+        return tape_ops.concatenate(arrays, ax, True, lambda: _stack(arrays, ax))
     return _concatenate([np.expand_dims(a, ax) for a in arrays], axis=ax, out=out, **kw)
 
 

@@ -43,6 +43,19 @@ class Tape:
     active = False
 
 
+_ONES: dict[int, np.ndarray] = {}
+
+
+def unit_row(m: int) -> np.ndarray:
+    """``(1, m)`` ones, read-only (the derivative of a unit column), one array per ``m``."""
+    t = _ONES.get(m)
+    if t is None:
+        if len(_ONES) > 16:
+            _ONES.clear()
+        t = _ONES[m] = np.broadcast_to(np.ones(1), (1, m))
+    return t
+
+
 def is_jet(a: object) -> bool:
     """True for a :class:`Jet`."""
     return type(a) is Jet
@@ -364,7 +377,7 @@ class Jet(ArrayMethods, NDArrayOperatorsMixin):
         m = len(self.value)
         if self.seed or (one and len(cols[a]) > 2 and cols[a][2]):  # unit: derivative 1
             k = hi - lo
-            t = (np.broadcast_to(np.ones(1), (1, m)) if one else
+            t = (unit_row(m) if one else
                  np.broadcast_to(np.eye(k)[:, None, :], (k, m, k)))
         else:
             t = self.tangent[lo - self.lo: hi - self.lo, :, a if one else slice(a, b)]

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic
+from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
 
 __all__ = ["ENABLED", "clear", "container", "gathered", "recording"]
 
@@ -49,6 +49,14 @@ class _Node:
     chain: tuple[Any, ...] = ()
     source: np.ndarray | None = None
     index: np.ndarray | None = None
+    # Gathered rows of a structured per-vertex matrix (graphopt.autodiff.structure): the
+    # structure, each edge's whole matrix and the flat entries of it these rows are.
+    struct: Any = None
+    full: np.ndarray | None = None
+    entries: np.ndarray | None = None
+    # Products with these rows whose contribution the reverse pass adds directly (a
+    # structured A in A @ B): (plan, adjoint of the product, the product).
+    direct: list[tuple[Any, np.ndarray, np.ndarray]] | None = None
 
     def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
                  replay: Callable[[], Any] | None, special: bool = False) -> None:
@@ -102,44 +110,62 @@ def _pending_container(a: Any) -> Jet | None:
 
 
 def _operand(a: Any) -> Any:
-    """An operand of a recorded operation: a recorded container is read, so formed now (as
-    are gathered rows: a leaf)."""
-    if type(a) is Jet and a._tape is not None and a._tape.special:
+    """An operand of a recorded operation: a recorded container is read, so formed now.
+    Gathered rows stay as they are: a leaf whose tangent the reverse pass gathers itself."""
+    if (type(a) is Jet and a._tape is not None and a._tape.special
+            and a._tape.source is None):
         a.tangent  # noqa: B018 - forms it (later writes then stop recording)
     return a
 
 
 # --- gathered rows ----------------------------------------------------------------------------
 
-def gathered(value: np.ndarray, source: Jet, index: np.ndarray) -> Jet:
+_ALL = slice(None)
+
+
+def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = None) -> Jet:
     """Rows ``index`` of a per-vertex jet ``source`` as a per-edge jet whose tangent is gathered
     only when used: ``x[:, j]`` gathers column ``j``'s own directions (none for a column whose
-    derivative is one direction with value 1, as ``t`` of ``x + δ``)."""
-    return _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+    derivative is one direction with value 1, as ``t`` of ``x + δ``). ``struct``: the
+    source's :class:`~graphopt.autodiff.structure.Structure`, if it has one."""
+    j = _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+    if struct is not None:
+        j._tape.struct, j._tape.full = struct, value
+    return j
 
 
 def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: int,
-              columns: Any) -> Jet:
+              columns: Any, parent: _Node | None = None, entries: np.ndarray | None = None,
+              rows: slice = _ALL) -> Jet:
+    """A gathered jet (``parent``: the gathered rows it is a piece of, ``entries`` of)."""
     j = Jet(value, None, lo, n)
     node = _Node((), None, None, True)
     node.source, node.index = t, index
     node.replay = lambda: Jet(value, np.take(t, index, axis=1), lo, n)
+    if parent is not None and parent.struct is not None:
+        node.struct, node.entries = parent.struct, entries
+        node.full = parent.full if rows == _ALL else parent.full[rows]  # type: ignore[index]
     j._tape, j.columns = node, columns
     return j
 
 
-_ALL = slice(None)
-_ONES: dict[int, np.ndarray] = {}
+_PIECES: dict[tuple[Any, ...], np.ndarray] = {}
 
 
-def ones(m: int) -> np.ndarray:
-    """``(1, m)`` ones, read-only (the derivative of a unit column), one array per ``m``."""
-    t = _ONES.get(m)
-    if t is None:
-        if len(_ONES) > 16:
-            _ONES.clear()
-        t = _ONES[m] = np.broadcast_to(np.ones(1), (1, m))
-    return t
+def _piece(node: _Node, shape: tuple[int, ...], key: tuple[Any, ...],
+           ck: Any = None) -> np.ndarray:
+    """The flat entries of the whole matrix that ``rows[(:,) + key]`` of gathered rows with
+    trailing ``shape`` are (``ck``: a hashable name of ``key``, if it has a cheap one)."""
+    base = node.entries
+    if base is None:  # the whole matrix: the same few pieces in every block
+        ck = (shape, repr(key) if ck is None else ck)
+        hit = _PIECES.get(ck)
+        if hit is None:
+            if len(_PIECES) > 256:
+                _PIECES.clear()
+            hit = _PIECES[ck] = np.arange(int(np.prod(shape))).reshape(shape)[key]
+        return hit
+    return np.asarray(base[key])
 
 
 def _gathered_item(j: Jet, key: Any) -> Jet | None:
@@ -158,7 +184,13 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         lo, hi = j.columns[c][:2]
         m = len(j.value)
         if len(j.columns[c]) > 2 and j.columns[c][2]:
-            t = ones(m)
+            t = unit_row(m)
+        elif node.struct is not None:  # a leaf contracted through the structure
+            out = _gathered(j.value[:, c], node.source[lo - j._lo: hi - j._lo, :, c],
+                            node.index, lo, j.n, None, node,
+                            _piece(node, j.value.shape[1:], (slice(c, c + 1),), c))
+            out.rows = j.rows
+            return out
         else:
             t = np.take(node.source[lo - j._lo: hi - j._lo, :, c], node.index, axis=1)
         out = Jet(j.value[:, c], t, lo, j.n)
@@ -171,7 +203,9 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1))
         first, last = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
         src, lo = src[first:last], lo + first
-    out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns)
+    out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns,
+                    node, _piece(node, j.value.shape[1:], rest) if node.struct is not None
+                    else None, k[0])
     out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
     return out
 
@@ -250,16 +284,26 @@ def flush() -> None:
 def _key(key: Any, ndim: int) -> tuple[Any, ...] | None:
     """A basic index as a tuple, or ``None`` for anything else."""
     k = key if isinstance(key, tuple) else (key,)
+    for x in k:  # the common keys (slices, ints, None) are basic as they are
+        if type(x) not in _SIMPLE:
+            break
+    else:
+        return k
     if any(type(x) is Jet or isinstance(x, np.ndarray | list) for x in k):
         return None
     k = _expand_key(k, ndim)
     return k if _is_basic(k) else None
 
 
+_SIMPLE = (slice, int, type(None))
+
+
 def getitem(j: Jet, key: Any) -> Jet | None:
     """``j[key]`` recorded (a basic index of a recorded jet, or a view of a container), or
     ``None`` for the forward rule."""
-    if j._tape is not None and j._tape.source is not None:
+    if j._tape is None:  # a leaf: the forward rule (nothing recorded reads it as a whole)
+        return None
+    if j._tape.source is not None:
         return _gathered_item(j, key)
     k = _key(key, j.value.ndim)
     if k is None:
@@ -272,7 +316,7 @@ def getitem(j: Jet, key: Any) -> Jet | None:
         v = Jet(j.value[k], None, 0, j.n)
         v._tape = node
         return v
-    if j._tape is None or not Tape.active:
+    if not Tape.active:
         return None
     sl = (slice(None),) + k
     return _record(j.value[k], j.n, _Node((j,), lambda g: [(j, g, sl)], lambda: j[key]))
@@ -409,67 +453,6 @@ _BINARY: dict[Any, Callable[..., np.ndarray]] = {
     np.power: _power,
     np.float_power: _power,
 }
-
-
-def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
-    """A recorded ``a @ b`` of stacks of matrices (``mm``: the product), or ``None``."""
-    a, b = _operand(a), _operand(b)
-    va = a.value if type(a) is Jet else np.array(a, copy=True)  # plain: as it is now
-    vb = b.value if type(b) is Jet else np.array(b, copy=True)
-    if not (isinstance(va, np.ndarray) and isinstance(vb, np.ndarray)) or min(
-            va.ndim, vb.ndim) < 2 or va.dtype.kind != "f" or vb.dtype.kind != "f":
-        return None
-    y = mm(va, vb)
-
-    def back(g: np.ndarray) -> list[Any]:
-        out = []
-        if type(a) is Jet:
-            out.append((a, _unbroadcast(mm(g, np.swapaxes(vb, -1, -2)), va.shape), None))
-        if type(b) is Jet:
-            out.append((b, _unbroadcast(mm(np.swapaxes(va, -1, -2), g), vb.shape), None))
-        return out
-
-    parents = tuple(x for x in (a, b) if type(x) is Jet)
-    return _record(y, parents[0].n, _Node(parents, back, replay))
-
-
-def concatenate(arrays: list[Any], axis: int, stack: bool, replay: Callable[[], Any]) -> Any:
-    """A recorded ``np.concatenate`` (``stack``: ``np.stack``) of jets and arrays."""
-    arrays = [_operand(a) for a in arrays]
-    values = [a.value if type(a) is Jet else np.asarray(a) for a in arrays]
-    y = np.stack(values, axis=axis) if stack else np.concatenate(values, axis=axis)
-    ax = axis % y.ndim + 1
-    spans, start = [], 0
-    for v in values:
-        w = 1 if stack else v.shape[ax - 1]
-        spans.append(start if stack else slice(start, start + w))
-        start += w
-
-    def back(g: np.ndarray) -> list[Any]:
-        pre = (slice(None),) * ax
-        return [(a, g[pre + (s,)], None) for a, s in zip(arrays, spans, strict=True)
-                if type(a) is Jet]
-
-    jets = tuple(a for a in arrays if type(a) is Jet)
-    return _record(y, max(j.n for j in jets), _Node(jets, back, replay))
-
-
-def reduce(fn: Any, a: Jet, axis: Any, keepdims: bool, replay: Callable[[], Any]) -> Any:
-    """A recorded ``np.sum``/``np.mean`` over axes other than the edges' (axis 0)."""
-    a = _operand(a)
-    nd = a.value.ndim
-    axes = tuple(x % nd for x in (axis if isinstance(axis, tuple) else (axis,)))
-    if 0 in axes or a.value.dtype.kind != "f":
-        return None
-    y = fn(a.value, axis=axes, keepdims=keepdims)
-    scale = 1.0 if fn is np.sum else 1.0 / np.prod([a.value.shape[x] for x in axes])
-
-    def back(g: np.ndarray) -> list[Any]:
-        gk = g if keepdims else np.expand_dims(g, tuple(x + 1 for x in axes))
-        c = np.broadcast_to(gk if scale == 1.0 else gk * scale, (g.shape[0],) + a.value.shape)
-        return [(a, c, None)]
-
-    return _record(np.asarray(y), a.n, _Node((a,), back, replay))
 
 
 HOOKS["materialise"] = materialise

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 import graphopt.autodiff.tape as tape
+import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, combine, expand, make, parts
 
 __all__ = ["apply_ufunc", "write_out"]
@@ -140,7 +141,7 @@ def _reduce(ufunc: np.ufunc, method: str, inputs: tuple[Any, ...]) -> Any:
 def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
     if Tape.active and ufunc not in _VALUE_ONLY:
         replay = lambda: _call(ufunc, inputs)  # noqa: E731 - the forward rule
-        lazy = (tape.matmul(inputs[0], inputs[1], _mm, replay) if ufunc is np.matmul
+        lazy = (tape_ops.matmul(inputs[0], inputs[1], _mm, replay) if ufunc is np.matmul
                 else tape.ufunc(ufunc, inputs, _UNARY, replay))
         if lazy is not None:
             return lazy

@@ -21,6 +21,7 @@ from graphopt.linear.assembly import Assembler, Assembly, GroupArrays
 from graphopt.linear.implicit import ImplicitSchur, SchurOperator
 from graphopt.linear.schur import SchurComplement
 from graphopt.linear.schur_config import SchurConfig
+from graphopt.linear.single_block import SingleBlockAssembler
 from graphopt.linear.structure import BlockIndex, Positions
 
 if TYPE_CHECKING:
@@ -72,7 +73,9 @@ class LinearSystem:
         self.index = BlockIndex(stores, groups, positions, self.config.cost.spectral_max,
                                 matrix_free, u_order)
         self.matrix_free = self.index.matrix_free
-        self.assembler = Assembler(self.index, self.config.cost)
+        # One free vertex, nothing to eliminate: dense products (single_block.py).
+        self.assembler: Assembler | SingleBlockAssembler = (
+            SingleBlockAssembler.of(self.index) or Assembler(self.index, self.config.cost))
         self.reduction = None if self.matrix_free else SchurComplement(self.index, self.config)
         self.implicit = ImplicitSchur(self.index) if self.matrix_free else None
         self.n = self.index.n

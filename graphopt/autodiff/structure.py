@@ -1,0 +1,209 @@
+"""Group-structured tangents of matrix-valued per-vertex jets, found and used by the tape.
+
+A pose updated by ``exp(δ) · T`` has the derivative ``∂T/∂δ_k = G_k T`` at ``δ = 0`` for
+fixed generators ``G_k`` (a rotation's: the cross-product matrices ``[e_k]×``); one updated
+by ``T · exp(δ)`` has ``T G_k``. Matrices derived from such an estimate inherit it (a BAL
+camera's rotation matrix, computed from its angle-axis after the left update). Nothing has
+to be declared: :func:`detect` fits ``G`` to the per-vertex derivatives that ``oplus`` and
+``derived`` produced on jets, and keeps it only if it reproduces every vertex's derivatives
+to 1e-12 relative — a verified factorisation of the tangent, not an assumption.
+
+The reverse pass then contracts an edge's adjoint ``g`` of entries ``(a, b)`` of such a
+matrix ``V`` as ``Σ g_ab (G_k V)_ab = Σ_(a,j) G_k[a, j] Σ_b g_ab V_jb`` (left): a generator
+is sparse (a ``[e_k]×`` has two entries), so this costs a few products per entry, read from
+the edge's own values, where the general contraction gathers ``k`` derivatives per entry and
+edge from the vertices and multiplies each.
+"""
+
+from __future__ import annotations
+
+from math import isqrt
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Plan", "Structure", "clear", "contract", "contract_product", "detect"]
+
+#: ``(adjoint entry, column of V, [(direction, coefficient)])`` per product.
+Plan = list[tuple[int, int, list[tuple[int, float]]]]
+
+#: Relative agreement required between ``G V`` (or ``V G``) and the derivatives.
+TOLERANCE = 1e-12
+
+
+class Structure:
+    """``∂V/∂δ_(lo+k) = G_k V`` (``left``) or ``V G_k`` for ``(N, N)`` values ``V``.
+
+    Args:
+        G: ``(k, N, N)`` generators.
+        lo: The first direction.
+        left: Left (``G_k V``) or right (``V G_k``) structure.
+        zero: ``(N·N,)`` entries of ``V`` that are 0 at every vertex (skipped).
+        one: ``(N·N,)`` entries of ``V`` that are 1 at every vertex (no product).
+    """
+
+    def __init__(self, G: np.ndarray, lo: int, left: bool, zero: np.ndarray,
+                 one: np.ndarray) -> None:
+        self.G, self.lo, self.left, self.zero, self.one = G, lo, left, zero, one
+        self.N = G.shape[1]
+        self._plans: dict[tuple[bytes, int], Plan | None] = {}
+        self._products: dict[tuple[bytes, tuple[int, ...]], Plan | None] = {}
+
+    def product_plan(self, entries: np.ndarray) -> Plan | None:
+        """For ``Y = A B`` with ``A`` the rectangular block ``entries`` ``(rows, cols)`` of a
+        left-structured ``V``: ``(row a of A, row j of Y, [(k, c)])`` such that the product
+        adds ``c Σ_l g[a, l] Y[j, l]`` into direction ``k`` — as ``(G_k V)[rows, cols] B =
+        G_k[rows, :] V[:, cols] B`` and ``V[j, cols] B`` is ``Y[j]`` for ``j`` in the block.
+        ``None`` for a right structure, a piece that is not a block, or a generator that
+        reaches a row of ``V`` outside the block whose entries in its columns are not all 0.
+        """
+        key = (entries.tobytes(), entries.shape)
+        if key in self._products:
+            return self._products[key]
+        plan = self._product_plan(entries) if self.left and entries.ndim == 2 else None
+        self._products[key] = plan
+        return plan
+
+    def _product_plan(self, entries: np.ndarray) -> Plan | None:
+        N = self.N
+        r0, c0 = divmod(int(entries[0, 0]), N)
+        nr, nc = entries.shape
+        block = (r0 + np.arange(nr))[:, None] * N + (c0 + np.arange(nc))[None, :]
+        if r0 + nr > N or c0 + nc > N or not np.array_equal(entries, block):
+            return None
+        zero = self.zero.reshape(N, N)
+        out: Plan = []
+        for i in range(nr):
+            for j in range(N):
+                coef = self.G[:, r0 + i, j]
+                ks = np.flatnonzero(coef)
+                if not len(ks):
+                    continue
+                if r0 <= j < r0 + nr:
+                    out.append((i, j - r0, [(int(k), float(coef[k])) for k in ks]))
+                elif not zero[j, c0:c0 + nc].all():
+                    return None
+        return out
+
+    def plan(self, entries: np.ndarray, k: int) -> Plan | None:
+        """How to contract the flat entries ``entries`` of ``V`` through the generators, or
+        ``None`` when that costs more products than gathering ``k`` derivatives per entry
+        (dense generators)."""
+        key = (entries.tobytes(), k)
+        if key in self._plans:
+            return self._plans[key]
+        terms = self.terms(entries)
+        cost = sum(1 + len(c) for _, _, c in terms)
+        plan = terms if cost <= 2 * k * entries.size else None
+        self._plans[key] = plan
+        return plan
+
+    def terms(self, entries: np.ndarray) -> Plan:
+        """For the flat entries ``p`` of a piece of ``V``: ``(i, column, [(k, coefficient)])``,
+        the product of adjoint ``i`` with ``V``'s flat ``column`` adds into direction ``k``."""
+        N, out = self.N, []
+        for i, p in enumerate(entries.ravel().tolist()):
+            a, b = divmod(int(p), N)
+            for j in range(N):
+                coef = self.G[:, a, j] if self.left else self.G[:, j, b]
+                col = j * N + b if self.left else a * N + j
+                ks = np.flatnonzero(coef)
+                if len(ks) and not self.zero[col]:
+                    out.append((i, col, [(int(k), float(coef[k])) for k in ks]))
+        return out
+
+
+def detect(j: Any) -> Structure | None:
+    """The structure of a per-vertex jet ``(vertices, N, N)`` or ``(vertices, N·N)``, or
+    ``None`` (not square, ``N`` outside 2…4, or no generators fit every vertex)."""
+    v, t = j.value, j.tangent
+    nv = len(v)
+    if v.dtype.kind != "f" or nv == 0 or v.ndim not in (2, 3) or t.shape[1:] != v.shape:
+        return None
+    S = v[0].size
+    N = isqrt(S)
+    if N * N != S or not 2 <= N <= 4 or (v.ndim == 3 and v.shape[1] != N):
+        return None
+    V = v.reshape(nv, N, N)
+    T = t.reshape(len(t), nv, N, N)
+    scale = float(np.max(np.abs(T), initial=0.0))
+    if scale == 0.0 or not np.all(np.isfinite(T)):
+        return None
+    for left in (True, False):
+        if left:  # G (Σ V Vᵀ) = Σ T Vᵀ
+            A = np.einsum("vij,vlj->il", V, V)
+            B = np.einsum("kvij,vlj->kil", T, V)
+        else:  # (Σ Vᵀ V) G = Σ Vᵀ T
+            A = np.einsum("vji,vjl->il", V, V)
+            B = np.einsum("vji,kvjl->kil", V, T)
+        try:  # (a singular A: the fit below fails, or solve raises)
+            Ainv = np.linalg.inv(A)
+        except np.linalg.LinAlgError:
+            return None
+        G = B @ Ainv if left else Ainv @ B
+        G[np.abs(G) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))] = 0.0
+        fit = np.matmul(G[:, None], V[None]) if left else np.matmul(V[None], G[:, None])
+        if float(np.max(np.abs(fit - T))) <= TOLERANCE * scale:
+            flat = v.reshape(nv, S)
+            return Structure(G, j.lo, left, np.all(flat == 0.0, axis=0),
+                             np.all(flat == 1.0, axis=0))
+    return None
+
+
+def contract_product(J: Any, lo: int, plan: Plan, g: np.ndarray, Y: np.ndarray,
+                     a: int, b: int) -> None:
+    """``J[:, lo+k, a:b] += c Σ_l g[:, :, i, l] Y[:, j, l]`` for a :meth:`product_plan`.
+
+    Args:
+        J: The block's Jacobian rows (:class:`graphopt.autodiff.reverse.Rows`).
+        lo: The structure's first direction.
+        plan: The product's plan.
+        g: ``(r, m, rows, q)`` the adjoint of ``Y``.
+        Y: ``(m, rows, q)`` the product.
+        a: First edge of the block the rows are.
+        b: One past the last.
+    """
+    for i, j, ks in plan:
+        for col in range(Y.shape[2]):
+            prod = (g[:, :, i, col] * Y[:, j, col])[:, None, :]
+            for k, c in ks:
+                J.add(lo + k, lo + k + 1, a, b, prod, c)
+
+
+_COLUMNS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def clear() -> None:
+    """Forget the columns of :func:`contract` (at the start of a reverse pass)."""
+    _COLUMNS.clear()
+
+
+def _column(full: np.ndarray, col: int) -> np.ndarray:
+    """Flat entry ``col`` of every edge's ``V``, contiguous (gathered once per block)."""
+    hit = _COLUMNS.get((id(full), col))  # (full itself is kept: its id stays its own)
+    if hit is None:
+        hit = _COLUMNS[id(full), col] = (full, np.ascontiguousarray(
+            full.reshape(len(full), -1)[:, col]))
+    return hit[1]
+
+
+def contract(J: Any, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: int,
+             b: int, one: np.ndarray) -> None:
+    """``J[:, lo+k, a:b] += Σ_p g[:, :, p] (G_k V)_p`` for a piece of ``V``.
+
+    Args:
+        J: The block's Jacobian rows (:class:`graphopt.autodiff.reverse.Rows`).
+        lo: The structure's first direction.
+        plan: :meth:`Structure.plan` of the piece's entries.
+        full: ``(m, N, N)`` or ``(m, N·N)``: each edge's whole ``V``.
+        g: ``(r, m, *piece)`` the piece's adjoint.
+        a: First edge of the block the piece's rows are.
+        b: One past the last.
+        one: ``(N·N,)`` entries of ``V`` that are 1 at every vertex (no product).
+    """
+    r, m = g.shape[:2]
+    gf = g.reshape(r, m, -1)
+    for i, col, ks in plan:
+        prod = (gf[:, :, i] if one[col] else gf[:, :, i] * _column(full, col))[:, None, :]
+        for k, c in ks:
+            J.add(lo + k, lo + k + 1, a, b, prod, c)
