@@ -107,7 +107,8 @@ class UpdateReport:
         factor: ``"unchanged"``, ``"pending"`` (edges wait for the next solve), ``"updated"``
             (rank updates) or ``"rebuilt"`` (a batch step).
         reason: Why a batch step ran (``""`` if none): ``"first"``, ``"reserve"``,
-            ``"relinearize"``, ``"not positive definite"``, ``"flags"``, ``"chi2"``.
+            ``"relinearize"``, ``"not positive definite"``, ``"flags"``, ``"chi2"``; with
+            ``factor="updated"``, ``"relinearize"`` is a partial relinearisation.
         relinearized: Vertices relinearised.
         fallback: Whether damped steps were needed (chi2 went up, or the system was not
             positive definite).
