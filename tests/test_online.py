@@ -84,6 +84,32 @@ def _chain(opt: SparseOptimizer, n: int) -> None:
     opt.add_edges(EdgeSE2, np.column_stack([np.arange(n - 1), np.arange(1, n)]), z, INFO)
 
 
+def test_a_partial_relinearisation_keeps_the_factor_the_systems(monkeypatch) -> None:
+    # Every relinearisation that can be partial is: the factor, downdated and updated, still
+    # solves the freshly assembled system of the mixed linearisation points.
+    graph = manhattan_world(300, 2)[0]
+    seen = []
+    partly = IncrementalOptimizer._relinearize_partly
+
+    def checked(self, report) -> bool:
+        ran = partly(self, report)
+        if ran:
+            H, g = self.system()
+            rhs = np.zeros(self.factor.size)
+            rhs[:len(g)] = g
+            fresh = spla.spsolve(H, g)
+            seen.append(np.abs(self.factor.solve(rhs)[:len(g)] - fresh).max()
+                        / np.abs(fresh).max())
+        return ran
+
+    monkeypatch.setattr(IncrementalOptimizer, "_relinearize_partly", checked)
+    chi2, out = _replayed_chi2(graph, partial_fraction=1.0, relinearize_threshold=0.05)
+    assert len(seen) >= 3 and max(seen) <= 1e-6
+    assert sum(r.reason == "relinearize" and r.factor == "updated"
+               for r in out.incremental.reports) == len(seen)
+    assert chi2 <= _batch_chi2(graph) * 1.005
+
+
 def test_a_vertex_without_edges_is_a_clear_error() -> None:
     opt = SparseOptimizer()
     _chain(opt, 4)

@@ -83,7 +83,8 @@ class State:
     known_edges: dict[int, int] = field(default_factory=dict)
     taken: dict[int, list[Batch]] = field(default_factory=dict)
     linear: dict[int, list[Whitened]] = field(default_factory=dict)
-    _free: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    _free: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, slice | np.ndarray]] = field(
+        default_factory=dict)
     flags: list[int] = field(default_factory=list)
 
     def store_index(self, st: VertexStore) -> int:
@@ -173,6 +174,68 @@ class State:
             model += float(np.square(linear_residual(joined, delta)).sum())
         return true, model
 
+    def moved(self, delta: np.ndarray, threshold: float) -> tuple[list[np.ndarray], int]:
+        """Per store, ``(slots,)`` whether the vertex's step exceeds ``threshold`` (largest
+        tangent component), and how many do.
+
+        Args:
+            delta: The step from the linearisation points, by unknown.
+            threshold: The relinearisation threshold.
+        """
+        masks, count = [], 0
+        for si, off in enumerate(self.offsets):
+            mask = np.zeros(len(off), bool)
+            free, cols, _ = self.free_vertices(si)
+            if len(free):
+                hit = np.abs(delta[cols]).max(axis=1) > threshold
+                mask[free[hit]] = True
+                count += int(hit.sum())
+            masks.append(mask)
+        return masks, count
+
+    def touching(self, masks: list[np.ndarray]) -> list[tuple[Batch, np.ndarray]]:
+        """Per group with any, the batch of every edge taken in and ``(m,)`` whether the edge
+        has a vertex in ``masks`` (from :meth:`moved`)."""
+        out = []
+        for b in self.all_edges():
+            hit = np.zeros(len(b.vids), bool)
+            for si, s in zip(b.stores, b.slots, strict=True):
+                hit |= masks[si][s]
+            if hit.any():
+                out.append((b, hit))
+        return out
+
+    def relinearize_partly(self, masks: list[np.ndarray],
+                           edges: list[tuple[Batch, np.ndarray]]
+                           ) -> tuple[list[Whitened], list[Whitened]] | None:
+        """``θ ←`` the current estimate of the vertices in ``masks``, and the rows of the
+        edges ``edges`` names relinearised there: returns ``(old rows, new rows)`` (the kept
+        rows are replaced), or ``None`` (nothing changed) when the kept rows do not line up
+        with the edges (edges still wait to enter the factor).
+
+        Args:
+            masks: Per store, ``(slots,)`` the vertices to relinearise.
+            edges: From :meth:`touching` with the same masks.
+        """
+        keep = []
+        for b, _ in edges:
+            rows = self.linear.get(id(b.group), [])
+            joined = join(rows) if rows else None
+            if joined is None or len(joined.chi2) != len(b.vids):
+                return None
+            keep.append(joined)
+        for si, mask in enumerate(masks):
+            if mask.any():
+                self.theta[si][mask] = self.stores[si].estimates[: len(mask)][mask]
+        old, new = [], []
+        for (b, hit), joined in zip(edges, keep, strict=True):
+            fresh = self.whiten(subset(b, hit))
+            old.append(pick(joined, hit))
+            put(joined, hit, fresh)
+            self.linear[id(b.group)] = [joined]
+            new.append(fresh)
+        return old, new
+
     def cols(self, b: Batch) -> list[np.ndarray]:
         """Per position, the first unknown of each edge's vertex (``-1``: fixed)."""
         return [self.offsets[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
@@ -200,27 +263,45 @@ class State:
                 step changed are written.
         """
         worst = 0.0
-        for si, (st, th, off) in enumerate(zip(self.stores, self.theta, self.offsets,
-                                               strict=True)):
-            hit = self._free.get(si)
-            if hit is None or hit[0] is not off:  # offsets are replaced, never edited
-                free = np.flatnonzero(off >= 0)
-                hit = self._free[si] = (off, free, off[free][:, None]
-                                        + np.arange(st.vtype.dimension))
-            _, free, cols = hit
+        changed = None
+        if old is not None and len(old) == len(delta):
+            # Per vertex, whether any of its unknowns changed: a prefix count of the changed
+            # unknowns, differenced over each vertex's run (cheaper than comparing the
+            # gathered (v, d) steps).
+            changed = np.zeros(len(delta) + 1, np.int64)
+            np.cumsum(delta != old, out=changed[1:])
+        for si, (st, th) in enumerate(zip(self.stores, self.theta, strict=True)):
+            free, cols, rows = self.free_vertices(si)
             if not len(free):
                 continue
             step = delta[cols]
             worst = max(worst, float(np.abs(step).max()))
-            if old is not None and len(old) == len(delta):
-                moved = (step != old[cols]).any(axis=1)
-                free, step = free[moved], step[moved]
-                if not len(free):
-                    continue
+            if changed is not None:
+                moved = changed[cols[:, -1] + 1] != changed[cols[:, 0]]
+                if not moved.all():
+                    rows, step = free[moved], step[moved]
+                    if not len(rows):
+                        continue
             est = st.estimates
-            est[free] = st.vtype.oplus(th[free].copy(), step)
+            est[rows] = st.vtype.oplus(th[rows], step)  # oplus returns a new array
             st.estimates = est
         return worst
+
+    def free_vertices(self, si: int) -> tuple[np.ndarray, np.ndarray, slice | np.ndarray]:
+        """The store's slots with unknowns ``(v,)``, their unknowns ``(v, d)``, and the slots
+        as a slice when they are a run (they mostly are: indexing by a slice is a view).
+
+        Args:
+            si: The store index.
+        """
+        off = self.offsets[si]
+        hit = self._free.get(si)
+        if hit is None or hit[0] is not off:  # offsets are replaced, never edited
+            free = np.flatnonzero(off >= 0)
+            hit = self._free[si] = (off, free, off[free][:, None]
+                                    + np.arange(self.stores[si].vtype.dimension),
+                                    _as_slice(free))
+        return hit[1], hit[2], hit[3]
 
     def relinearize_all(self) -> None:
         """``θ ←`` the current estimates."""
@@ -237,7 +318,15 @@ class State:
         off = np.full(stop - start, -1, np.int64)
         off[free] = first + d * np.arange(int(free.sum()))
         self.theta[si] = np.concatenate([self.theta[si], est])
+        hit = self._free.get(si)
+        fresh = hit is not None and hit[0] is self.offsets[si]
         self.offsets[si] = np.concatenate([self.offsets[si], off])
+        if fresh:  # grow the cache of free_vertices by the new slots (no scan of the store)
+            new = start + np.flatnonzero(free)
+            idx = np.concatenate([hit[1], new])
+            self._free[si] = (self.offsets[si], idx,
+                              np.concatenate([hit[2], off[free][:, None] + np.arange(d)]),
+                              _as_slice(idx))
         return d * int(free.sum())
 
     def unconstrained(self, new: list[tuple[int, int, int]], batches: list[Batch]
@@ -253,6 +342,36 @@ class State:
                 if not fixed and vid not in seen:
                     return st, int(vid)
         return None
+
+
+def _as_slice(idx: np.ndarray) -> slice | np.ndarray:
+    """``idx`` as a slice if it is a run of consecutive integers, else itself."""
+    if len(idx) and int(idx[-1]) - int(idx[0]) == len(idx) - 1:
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
+
+
+def subset(b: Batch, mask: np.ndarray) -> Batch:
+    """The edges of ``b`` where ``mask`` (``(m,)``) is true, as a batch (their kernel slots
+    read now)."""
+    return Batch(b.group, b.vids[mask], b.measurements[mask], b.info[mask],
+                 b.kernel_index[mask], {k: v[mask] for k, v in b.data.items()}, b.stores,
+                 [s[mask] for s in b.slots], b.start, b.group.activity_version[0])
+
+
+def pick(w: Whitened, mask: np.ndarray) -> Whitened:
+    """The rows of ``w`` where ``mask`` is true (copies)."""
+    return Whitened([c[mask] for c in w.cols], [A[mask] for A in w.blocks], w.residual[mask],
+                    w.chi2[mask], w.weight[mask])
+
+
+def put(w: Whitened, mask: np.ndarray, rows: Whitened) -> None:
+    """Overwrite the rows of ``w`` where ``mask`` is true with ``rows``."""
+    for a in range(len(w.cols)):
+        w.blocks[a][mask] = rows.blocks[a]
+    w.residual[mask] = rows.residual
+    w.chi2[mask] = rows.chi2
+    w.weight[mask] = rows.weight
 
 
 def join_batches(chunks: list[Batch]) -> Batch:

@@ -54,6 +54,11 @@ def join(parts: Sequence[Whitened]) -> Whitened:
                       for f in ("residual", "chi2", "weight")))
 
 
+def negated(w: Whitened) -> Whitened:
+    """``w`` with its residual negated (:func:`gradient_into` then subtracts ``Aᵀr``)."""
+    return Whitened(w.cols, w.blocks, -w.residual, w.chi2, w.weight)
+
+
 def sqrt_information(info: np.ndarray) -> np.ndarray:
     """``U`` with ``UᵀU = Ω`` for ``(m, e, e)`` information matrices (Cholesky; an
     eigen-decomposition for semi-definite ones).
@@ -181,15 +186,17 @@ def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
     """``C`` ``(n, Σ m·e)`` with ``CCᵀ = Σ AᵀA`` over the batches: one column per whitened
     row, holding the row's entries at its vertices' unknowns (a fixed vertex's left out).
 
-    Built as the transpose of the whitened Jacobian in CSR form, rows in the blocks' order
-    (CHOLMOD's update takes unsorted columns): a COO detour, or sorting, costs more than the
-    CHOLMOD update it feeds on a small step.
+    Built directly in CSC form with 32-bit indices (what CHOLMOD takes without a
+    conversion), rows in the blocks' order (CHOLMOD's update takes unsorted columns): a COO
+    or CSR detour, or sorting, costs more than the CHOLMOD update it feeds on a small step.
 
     Args:
         batches: Whitened rows.
         n: Unknowns of the system.
     """
     data, index, counts = [], [], []
+    uniform = True  # every column holds the same number of entries
+    width = -1
     for wb in batches:
         m, e = wb.residual.shape
         parts = [(c, A) for c, A in zip(wb.cols, wb.blocks, strict=True)]
@@ -201,34 +208,54 @@ def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
             data.append(vals[keep])
             index.append(np.broadcast_to(idx[:, None, :], keep.shape)[keep])
             counts.append(np.repeat((idx >= 0).sum(axis=1), e))
+            uniform = False
             continue
         idx = np.concatenate([c[:, None] + np.arange(A.shape[2]) for c, A in parts], axis=1)
+        k = idx.shape[1]
         data.append(np.concatenate([A for _, A in parts], axis=2).ravel())
-        index.append(np.broadcast_to(idx[:, None, :], (m, e, idx.shape[1])).ravel())
-        counts.append(np.full(m * e, idx.shape[1]))
-    cnt = np.concatenate(counts) if len(counts) > 1 else counts[0] if counts else np.zeros(0, int)
-    indptr = np.zeros(len(cnt) + 1, np.int64)
-    np.cumsum(cnt, out=indptr[1:])
-    A = sp.csr_matrix((np.concatenate(data) if data else np.zeros(0),
-                       np.concatenate(index) if index else np.zeros(0, np.int64), indptr),
-                      shape=(len(cnt), n))
-    return A.T
+        index.append(np.broadcast_to(idx[:, None, :], (m, e, k)).ravel())
+        counts.append((m * e, k))
+        uniform = uniform and width in (-1, k)
+        width = k
+    if uniform:
+        cols = sum(c[0] for c in counts)
+        indptr = np.arange(0, cols * width + 1, max(width, 1), dtype=np.int32)[:cols + 1]
+    else:
+        cnt = np.concatenate([np.full(*c) if isinstance(c, tuple) else c for c in counts])
+        cols = len(cnt)
+        indptr = np.zeros(cols + 1, np.int32)
+        np.cumsum(cnt, out=indptr[1:])
+    return sp.csc_matrix(
+        (np.concatenate(data) if len(data) > 1 else data[0] if data else np.zeros(0),
+         (np.concatenate(index) if len(index) > 1 else index[0] if index else
+          np.zeros(0)).astype(np.int32), indptr), shape=(n, cols))
 
 
 def gradient_into(g: np.ndarray, batches: Sequence[Whitened]) -> None:
     """``g += Σ A_aᵀ r`` at each vertex's unknowns.
 
+    A batch step's every edge is summed by ``np.bincount`` (a fixed vertex's share goes to a
+    slot past the end, dropped): ``np.add.at`` took several times as long.
+
     Args:
         g: ``(n,)`` gradient, updated in place.
         batches: Whitened rows.
     """
+    n = len(g)
+    idx, vals = [], []
     for wb in batches:
         for c, A in zip(wb.cols, wb.blocks, strict=True):
-            keep = c >= 0
-            if keep.any():
-                d = A.shape[2]
-                np.add.at(g, c[keep][:, None] + np.arange(d),
-                          np.einsum("mid,mi->md", A[keep], wb.residual[keep]))
+            idx.append((np.where(c < 0, n, c)[:, None] + np.arange(A.shape[2])).ravel())
+            vals.append(np.einsum("mid,mi->md", A, wb.residual).ravel())
+    if not idx:
+        return
+    i = np.concatenate(idx) if len(idx) > 1 else idx[0]
+    v = np.concatenate(vals) if len(vals) > 1 else vals[0]
+    if 8 * len(i) < n:  # a few edges: no pass over all of g
+        keep = i < n
+        np.add.at(g, i[keep], v[keep])
+    else:
+        g += np.bincount(i, weights=v, minlength=n)[:n]
 
 
 def hessian(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
@@ -251,8 +278,12 @@ def linear_residual(wb: Whitened, delta: np.ndarray) -> np.ndarray:
     """
     out = wb.residual.copy()
     for c, A in zip(wb.cols, wb.blocks, strict=True):
-        keep = c >= 0
-        if keep.any():
-            d = A.shape[2]
-            out[keep] += np.einsum("mid,md->mi", A[keep], delta[c[keep][:, None] + np.arange(d)])
+        d = A.shape[2]
+        fixed = c < 0
+        if fixed.any():  # a fixed vertex's step is zero (gathered, then cleared: no copy of A)
+            x = delta[np.where(fixed, 0, c)[:, None] + np.arange(d)]
+            x[fixed] = 0.0
+        else:
+            x = delta[c[:, None] + np.arange(d)]
+        out += np.einsum("mid,md->mi", A, x)
     return out
