@@ -57,6 +57,10 @@ class EdgeGroup:
         self._data: list[dict[str, np.ndarray]] = []
         self._kernels: list[RobustKernel] = []  # see the kernels property
         self._kernel_keys: dict[Any, int] = {}
+        # Per slot, every kernel object merged into it by value (the first is ``_kernels``'s),
+        # and the kernel-width count they were last seen equal at (see _check_members).
+        self._members: list[dict[int, RobustKernel]] = []
+        self._members_checked = kernel_changes()
         self.size = 0
         self.dim = e
         self.next_uid = 0
@@ -110,16 +114,47 @@ class EdgeGroup:
                 f"{self.etype.__name__}: robust_kernel must be a RobustKernel, got {kernel!r}"
             )
         key = kernel_key(kernel)
+        for members in self._members:  # (re)assigned here: forget where it was merged before
+            members.pop(id(kernel), None)
         slot = self._kernel_keys.get(key)
-        if slot is not None and kernel_key(self._kernels[slot]) == key:
-            return slot
-        for i, k in enumerate(self._kernels):  # a kernel changed after it was added
-            if kernel_key(k) == key:
-                self._kernel_keys[key] = i
-                return i
-        self._kernels.append(kernel)
-        self._kernel_keys[key] = len(self._kernels) - 1
-        return len(self._kernels) - 1
+        if slot is None or kernel_key(self._kernels[slot]) != key:
+            slot = next((i for i, k in enumerate(self._kernels)  # one changed since it was added
+                         if kernel_key(k) == key), None)
+        if slot is None:
+            self._kernels.append(kernel)
+            self._members.append({})
+            slot = len(self._kernels) - 1
+        self._kernel_keys[key] = slot
+        self._members[slot][id(kernel)] = kernel
+        return slot
+
+    def add_kernel_members(self, slot: int, kernels: list[RobustKernel]) -> None:
+        """Record more kernel objects given to edges of ``slot`` (equal to its kernel: a batch
+        of edge objects filed by value passes one per value to :meth:`kernel_slot`).
+
+        Args:
+            slot: A slot from :meth:`kernel_slot`.
+            kernels: The other objects of that value.
+        """
+        self._members[slot].update((id(k), k) for k in kernels)
+
+    def _check_members(self) -> None:
+        """Raise if kernel objects merged by value differ now (a ``set_delta`` on one of them
+        after the edges were added): their edges would silently share one width."""
+        changes = kernel_changes()
+        if changes == self._members_checked:
+            return
+        for slot, members in enumerate(self._members):
+            keys = {kernel_key(k) for k in members.values()}
+            if len(keys) > 1:
+                raise GraphError(
+                    f"{self.etype.__name__}: {len(members)} robust kernel objects were equal "
+                    f"when their edges were added and now differ ({self._kernels[slot]!r} and "
+                    f"others): equal kernels are merged, so a width set afterwards "
+                    f"(set_delta) would reach edges it was not given; set the changed kernel "
+                    f"on its edges again (set_robust_kernel) after changing it")
+        self._kernel_keys = {kernel_key(k): i for i, k in enumerate(self._kernels)}
+        self._members_checked = changes
 
     def append(
         self,
@@ -295,9 +330,15 @@ class EdgeGroup:
 
     @property
     def kernels(self) -> list[RobustKernel]:
-        """The distinct kernels of the group (those some edge uses)."""
+        """The distinct kernels of the group (those some edge uses).
+
+        Raises:
+            GraphError: kernel objects merged by value were made to differ since.
+        """
         if self._kernels_stale:
             self._stale_kernels()
+        if self._members_checked != kernel_changes():
+            self._check_members()
         return self._kernels
 
     @property
@@ -363,6 +404,7 @@ class EdgeGroup:
             remap[used] = np.arange(len(used))
             self._kidx = remap[self._kidx]
             self._kernels = [self._kernels[int(u)] for u in used]
+            self._members = [self._members[int(u)] for u in used]
             self._kernel_keys = {kernel_key(k): i for i, k in enumerate(self._kernels)}
         if len(used) <= 1 and len(self._kidx):
             value = np.int64(self._kidx[0])

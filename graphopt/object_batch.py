@@ -20,6 +20,7 @@ import numpy as np
 from graphopt.edge import BaseEdge
 from graphopt.edge_group import EdgeGroup, kernel_key
 from graphopt.errors import GraphError
+from graphopt.robust_kernel import RobustKernel
 from graphopt.vertex import BaseVertex
 
 _is_none = partial(is_, None)
@@ -172,6 +173,14 @@ def edge_batch(group: EdgeGroup, objs: list[BaseEdge]) -> dict[str, Any]:
         slot_of = {key: -1 if key is None else _kernel_slot(group, kernels[where[key]], blame,
                                                               where[key]) for key in first}
         kern = list(map(slot_of.__getitem__, keys))
+        # Every object filed under its value's slot, so that a width changed on one of them
+        # later is caught (EdgeGroup._check_members) instead of reaching the others' edges.
+        members: dict[int, list[RobustKernel]] = {}
+        for slot, k in zip(kern, kernels, strict=True):
+            if slot >= 0:
+                members.setdefault(slot, []).append(k)
+        for slot, same in members.items():
+            group.add_kernel_members(slot, same)
         if min(kern) == max(kern):
             kern = kern[0]
     levels = list(map(attrgetter("_level"), objs))

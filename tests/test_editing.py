@@ -327,6 +327,45 @@ def test_a_kernel_width_changed_in_place_is_seen_by_the_next_query_and_run() -> 
                                rtol=0, atol=1e-12)
 
 
+def test_equal_kernels_are_merged_and_a_width_changed_on_one_is_not_lost() -> None:
+    """Equal kernel objects share one slot (one robustify per value); a width set afterwards
+    on one of them would reach the other's edges: a clear error instead, and setting the
+    changed kernel on its edges again gives the run with each edge's own width."""
+    truth, init, edges, meas = pose_graph(20, seed=1, noise=(0.3, 0.1))
+    half = np.arange(len(edges)) < len(edges) // 2
+
+    def make(da: float, db: float, objects: bool = False):
+        opt = SparseOptimizer()
+        opt.add_vertices(VertexSE2, np.arange(20), init, fixed=np.arange(20) == 0)
+        a, b = RobustKernelHuber(da), RobustKernelHuber(db)
+        if objects:  # one object per edge, g2o style: filed by value
+            for e, z, h in zip(edges, meas, half, strict=True):
+                opt.add_edge(EdgeSE2(list(map(int, e)), z, robust_kernel=RobustKernelHuber(
+                    da if h else db)))
+            return opt, None, None, None
+        opt.add_edges(EdgeSE2, edges[half], meas[half], robust_kernel=a)
+        sb = opt.add_edges(EdgeSE2, edges[~half], meas[~half], robust_kernel=b)
+        return opt, a, b, sb
+
+    ref, *_ = make(0.5, 0.05)
+    expected = ref.active_robust_chi2()
+    opt, a, b, sb = make(0.5, 0.5)
+    assert len(sb.group.kernels) == 1  # merged
+    b.set_delta(0.05)
+    with pytest.raises(GraphError, match="were equal when their edges were added and now differ"):
+        opt.active_robust_chi2()
+    sb.set_robust_kernel(b)  # the remedy
+    assert opt.active_robust_chi2() == pytest.approx(expected, rel=1e-12)
+    a.set_delta(0.7)  # one object on its own edges only: fine, and seen
+    ref2, *_ = make(0.7, 0.05)
+    assert opt.active_robust_chi2() == pytest.approx(ref2.active_robust_chi2(), rel=1e-12)
+    objs, *_ = make(0.5, 0.5, objects=True)
+    objs.optimize(1)
+    objs.edges()[-1].robust_kernel.set_delta(0.05)
+    with pytest.raises(GraphError, match="now differ"):
+        objs.optimize(1)
+
+
 def test_values_of_an_added_edge_that_cannot_change_raise_instead_of_being_ignored() -> None:
     """g2o lets ``setMeasurement`` follow ``addEdge``; here the measurement, information and
     vertices of an edge in the arrays are structure: changing them is a clear error (remove
