@@ -434,6 +434,9 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
     sb = uf is np.multiply and jb and _entry(b, vb, va)
     la, lb = a._tape if sa else None, b._tape if sb else None
 
+    if uf is np.multiply and a is b and not sa:  # a square: one product, not two and a sum
+        return _record(y, a.n, _Node((a,), lambda g: [(a, g * (va + va), None)], replay))
+
     def back(g: np.ndarray) -> list[Any]:
         out = []
         if ja and not (sa and structure.defer(a, la, g, vb)):
