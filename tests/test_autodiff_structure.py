@@ -161,3 +161,39 @@ def test_structured_block_formed_after_its_product() -> None:
     numeric = edge_jacobians(EdgeLeftFormed, x, z, method="numeric")
     for a, c in zip(auto, numeric, strict=True):
         assert np.max(np.abs(a - c)) <= 1e-6 * np.max(np.abs(c))
+
+
+class EdgeLeftEntries(EdgeLeft):
+    """``R X + t`` written entry by entry (as BAL's error is): the entries' adjoints are kept
+    as products and contracted through the generators (``structure.defer``); one entry is also
+    multiplied by a recorded value, another read by a forward rule after its product."""
+
+    @classmethod
+    def error(cls, x: Any, z: np.ndarray, ctx: Any) -> Any:
+        T, X = x
+        R = [[T[:, i, j] for j in range(3)] for i in range(3)]
+        P = [R[i][1] * X[:, 1] + R[i][0] * X[:, 0] + R[i][2] * X[:, 2] + T[:, i, 3]
+             for i in range(3)]
+        w = R[0][1] * P[2] + np.arctan2(R[2][0], 1.0)  # (arctan2: a forward rule)
+        return np.stack([P[0] / P[2] + 0.1 * w, P[1] / P[2]], axis=1) - z
+
+
+def test_entries_contracted_as_products(monkeypatch: Any) -> None:
+    x, z = _inputs(VertexSE3Expmap)
+    kept: list[bool] = []
+    defer = structure.defer
+
+    def spy(*args: Any) -> bool:
+        kept.append(defer(*args))
+        return kept[-1]
+
+    monkeypatch.setattr(structure, "defer", spy)
+    auto = edge_jacobians(EdgeLeftEntries, x, z)
+    assert any(kept) and not all(kept)  # (T[:, 2, 0] was formed: an ordinary leaf)
+    monkeypatch.setattr(structure.Structure, "plan", lambda *a: None)
+    general = edge_jacobians(EdgeLeftEntries, x, z)
+    numeric = edge_jacobians(EdgeLeftEntries, x, z, method="numeric")
+    for a, b, c in zip(auto, general, numeric, strict=True):
+        scale = np.max(np.abs(b))
+        assert np.max(np.abs(a - b)) <= 1e-12 * scale
+        assert np.max(np.abs(a - c)) <= 1e-6 * scale

@@ -105,8 +105,8 @@ def bal_project(
     Py = r[:, 3] * X0 + r[:, 4] * X1 + r[:, 5] * X2 + cameras[:, 4]
     Pz = r[:, 6] * X0 + r[:, 7] * X1 + r[:, 8] * X2 + cameras[:, 5]
     with np.errstate(divide="ignore", invalid="ignore"):
-        iz = 1.0 / Pz
-    px, py = -Px * iz, -Py * iz
+        niz = -1.0 / Pz  # = −(1/Pz) exactly: px = Px·niz is the linearisation's −Px·iz
+    px, py = Px * niz, Py * niz
     r2 = px * px + py * py
     f, k1, k2 = cameras[:, 6], cameras[:, 7], cameras[:, 8]
     fd = f * (1.0 + r2 * (k1 + k2 * r2))
@@ -201,9 +201,10 @@ class EdgeBALProjection(BaseEdge):
         cam, X = x
         m = len(cam)
         rot = None if ctx is None or ctx.derived is None else ctx.derived[0]
-        e = np.empty((m, 2), like=cam)  # like=: jets give a jet (graphopt.autodiff)
-        # Jets come in blocks already (graphopt.autodiff), whose cost is per operation.
-        bs = cls.block_size if type(cam) is np.ndarray else max(m, 1)
+        if type(cam) is not np.ndarray:  # jets come in blocks already (graphopt.autodiff)
+            return bal_project(cam, X, rot)[0] - measurement
+        e = np.empty((m, 2))
+        bs = cls.block_size
         for s in range(0, m, bs):  # blocks of edges, not a loop per edge
             r = None if rot is None else rot[s : s + bs]
             uv, _ = bal_project(cam[s : s + bs], X[s : s + bs], r)

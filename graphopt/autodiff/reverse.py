@@ -52,6 +52,7 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
         if node is not None and node.direct:
             for plan, g, y in node.direct:
                 structure.contract_product(rows, node.struct.lo, plan, g, y, *p.rows)
+    structure.contract_deferred(rows)
     rows.finish()
     return J
 

@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Plan", "Structure", "clear", "contract", "contract_product", "detect"]
+__all__ = ["Plan", "Structure", "clear", "contract", "contract_deferred", "contract_product",
+           "defer", "detect"]
 
 #: ``(adjoint entry, column of V, [(direction, coefficient)])`` per product.
 Plan = list[tuple[int, int, list[tuple[int, float]]]]
@@ -174,8 +175,10 @@ _COLUMNS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
 
 def clear() -> None:
-    """Forget the columns of :func:`contract` (at the start of a reverse pass)."""
+    """Forget the columns of :func:`contract` and the deferred products of :func:`defer` (at
+    the start of a reverse pass)."""
     _COLUMNS.clear()
+    _DEFERRED.clear()
 
 
 def _column(full: np.ndarray, col: int) -> np.ndarray:
@@ -207,3 +210,71 @@ def contract(J: Any, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: in
         prod = (gf[:, :, i] if one[col] else gf[:, :, i] * _column(full, col))[:, None, :]
         for k, c in ks:
             J.add(lo + k, lo + k + 1, a, b, prod, c)
+
+
+#: ``(leaf node, plan, g, x, rows)`` per deferred product (see :func:`defer`).
+_DEFERRED: list[tuple[Any, Plan, np.ndarray, np.ndarray, tuple[int, int]]] = []
+
+
+def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray) -> bool:
+    """Keep the adjoint ``g ⊙ x`` of one entry ``v`` of a structured matrix (the factor of a
+    recorded ``v * x``) as the pair, for :func:`contract_deferred`; ``False`` if ``v`` is no
+    longer that leaf or its generators are dense (the caller forms ``g ⊙ x``).
+
+    An error written entry by entry (``P_a = Σ_b V_ab x_b``) hands the same adjoint ``g`` of
+    ``P_a`` to every ``V_ab``; kept as pairs, their contraction ``Σ_b g x_b (G_k V)_ab =
+    Σ_j G_k[a, j] g (Σ_b V_jb x_b)`` forms each ``Σ_b V_jb x_b`` once, per edge, and
+    multiplies it by ``g`` once per generator entry: the cross-product rule of ``R X`` that a
+    hand-written Jacobian uses, found from the entries.
+
+    Args:
+        v: The entry (gathered rows of a structured per-vertex jet, ``(m,)``).
+        leaf: Its recorded node when the product was recorded.
+        g: ``(r, m)`` the adjoint of the product.
+        x: ``(m,)`` the other factor's value.
+    """
+    if v._tape is not leaf or v.rows is None:
+        return False
+    entries = leaf.entries if leaf.entries is not None else np.arange(1)
+    plan = leaf.struct.plan(entries, len(leaf.source))
+    if plan is None:
+        return False
+    _DEFERRED.append((leaf, plan, g, x, v.rows))
+    return True
+
+
+def contract_deferred(J: Any) -> None:
+    """Contract the products kept by :func:`defer`: grouped by their adjoint ``g`` and
+    generator coefficients, each group's ``Σ x V_col`` is formed once (per edge) and
+    multiplied by ``g`` once.
+
+    Args:
+        J: The block's Jacobian rows (:class:`graphopt.autodiff.reverse.Rows`).
+    """
+    groups: dict[tuple[Any, ...], list[Any]] = {}
+    for leaf, plan, g, x, (a, b) in _DEFERRED:
+        lo, one = leaf.struct.lo, leaf.struct.one
+        for _, col, ks in plan:
+            key = (id(g), lo, a, b, tuple(ks))
+            grp = groups.get(key)
+            if grp is None:
+                grp = groups[key] = [g, lo, a, b, ks, {}]
+            grp[5][id(x), id(leaf.full), col] = (x, leaf.full, col, bool(one[col]))
+    products: dict[tuple[int, int, int], np.ndarray] = {}
+    sums: dict[tuple[Any, ...], np.ndarray] = {}
+    for g, lo, a, b, ks, members in groups.values():
+        names = tuple(sorted(members))
+        s = sums.get(names)
+        if s is None:
+            for name in names:
+                if name not in products:
+                    x, full, col, is_one = members[name]
+                    products[name] = x if is_one else x * _column(full, col)
+            s = products[names[0]]
+            for name in names[1:]:
+                s = s + products[name]
+            sums[names] = s
+        prod = (g * s)[:, None, :]
+        for k, c in ks:
+            J.add(lo + k, lo + k + 1, a, b, prod, c)
+    _DEFERRED.clear()

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
 
 __all__ = ["ENABLED", "clear", "container", "gathered", "recording"]
@@ -427,16 +428,33 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
     if replay is None:
         replay = lambda: uf(a, b)  # noqa: E731 - the forward rule, recording off
 
+    # A factor that is an entry of a structured matrix: its adjoint g ⊙ other is kept as the
+    # pair (graphopt.autodiff.structure.defer).
+    sa = uf is np.multiply and ja and _entry(a, va, vb)
+    sb = uf is np.multiply and jb and _entry(b, vb, va)
+    la, lb = a._tape if sa else None, b._tape if sb else None
+
+    if uf is np.multiply and a is b and not sa:  # a square: one product, not two and a sum
+        return _record(y, a.n, _Node((a,), lambda g: [(a, g * (va + va), None)], replay))
+
     def back(g: np.ndarray) -> list[Any]:
         out = []
-        if ja:
+        if ja and not (sa and structure.defer(a, la, g, vb)):
             out.append((a, _unbroadcast(fn(g, va, vb, y, 0), va.shape), None))
-        if jb:
+        if jb and not (sb and structure.defer(b, lb, g, va)):
             out.append((b, _unbroadcast(fn(g, va, vb, y, 1), vb.shape), None))
         return out
 
     n = a.n if ja else b.n
     return _record(y, n, _Node((a, b) if ja and jb else ((a,) if ja else (b,)), back, replay))
+
+
+def _entry(v: Jet, vv: np.ndarray, other: Any) -> bool:
+    """``v`` is one entry ``(m,)`` of gathered rows of a structured matrix, multiplied by an
+    array of its shape."""
+    node = v._tape
+    return (node is not None and node.struct is not None and node.source is not None
+            and vv.ndim == 1 and type(other) is np.ndarray and other.shape == vv.shape)
 
 
 def _power(g: np.ndarray, va: Any, vb: Any, y: Any, i: int) -> np.ndarray:
