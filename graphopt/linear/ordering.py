@@ -19,6 +19,17 @@ import scipy.sparse as sp
 _DENSE_PRODUCT = 1 << 21
 
 
+def dense_co_visibility(n_v: int, n_u: int) -> bool:
+    """Whether the co-visibility product ``incᵀ inc`` of ``n_v`` V blocks and ``n_u`` U blocks
+    is cheaper dense (a NumPy product) than sparse (SciPy's set-up dominates small ones).
+
+    Args:
+        n_v: V blocks (rows of ``inc``).
+        n_u: U blocks (its columns).
+    """
+    return n_v * n_u * n_u <= _DENSE_PRODUCT
+
+
 @functools.lru_cache(maxsize=4)
 def _tags(n: int) -> np.ndarray:
     """``(n,)`` fixed random 62-bit tags of U blocks (read-only; cached: the generator's
@@ -64,7 +75,7 @@ def _u_rank(v: np.ndarray, u: np.ndarray, n_v: int, n_u: int, spectral_max: int
     """Position of every U block in a 1-D order that keeps co-visible U blocks close."""
     if n_u < 3 or n_u > spectral_max:
         return np.arange(n_u)
-    if n_v * n_u * n_u <= _DENSE_PRODUCT:  # small: a dense product (exact counts all the same)
+    if dense_co_visibility(n_v, n_u):  # small: a dense product (exact counts all the same)
         inc = np.zeros((n_v, n_u))
         inc[v, u] = 1.0  # pairs are unique
         c = inc.T @ inc
