@@ -364,7 +364,7 @@ def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
     """
     infos = list(map(_INFO, recs))
     first = infos[0]
-    if len(set(map(id, infos))) == 1:  # one object (set_information's shared copies), or None
+    if all(map(is_, infos, repeat(first))):  # one object (set_information's shared copies) or None
         return None if first is None else _checked_one(cls, recs[0], first, d)
     if all(i is None for i in infos):
         return None
