@@ -125,7 +125,7 @@ class Batch:
             i: Index in the batch.
             kernel: A g2o kernel or ``None``.
         """
-        self.kcodes[i] = self.code(kernel)
+        self.kcodes[i] = -1 if kernel is None else self.code(kernel)  # None: outlier passes
         if self.group is not None and not self.kernels_dirty:
             self.kernels_dirty = True
             self.owner._batch_changed(self)
