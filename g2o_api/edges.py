@@ -22,6 +22,9 @@ __all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
 #: The parameter ids of an edge whose ``set_parameter_id`` was not called, by slot count.
 _ZEROS: tuple[tuple[int, ...], ...] = tuple((0,) * n for n in range(8))
 _F8 = np.dtype(np.float64)
+#: One-slot parameter-id tuples of small ids, shared (no tuple per edge for the collector to
+#: scan: g2o programs give every edge ``set_parameter_id(0, 0)``).
+_PIDS1: tuple[tuple[int], ...] = tuple((i,) for i in range(64))
 #: The last information matrix set (its bytes and the shared read-only copy).
 _LAST_INFO: list[tuple[bytes, np.ndarray] | None] = [None]
 
@@ -174,7 +177,7 @@ class BaseEdge:
         """
         n = self._nparams
         if n == 1 and slot == 0:  # the usual call: set_parameter_id(0, pid)
-            self._pids = (int(pid),)
+            self._pids = _PIDS1[pid] if type(pid) is int and 0 <= pid < 64 else (int(pid),)
         elif not 0 <= int(slot) < max(n, 1):
             raise ValueError(f"{type(self).__name__} has {n} parameter slots")
         elif n:

@@ -22,7 +22,7 @@ import scipy.sparse as sp
 from graphopt.errors import GraphError
 from graphopt.linear.block_ops import csr_product_into
 from graphopt.linear.indexing import pairs_sharing_key, pairs_within_key, unique_ints
-from graphopt.linear.ordering import co_visibility_order, first_seen_order
+from graphopt.linear.ordering import co_visibility_order, dense_co_visibility, first_seen_order
 from graphopt.linear.pattern import ReducedPattern
 
 if TYPE_CHECKING:
@@ -319,11 +319,17 @@ class BlockIndex:
         if vc not in self._fill:
             nb = max(self.n_ublocks, 1)
             v, u = self._inc[vc]
-            inc = sp.csr_matrix((np.ones(len(v)), (v, u)),
-                                shape=(len(self.vclasses[vc].slots), nb))
-            fill = (inc.T @ inc).tocoo()
-            del inc
-            self._fill[vc] = fill.col.astype(np.int64) * nb + fill.row
+            n_v = len(self.vclasses[vc].slots)
+            if dense_co_visibility(n_v, nb):  # small: no SciPy set-up (the same pairs)
+                dense = np.zeros((n_v, nb))
+                dense[v, u] = 1.0
+                row, col = np.nonzero(dense.T @ dense)
+                self._fill[vc] = col.astype(np.int64) * nb + row
+            else:
+                inc = sp.csr_matrix((np.ones(len(v)), (v, u)), shape=(n_v, nb))
+                fill = (inc.T @ inc).tocoo()
+                del inc
+                self._fill[vc] = fill.col.astype(np.int64) * nb + fill.row
         return self._fill[vc]
 
     def blocks_of(self, gi: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
