@@ -438,17 +438,22 @@ class Linearizer:
             J = tuple(np.ascontiguousarray(j) for j in J)
             weighted = bool(g.kernels)
             live = self._live[gi]
-            if g.info_is_identity:
-                wj = J
-            elif g.info_diagonal is not None:  # a row scaling: 3x faster than the products
-                d = g.info_diagonal[..., None]   # (e, 1) shared or (m, e, 1) per edge
+            if g.info_diagonal is not None and not g.info_is_identity:
+                # A row scaling (3x faster than the products), the kernel's weight folded in:
+                # one pass over J (the row factors first, (e,) or (m, e), then (m, e, 1)).
+                d = g.info_diagonal * w[:, None] if weighted else g.info_diagonal
+                d = d[..., None]
                 wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
             else:
-                assert g.information is not None
-                wj = tuple(np.matmul(g.information, j) if a else j
-                           for j, a in zip(J, live, strict=True))
-            if weighted:
-                wj = tuple(j * w[:, None, None] if a else j for j, a in zip(wj, live, strict=True))
+                if g.info_is_identity:
+                    wj = J
+                else:
+                    assert g.information is not None
+                    wj = tuple(np.matmul(g.information, j) if a else j
+                               for j, a in zip(J, live, strict=True))
+                if weighted:
+                    wj = tuple(j * w[:, None, None] if a else j
+                               for j, a in zip(wj, live, strict=True))
             jac.append(J)
             wjac.append(wj)
             wes.append(oe * w[:, None] if weighted else oe)
