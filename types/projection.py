@@ -197,15 +197,18 @@ def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
     Returns:
         ``(e (m, 2|3), iz (m,), uv (m, 2))``.
     """
-    iz = 1.0 / P[:, 2]
-    uv = P[:, :2] * iz[:, None]                  # normalised image coordinates
-    pix = uv * cam.focal + cam.centre
-    if bf is None:
-        return z - pix, iz, uv
-    e = np.empty((len(P), 3), like=P)            # like=: jets stay jets (graphopt.autodiff)
-    e[:, :2] = z[:, :2] - pix
-    e[:, 2] = z[:, 2] - (pix[:, 0] - bf * iz)
-    return e, iz, uv
+    # Coordinate by coordinate over the edges (long inner loops): an (m, 2) operation with a
+    # strided last axis of 2 runs 2-element loops (500 edges: 4.7 against 10.5 µs).
+    PT = P.T
+    iz = 1.0 / PT[2]
+    uvT = PT[:2] * iz                            # normalised image coordinates, (2, m)
+    e = np.empty((len(P), 2 if bf is None else 3), like=P)  # like=: jets stay jets
+    pu = cam.fx * uvT[0] + cam.cx
+    e[:, 0] = z[:, 0] - pu
+    e[:, 1] = z[:, 1] - (cam.fy * uvT[1] + cam.cy)
+    if bf is not None:
+        e[:, 2] = z[:, 2] - (pu - bf * iz)
+    return e, iz, uvT.T
 
 
 def _pinhole(
