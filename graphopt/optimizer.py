@@ -316,7 +316,6 @@ class SparseOptimizer(GraphEditing):
             self._problem = Problem(stores, groups, positions, make_solver(self._solver_spec),
                                     self._schur)
             self._structure_key = self.graph.structure_key()
-        self.algorithm.reset()
         return True
 
     def _ensure_problem(self) -> Problem:
@@ -357,7 +356,8 @@ class SparseOptimizer(GraphEditing):
     # --- optimisation ------------------------------------------------------------------------
 
     def optimize(self, iterations: int | None = None) -> OptimizationResult:
-        """Run the algorithm until a stopping test fires or ``iterations`` iterations are done.
+        """Run the algorithm until a stopping test fires or ``iterations`` iterations are done;
+        every call starts LM's λ (Dogleg's radius) from its rule, as g2o and Ceres do.
 
         Args:
             iterations: Most iterations (non-negative); ``None``: the stopping config's
@@ -372,10 +372,10 @@ class SparseOptimizer(GraphEditing):
             raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
         t_start = time.perf_counter()
         p = self._ensure_problem()
+        self.algorithm.reset()  # λ (Dogleg: the radius) from its rule again, as g2o and Ceres
         self._stop = self._interrupt = False
-        # A weak reference: a bound method would make the optimizer and its algorithm a cycle,
-        # which keeps the whole problem (w10000: 72 MB of arrays, CHOLMOD's 15 MB factor) alive
-        # until the garbage collector runs, and the next problem built pays for fresh memory.
+        # A weak reference: a bound method would make a cycle that keeps the whole problem
+        # (w10000: 72 MB, CHOLMOD's 15 MB factor) alive until the garbage collector runs.
         self.algorithm.interrupted = _weak_call(weakref.WeakMethod(self._interrupted))
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)

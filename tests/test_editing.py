@@ -388,3 +388,20 @@ def test_values_of_an_added_edge_that_cannot_change_raise_instead_of_being_ignor
     opt.initialize_optimization()
     opt.optimize(5)
     np.testing.assert_allclose(opt.vertex(1).estimate, [2.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_every_optimize_call_starts_lambda_from_its_rule(scene) -> None:
+    """g2o (λ from computeLambdaInit at iteration 0 of every optimize) and Ceres (every Solve)
+    start each run's damping afresh: two runs in a row equal two runs with an
+    initialize_optimization between them, and the second run's first λ is τ·max diag(H)."""
+    runs = []
+    for reinit in (False, True):
+        opt, _ = build(scene)
+        opt.optimize(2)
+        if reinit:
+            opt.initialize_optimization()
+        res = opt.optimize(3)
+        runs.append((res.info[0].lam, _estimates(opt, np.unique(scene.ids[:, 1]))))
+    assert runs[0][0] == runs[1][0]
+    for a, b in zip(runs[0][1], runs[1][1], strict=True):
+        np.testing.assert_array_equal(a, b)
