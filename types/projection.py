@@ -34,6 +34,7 @@ __all__ = [
     "normalised_projection",
     "pose_jacobian",
     "pose_jacobian_map",
+    "projected_rows",
     "EdgeInverseDepthProjection",
     "EdgeProjectXYZ2UV",
     "EdgeSE3ProjectXYZ",
@@ -180,6 +181,21 @@ def pose_jacobian(iz: np.ndarray, uv: np.ndarray, cam: CameraParameters,
     else:
         J = np.concatenate([F[:, i:i + _CHUNK].T @ M for i in range(0, m, _CHUNK)])
     return J.reshape(m, 2 if bf is None else 3, 6)
+
+
+def projected_rows(M: np.ndarray, iz: np.ndarray, uv: np.ndarray,
+                   cam: CameraParameters) -> np.ndarray:
+    """``∂e/∂P · M`` ``(m, 2, k)`` for pinhole errors ``e = z − π(P)``: row ``r`` is
+    ``−f_r·iz·(M_r − uv_r·M_2)`` (``M`` ``(m, 3, k)``, e.g. ``∂P/∂X``).
+
+    Args:
+        M: ``(m, 3, k)`` (a broadcast view too).
+        iz: ``(m,)`` inverse depths of the points.
+        uv: ``(m, 2)`` their normalised image coordinates.
+        cam: The intrinsics.
+    """
+    return (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
+                                                          * cam.focal[:, None])
 
 
 def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,

@@ -34,6 +34,7 @@ from graphopt.types.projection import (
     camera_params,
     normalised_projection,
     pose_jacobian,
+    projected_rows,
 )
 from graphopt.types.sim3_lie import log_left_jacobian, se3quat_log, sim3_adjoint
 from graphopt.types.vertices import VertexPointXYZ, VertexSE3Expmap
@@ -252,8 +253,7 @@ class EdgeStereoSE3ProjectXYZ(BaseEdge):
         # ∂e/∂P·R: rows −f_r·iz·(R_r − uv_r·R_2), the third the first − bf·iz²·R_2.
         R = T[:, :3, :3]
         J_point = np.empty((m, 3, 3))
-        J_point[:, :2] = (R[:, :2] - uv[:, :, None] * R[:, 2:3]) * (-iz[:, None, None]
-                                                                   * cam.focal[:, None])
+        J_point[:, :2] = projected_rows(R, iz, uv, cam)
         J_point[:, 2] = J_point[:, 0] - (cam.bf * iz * iz)[:, None] * R[:, 2]  # type: ignore[attr-defined]
         return Linearization(e, (pose_jacobian(iz, uv, cam, cam.bf), J_point))  # type: ignore[attr-defined]
 

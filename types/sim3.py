@@ -42,6 +42,7 @@ from graphopt.types.projection import (
     camera_params,
     normalised_projection,
     pose_jacobian,
+    projected_rows,
 )
 from graphopt.types.sim3_lie import (
     log_left_jacobian,
@@ -296,9 +297,7 @@ class _Sim3Projection(BaseEdge):
         e, iz, uv = normalised_projection(P, measurement, cam)
         if shared is not None:
             return Linearization(e, cls._shared_jacobians(S[0], M, shared, iz, uv, cam))
-        # ∂e/∂P = −f·iz·[[1, 0, −u], [0, 1, −v]], times ∂P/∂X = M row by row.
-        J_point = (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :]) * (-iz[:, None, None]
-                                                                  * cam.focal[:, None])
+        J_point = projected_rows(M, iz, uv, cam)  # ∂e/∂P · ∂P/∂X
         m = len(X)
         if cls.inverse:
             # S⁻¹ ← S⁻¹exp(−a): dP = M([X]× a_ω − a_υ − X a_σ).
