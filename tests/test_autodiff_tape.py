@@ -80,16 +80,21 @@ def test_reverse_equals_forward(fn: Callable[..., Any], dim: int) -> None:
     z = RNG.normal(size=(m, 2))
     etype = _edge(fn, dim, (VertexP3, VertexP3))
     rev = edge_jacobians(etype, x, z)
-    tape.ENABLED = False
-    try:
-        fwd = edge_jacobians(etype, x, z)
-    finally:
-        tape.ENABLED = True
+    fwd = _forward_only(etype, x, z)
     num = edge_jacobians(etype, x, z, method="numeric")
     for r, f, n in zip(rev, fwd, num, strict=True):
         np.testing.assert_allclose(r, f, rtol=1e-12, atol=1e-12 * np.abs(f).max())
         np.testing.assert_allclose(r, n, rtol=1e-6, atol=1e-6 * np.abs(n).max())
 
+
+
+def _forward_only(etype: type, x: Any, z: Any) -> tuple[np.ndarray, ...]:
+    """The Jacobians with the reverse tape switched off (forward jets alone)."""
+    tape.ENABLED = False
+    try:
+        return edge_jacobians(etype, x, z)
+    finally:
+        tape.ENABLED = True
 
 def test_gathered_rows_of_a_manifold_vertex() -> None:
     """Poses shared by many edges: their ``x ⊞ δ`` is formed once per pose and its rows'
@@ -110,11 +115,7 @@ def test_gathered_rows_of_a_manifold_vertex() -> None:
 
     etype = _edge(fn, 2, (VertexSE2, VertexP3))
     rev = edge_jacobians(etype, x, z)
-    tape.ENABLED = False
-    try:
-        fwd = edge_jacobians(etype, x, z)
-    finally:
-        tape.ENABLED = True
+    fwd = _forward_only(etype, x, z)
     for r, f in zip(rev, fwd, strict=True):
         np.testing.assert_allclose(r, f, rtol=1e-12, atol=1e-12 * np.abs(f).max())
 
