@@ -410,22 +410,20 @@ class Linearizer:
         state = self._state()
         versions = tuple(g.activity_version for g in self.groups)
         hits = [self._weights.pop(gi, None) for gi in range(len(self.groups))]
+        valid = [h is not None and h[0] == (state, v)
+                 for h, v in zip(hits, versions, strict=True)]
         # Every group linearised by the last trial at this state: its evaluation's totals
         # (finite: the trial was accepted) and per-group records stand.
-        reuse = (self.last is not None and self.last_state == (state, versions)
-                 and all(h is not None and h[0] == (state, v)
-                         for h, v in zip(hits, versions, strict=True)))
+        reuse = self.last is not None and self.last_state == (state, versions) and all(valid)
         for gi, g in enumerate(self.groups):
-            hit = hits[gi]
-            if hit is not None and hit[0] == (state, versions[gi]):
-                # The trial's linearisation at this state, weighted already.
+            if valid[gi]:  # the trial's linearisation at this state, weighted already
                 self._lin_cache.pop(gi, None)
-                _, out, oe, s, rho, w = hit
+                _, out, oe, s, rho, w = hits[gi]  # type: ignore[misc]
             else:
                 out = self._linearization(gi, consume=True, key=state)
                 out, oe, s = self._weigh(gi, g, out, state)
                 rho, w = self._robustify(g, s)
-            hits[gi] = hit = None
+            hits[gi] = None  # a stale trial's arrays are not kept alive through the assembly
             e, J = out.error, out.jacobians
             if g.etype.linearization_rows is not None:
                 oe = reduced_error(g, out)
