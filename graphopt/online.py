@@ -39,6 +39,7 @@ from graphopt.errors import GraphError, NotPositiveDefiniteError
 from graphopt.incremental.factor import GrowingFactor, block_order
 from graphopt.incremental.state import Batch, State, by_group
 from graphopt.incremental.whitened import (
+    determine,
     gradient_into,
     hessian,
     negated,
@@ -248,7 +249,8 @@ class IncrementalOptimizer:
         self._state.keep_linear(pending, wb, fresh=False)
         gradient_into(self._g, wb)
         self._factor.update(update_columns(wb, self._factor.size))
-        self._factor.take(self._pending_unknowns)
+        first, count = self._factor.used, self._pending_unknowns
+        self._factor.take(count, check=not determine(wb, first, count))
         self._pending, self._pending_unknowns = [], 0
 
     def _solve(self, report: UpdateReport) -> None:

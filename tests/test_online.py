@@ -304,3 +304,29 @@ def test_removing_every_edge_of_a_group_between_updates_starts_afresh() -> None:
     assert report.factor == "rebuilt"
     assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), abs=1e-12)
     assert inc.chi2() < 1e-12
+
+
+def test_update_columns_come_sorted_and_determine_reads_each_new_vertex_block() -> None:
+    from graphopt.incremental.whitened import Whitened, determine, update_columns
+
+    rng = np.random.default_rng(3)
+    cols = [np.array([6, 0]), np.array([3, 9])]  # edges (6, 3) and (0, 9): the first swapped
+    blocks = [rng.normal(size=(2, 3, 3)), rng.normal(size=(2, 3, 3))]
+    w = Whitened(cols, blocks, rng.normal(size=(2, 3)), np.ones(2), np.ones(2))
+    C = update_columns([w], 12)
+    assert C.has_sorted_indices
+    for j in range(C.shape[1]):
+        rows = C.indices[C.indptr[j]:C.indptr[j + 1]]
+        assert (np.diff(rows) > 0).all()
+    H = np.zeros((12, 12))
+    for e in range(2):
+        J = np.zeros((3, 12))
+        for c, A in zip(cols, blocks, strict=True):
+            J[:, c[e]:c[e] + 3] = A[e]
+        H += J.T @ J
+    assert np.allclose((C @ C.T).toarray(), H, atol=1e-12)
+    # New unknowns 6..11: vertex 6 hangs on 3 (older), vertex 9 on 0 (older).
+    assert determine([w], 6, 6)
+    flat = [b.copy() for b in blocks]
+    flat[1][1, :, 2] = 0.0  # vertex 9's block loses a direction
+    assert not determine([Whitened(cols, flat, w.residual, w.chi2, w.weight)], 6, 6)

@@ -63,7 +63,8 @@ class GrowingFactor:
     """``LDLᵀ`` of ``diag(H, ε·I_reserve)`` kept current by rank updates.
 
     Args:
-        H: ``(n, n)`` symmetric positive definite matrix (CSC, both triangles or lower).
+        H: ``(n, n)`` symmetric positive definite matrix (both triangles or the lower one;
+            CHOLMOD reads the lower one, in any order within a column).
         reserve: Trailing unknowns to decouple with an identity.
         supernodal: Factorise supernodally (CHOLMOD converts the factor to simplicial
             ``LDLᵀ`` at its first rank update). With 6x6 blocks (the sphere's final system)
@@ -80,13 +81,13 @@ class GrowingFactor:
         n = H.shape[0]
         self.used = n
         self.size = n + reserve
-        low = sp.tril(H, format="csc")
-        low.sort_indices()
+        H = H.tocsc()  # CHOLMOD reads the lower triangle only: no copy of it is needed
         self.epsilon = EPSILON * max(float(H.diagonal().max()) if n else 1.0, 1e-300)
+        itype = H.indices.dtype
         full = sp.csc_matrix(
-            (np.r_[low.data, np.full(reserve, self.epsilon)],
-             np.r_[low.indices, np.arange(n, n + reserve)],
-             np.r_[low.indptr, low.indptr[-1] + np.arange(1, reserve + 1)]),
+            (np.concatenate([H.data, np.full(reserve, self.epsilon)]),
+             np.concatenate([H.indices, np.arange(n, n + reserve, dtype=itype)]),
+             np.concatenate([H.indptr, H.indptr[-1] + np.arange(1, reserve + 1, dtype=itype)])),
             shape=(n + reserve, n + reserve))
         try:
             self._f = cholesky(full, mode="supernodal" if supernodal else "simplicial",
@@ -127,12 +128,14 @@ class GrowingFactor:
             except CholmodError as exc:
                 raise NotPositiveDefiniteError(f"a downdate failed: {exc}") from None
 
-    def take(self, count: int) -> np.ndarray:
+    def take(self, count: int, check: bool = True) -> np.ndarray:
         """Hand out the next ``count`` reserved unknowns (after :meth:`update` has added the
         edges of the vertices that take them).
 
         Args:
             count: Unknowns to take.
+            check: Check their pivots (skip when the caller knows that the edges determine
+                them).
 
         Returns:
             ``(count,)`` their indices.
@@ -145,6 +148,8 @@ class GrowingFactor:
             raise NotPositiveDefiniteError("the reserve is exhausted")
         idx = np.arange(self.used, self.used + count)
         self.used += count
+        if not check:
+            return idx
         d = self._f.D()[idx]
         if not np.all(np.isfinite(d)) or (count and d.min() <= PIVOT_FACTOR * self.epsilon):
             raise NotPositiveDefiniteError("a new vertex is not constrained in every direction")

@@ -152,9 +152,16 @@ def whiten(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray], measurem
     lin = etype.linearize(list(x), measurements, EdgeContext(params, data))
     e = np.asarray(lin.error, float)
     U = sqrt_information(info)
-    r = np.einsum("mij,mj->mi", U, e)
+    if len(U) > 1 and U.strides[0] == 0:  # one information matrix for all (broadcast)
+        # One matrix against a stack: matmul takes half einsum's time (w10000's 64k edges:
+        # 3.7 against 7.3 ms per Jacobian).
+        U0 = U[0]
+        r = e @ U0.T
+        blocks = [np.matmul(U0, np.asarray(J, float)) for J in lin.jacobians]
+    else:
+        r = np.einsum("mij,mj->mi", U, e)
+        blocks = [np.einsum("mij,mjk->mik", U, np.asarray(J, float)) for J in lin.jacobians]
     chi2 = np.einsum("mi,mi->m", r, r)
-    blocks = [np.einsum("mij,mjk->mik", U, np.asarray(J, float)) for J in lin.jacobians]
     w = robust_weights(chi2, kernel_index, kernels)
     if w is not None:
         r = r * w[:, None]
@@ -182,13 +189,45 @@ def edge_chi2(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray],
     return np.einsum("mi,mij,mj->m", e, info, e)
 
 
+def determine(batches: Sequence[Whitened], first: int, count: int) -> bool:
+    """Whether the rows determine the new unknowns ``first:first + count`` one vertex after
+    the other: each new vertex has an edge whose block for it has full column rank and whose
+    other vertices are fixed or numbered before it (new vertices are numbered in the order
+    they came). Then, the unknowns before ``first`` being determined, so is each new vertex,
+    and its pivots in the factor are positive — no need to read the factor's diagonal (which
+    copies all of it: 0.1 ms per step on w10000).
+
+    Args:
+        batches: The whitened rows entering the factor.
+        first: The first new unknown.
+        count: New unknowns.
+    """
+    covered = np.zeros(count, bool)
+    for wb in batches:
+        for a, (c, A) in enumerate(zip(wb.cols, wb.blocks, strict=True)):
+            m, e, d = A.shape
+            hit = c >= first
+            for b, other in enumerate(wb.cols):
+                if b != a:
+                    hit &= other < c
+            if e < d or not hit.any():
+                continue
+            S = np.linalg.svd(A[hit], compute_uv=False)  # (k, d), descending
+            full = S[:, -1] > 1e-9 * S[:, 0]
+            start = c[hit][full] - first
+            covered[(start[:, None] + np.arange(d)).ravel()] = True
+    return bool(covered.all())
+
+
 def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
     """``C`` ``(n, Σ m·e)`` with ``CCᵀ = Σ AᵀA`` over the batches: one column per whitened
     row, holding the row's entries at its vertices' unknowns (a fixed vertex's left out).
 
     Built directly in CSC form with 32-bit indices (what CHOLMOD takes without a
-    conversion), rows in the blocks' order (CHOLMOD's update takes unsorted columns): a COO
-    or CSR detour, or sorting, costs more than the CHOLMOD update it feeds on a small step.
+    conversion): a COO or CSR detour costs more than the CHOLMOD update it feeds on a small
+    step. A binary edge's vertices are put in the order of their unknowns (when they have
+    the same dimension), so that the columns are sorted and flagged so: scikit-sparse sorts
+    them otherwise (w10000: 60 µs per update).
 
     Args:
         batches: Whitened rows.
@@ -196,10 +235,21 @@ def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
     """
     data, index, counts = [], [], []
     uniform = True  # every column holds the same number of entries
+    ordered = True  # every column's rows ascend
     width = -1
     for wb in batches:
         m, e = wb.residual.shape
-        parts = [(c, A) for c, A in zip(wb.cols, wb.blocks, strict=True)]
+        cols, blocks = wb.cols, wb.blocks
+        if len(cols) == 2 and blocks[0].shape == blocks[1].shape:
+            swap = cols[0] > cols[1]
+            if swap.any():
+                cols = [np.where(swap, cols[1], cols[0]), np.where(swap, cols[0], cols[1])]
+                turn = swap[:, None, None]
+                blocks = [np.where(turn, blocks[1], blocks[0]),
+                          np.where(turn, blocks[0], blocks[1])]
+        else:
+            ordered = ordered and len(cols) == 1
+        parts = list(zip(cols, blocks, strict=True))
         if any(bool((c < 0).any()) for c, _ in parts):  # fixed vertices: per-edge counts
             idx = np.concatenate([np.where((c >= 0)[:, None], c[:, None] + np.arange(
                 A.shape[2]), -1) for c, A in parts], axis=1)
@@ -225,10 +275,13 @@ def update_columns(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
         cols = len(cnt)
         indptr = np.zeros(cols + 1, np.int32)
         np.cumsum(cnt, out=indptr[1:])
-    return sp.csc_matrix(
+    C = sp.csc_matrix(
         (np.concatenate(data) if len(data) > 1 else data[0] if data else np.zeros(0),
          (np.concatenate(index) if len(index) > 1 else index[0] if index else
           np.zeros(0)).astype(np.int32), indptr), shape=(n, cols))
+    if ordered:
+        C.has_sorted_indices = True
+    return C
 
 
 def gradient_into(g: np.ndarray, batches: Sequence[Whitened]) -> None:
