@@ -42,6 +42,7 @@ from graphopt.incremental.whitened import (
     determine,
     gradient_into,
     hessian,
+    largest_diagonal,
     negated,
     robust_cost,
     update_columns,
@@ -274,7 +275,7 @@ class IncrementalOptimizer:
             # longer predicts the chi2 (checked again once the steps grew by half or after
             # check_every solves; with robust kernels at every solve, as their weights go
             # stale with any step).
-            true, model = self._state.model_check(delta)
+            true, model = self._state.model_check(delta, self._g)
             self._checked, self._since_check = worst, 0
             if abs(true - model) > cfg.model_tolerance * max(true, 1.0) and (
                     robust or not self._relinearize_partly(report)):
@@ -315,7 +316,7 @@ class IncrementalOptimizer:
         self._checked = st.apply(self._delta)
         # As a batch step, done once the linear model predicts the chi2 (the vertices left
         # below the threshold may still be off: then the batch step relinearises all).
-        true, model = st.model_check(self._delta)
+        true, model = st.model_check(self._delta, self._g)
         if abs(true - model) > cfg.model_tolerance * max(true, 1.0):
             return False
         report.relinearized = count
@@ -349,7 +350,6 @@ class IncrementalOptimizer:
             self._checked, self._since_check = 0.0, 0
             before = float(sum(robust_cost(w.chi2, b.kernel_index, b.group.kernels).sum()
                                for w, b in zip(wb, batches, strict=True)))
-            H = hessian(wb, n)
             self._g = np.zeros(n + reserve)
             gradient_into(self._g, wb)
             # The model check below needs the chi2 at the new estimate anyway: without
@@ -358,16 +358,20 @@ class IncrementalOptimizer:
             check = it + 1 < iterations
             robust = any(b.group.kernels for b in batches)
             try:
-                self._factor = GrowingFactor(H, reserve, self._large())
+                self._factor = (GrowingFactor(hessian(wb, n), reserve, True) if self._large()
+                                else GrowingFactor.of_columns(update_columns(wb, n + reserve),
+                                                              n, reserve,
+                                                              largest_diagonal(wb, n)))
                 self._delta = -self._factor.solve(self._g)
                 worst = st.apply(self._delta)
-                true, model = st.model_check(self._delta) if check else (0.0, 0.0)
+                true, model = (st.model_check(self._delta, self._g) if check
+                               else (0.0, 0.0))
                 after = true if check and not robust else self.chi2()
                 if after > before:
                     raise NotPositiveDefiniteError("chi2 went up")
             except NotPositiveDefiniteError:
                 report.fallback = True
-                self._damped(H, self._g, before, reserve)
+                self._damped(hessian(wb, n), self._g, before, reserve)
                 return
             if not check or (worst <= cfg.relinearize_threshold
                              and before - after <= cfg.batch_tolerance * after):

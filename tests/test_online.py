@@ -74,6 +74,10 @@ def test_the_grown_factor_solves_like_a_fresh_factorisation() -> None:
     fresh = spla.spsolve(H, g)
     assert np.abs(x - fresh).max() <= 1e-9 * np.abs(fresh).max()
     assert np.abs(x[n:]).max(initial=0.0) == 0.0
+    # The model check's short form ‖r‖² + gᵀΔ is the linear model edge by edge at the solve.
+    delta = -f.solve(inc._g)
+    _, model = inc._state.model_check(delta, inc._g)
+    assert model == pytest.approx(inc._state.model_residuals(delta), rel=1e-9, abs=1e-9)
 
 
 def _chain(opt: SparseOptimizer, n: int) -> None:
@@ -100,6 +104,8 @@ def test_a_partial_relinearisation_keeps_the_factor_the_systems(monkeypatch) -> 
             fresh = spla.spsolve(H, g)
             seen.append(np.abs(self.factor.solve(rhs)[:len(g)] - fresh).max()
                         / np.abs(fresh).max())
+            _, model = self._state.model_check(self._delta, self._g)  # rows swapped: r2 too
+            assert model == pytest.approx(self._state.model_residuals(self._delta), rel=1e-9)
         return ran
 
     monkeypatch.setattr(IncrementalOptimizer, "_relinearize_partly", checked)

@@ -311,6 +311,23 @@ def gradient_into(g: np.ndarray, batches: Sequence[Whitened]) -> None:
         g += np.bincount(i, weights=v, minlength=n)[:n]
 
 
+def largest_diagonal(batches: Sequence[Whitened], n: int) -> float:
+    """The largest diagonal entry of ``H = Σ AᵀA`` ``(n, n)`` (squared column norms of the
+    blocks, summed per unknown), without forming ``H``.
+
+    Args:
+        batches: Whitened rows.
+        n: Unknowns.
+    """
+    d = np.zeros(n + 1)
+    for wb in batches:
+        for c, A in zip(wb.cols, wb.blocks, strict=True):
+            idx = np.where(c < 0, n, c)[:, None] + np.arange(A.shape[2])
+            d += np.bincount(idx.ravel(), np.einsum("mij,mij->mj", A, A).ravel(),
+                             minlength=n + 1)[:n + 1]
+    return float(d[:n].max()) if n else 1.0
+
+
 def hessian(batches: Sequence[Whitened], n: int) -> sp.csc_matrix:
     """``H = Σ AᵀA`` ``(n, n)`` (CSC, both triangles) of the batches.
 
