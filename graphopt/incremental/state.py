@@ -403,10 +403,26 @@ def join_batches(chunks: list[Batch]) -> Batch:
     data = {k: np.concatenate([c.data[k] for c in chunks]) for k in f.data}
     # Consecutive runs of the group (taken in order, never removed: a removal starts afresh).
     return Batch(f.group, *(np.concatenate([getattr(c, a) for c in chunks])
-                            for a in ("vids", "measurements", "info", "kernel_index")),
-                 data, f.stores,
+                            for a in ("vids", "measurements")), shared_info(chunks),
+                 np.concatenate([c.kernel_index for c in chunks]), data, f.stores,
                  [np.concatenate([c.slots[a] for c in chunks]) for a in range(len(f.slots))],
                  f.start, f.group.activity_version[0])
+
+
+def shared_info(chunks: list[Batch]) -> np.ndarray:
+    """The chunks' information matrices joined: one matrix broadcast (a view, no copy) when
+    every edge has the same (most graphs: whitening and the chi2 then multiply by one
+    matrix), else concatenated.
+
+    Args:
+        chunks: Batches of one group.
+    """
+    first = chunks[0].info[0]
+    for c in chunks:
+        if not (len(c.info) == 1 or c.info.strides[0] == 0 or bool((c.info == c.info[0]).all())) \
+                or not np.array_equal(c.info[0], first):
+            return np.concatenate([c.info for c in chunks])
+    return np.broadcast_to(first, (sum(len(c.info) for c in chunks), *first.shape))
 
 
 def by_group(batches: list[Batch]) -> list[Batch]:

@@ -69,7 +69,7 @@ def sqrt_information(info: np.ndarray) -> np.ndarray:
     Returns:
         ``(m, e, e)``.
     """
-    if len(info) > 1 and bool((info == info[0]).all()):
+    if len(info) > 1 and (info.strides[0] == 0 or bool((info == info[0]).all())):
         return np.broadcast_to(sqrt_information(info[:1]), info.shape)
     if len(info) == 1:
         key = info.tobytes()
@@ -186,6 +186,8 @@ def edge_chi2(etype: type[BaseEdge], params: Any, x: Sequence[np.ndarray],
         ``(m,)``.
     """
     e = np.asarray(etype.evaluate(list(x), measurements, EdgeContext(params, data)).error, float)
+    if len(info) > 1 and info.strides[0] == 0:  # one matrix for all (a broadcast view)
+        return np.einsum("mi,mi->m", e @ info[0], e)
     return np.einsum("mi,mij,mj->m", e, info, e)
 
 
