@@ -20,11 +20,12 @@ rank update with their whitened Jacobians, new vertices take reserved trailing u
   solves.
 * Any other update flushes the waiting edges into the factor and solves with it (one solve,
   every vertex's estimate updated).
-* A batch step — relinearise every edge at the current estimate, reorder (AMD on the vertex
-  graph; new vertices go last), refactorise — runs when the reserve runs out, when a vertex's
-  step from its linearisation point exceeds ``relinearize_threshold``, or when the factor
-  loses positive definiteness. Its result is checked: if chi2 went up, damped steps
-  (Levenberg–Marquardt, ``λ·diag(H)``) take over until it goes down.
+* A batch step — relinearise every edge at the current estimate, reorder (nested dissection
+  on the vertex graph; the newest vertices last while loop closures stay among them),
+  refactorise — runs when the reserve runs out, when the linear model no longer predicts the
+  chi2 after a vertex's step from its linearisation point exceeded ``relinearize_threshold``,
+  or when the factor loses positive definiteness. Its result is checked: if chi2 went up,
+  damped steps (Levenberg–Marquardt, ``λ·diag(H)``) take over until it goes down.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from graphopt.errors import GraphError, NotPositiveDefiniteError
-from graphopt.incremental.factor import GrowingFactor, block_order
+from graphopt.incremental.factor import GrowingFactor
+from graphopt.incremental.ordering import Ordering
 from graphopt.incremental.state import Batch, State, by_group
 from graphopt.incremental.whitened import (
     determine,
@@ -152,8 +154,7 @@ class IncrementalOptimizer:
         self._g = np.zeros(0)
         self._delta = np.zeros(0)
         self._removals = 0
-        self._renumbered: dict[int, int] = {}  # per group, edges seen by the last batch step
-        self._window = self.config.recent
+        self._ordering = Ordering(self.config.recent)
         self._checked = 0.0
         self._since_check = 0
         self.reports: list[UpdateReport] = []
@@ -174,7 +175,7 @@ class IncrementalOptimizer:
         t0 = time.perf_counter()
         if self._factor is not None and self._state.removals() != self._removals:
             self._state, self._factor = State(self.optimizer.graph), None  # start afresh
-            self._renumbered = {}
+            self._ordering = Ordering(self.config.recent)
         st = self._state
         new = st.new_vertices()
         batches = st.new_batches()
@@ -342,7 +343,7 @@ class IncrementalOptimizer:
         for it in range(iterations):
             st.relinearize_all()
             batches = st.all_edges()
-            self._renumber(batches)
+            self._ordering.renumber(st, batches)
             st.flags = [s.flags_version for s in st.stores]
             report.relinearized = sum(int((o >= 0).sum()) for o in st.offsets)
             dims = [s.vtype.dimension for s in st.stores]
@@ -438,79 +439,3 @@ class IncrementalOptimizer:
         """Whether a vertex type has more than 3 unknowns (a supernodal factorisation pays
         off)."""
         return max((s.vtype.dimension for s in self._state.stores), default=1) > 3
-
-    def _recent_window(self, batches: list[Batch]) -> int:
-        """How many of the newest vertices a batch step orders last: ``config.recent`` if
-        the edges taken in since the last batch step that close a loop within one store
-        (slots more than one apart) mostly reach back no further (the sphere: closures to
-        the previous ring, 50 poses back), else none — closures reaching far back (w10000:
-        median 321 poses) walk through that block from old vertices, and ordering it by
-        nested dissection with the rest cost less (w10000: 18.5 against 21.8 s of CPU;
-        the Manhattan world 1.44 against 1.65 s; the sphere the other way, 11.4 against
-        8.5 s).
-
-        Args:
-            batches: Every edge taken in, one batch per group.
-        """
-        ages = []
-        for b in batches:
-            start = self._renumbered.get(id(b.group), 0)
-            self._renumbered[id(b.group)] = len(b.vids)
-            if len(set(b.stores)) != 1 or len(b.slots) < 2 or start >= len(b.vids):
-                continue
-            slots = np.stack([s[start:] for s in b.slots], axis=1)
-            age = slots.max(axis=1) - slots.min(axis=1)
-            ages.append(age[age > 1])
-        closures = np.concatenate(ages) if ages else np.zeros(0, np.int64)
-        if len(closures):  # else the last decision stands
-            self._window = (0 if float(np.median(closures)) > self.config.recent
-                            else self.config.recent)
-        return self._window
-
-    def _renumber(self, batches: list[Batch]) -> None:
-        """Number the free vertices' unknowns in a fill-reducing order of the vertex graph."""
-        st = self._state
-        base, counts = [], []
-        total = 0
-        for store, off in zip(st.stores, st.offsets, strict=True):
-            free = ~store.fixed[: len(off)]  # the flags as they are now
-            block = np.full(len(off), -1, np.int64)
-            block[free] = total + np.arange(int(free.sum()))
-            total += int(free.sum())
-            base.append(block)
-            counts.append(free)
-        rows, cols = [], []
-        for b in batches:
-            blk = [base[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
-            for a in range(len(blk)):
-                for c in range(a + 1, len(blk)):
-                    ok = (blk[a] >= 0) & (blk[c] >= 0)
-                    rows.append(blk[a][ok])
-                    cols.append(blk[c][ok])
-        # The newest vertices of every store go last, in the order they came (new vertices'
-        # edges mostly reach them: an update then touches the tail of the factor, as iSAM2's
-        # constrained ordering keeps them at the root); nested dissection orders the others among
-        # themselves.
-        recent = np.zeros(total, bool)
-        window = self._recent_window(batches)
-        for block in base:
-            mine = block[block >= 0]
-            recent[mine[max(len(mine) - window, 0):]] = True
-        old = np.flatnonzero(~recent)
-        where = np.full(total, -1, np.int64)
-        where[old] = np.arange(len(old))
-        r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
-        c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
-        inside = (where[r] >= 0) & (where[c] >= 0)
-        order = np.concatenate([old[block_order(len(old), where[r[inside]], where[c[inside]])],
-                                np.flatnonzero(recent)])
-        dims = np.concatenate([np.full(int(f.sum()), s.vtype.dimension) for s, f in
-                               zip(st.stores, counts, strict=True)] or [np.zeros(0, np.int64)])
-        start = np.zeros(total, np.int64)
-        if total:
-            start[order] = np.concatenate([[0], np.cumsum(dims[order])[:-1]])
-        for si, block in enumerate(base):
-            off = np.full(len(block), -1, np.int64)
-            free = block >= 0
-            off[free] = start[block[free]]
-            st.offsets[si] = off

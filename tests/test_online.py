@@ -336,3 +336,22 @@ def test_update_columns_come_sorted_and_determine_reads_each_new_vertex_block() 
     flat = [b.copy() for b in blocks]
     flat[1][1, :, 2] = 0.0  # vertex 9's block loses a direction
     assert not determine([Whitened(cols, flat, w.residual, w.chi2, w.weight)], 6, 6)
+
+
+def test_the_recent_block_stays_only_while_loop_closures_reach_into_it() -> None:
+    from graphopt.incremental.ordering import Ordering
+    from graphopt.incremental.state import Batch
+
+    def batch(group: object, ages: list[int], first: int) -> Batch:
+        j = first + np.arange(len(ages))
+        i = j - np.asarray(ages)
+        m = len(ages)
+        return Batch(group, np.column_stack([i, j]), np.zeros((m, 3)), np.zeros((m, 3, 3)),
+                     np.full(m, -1), {}, [0, 0], [i, j], 0, 0)
+
+    order, group = Ordering(64), object()
+    near = batch(group, [1, 50, 1, 48, 51], 100)  # odometry and closures to the last ring
+    assert order.recent_window([near]) == 64
+    far = batch(group, [1, 50, 1, 48, 51, 900, 1, 700, 321, 1200, 2000], 100)
+    assert order.recent_window([far]) == 0  # the six new edges: closures reach far back
+    assert order.recent_window([far]) == 0  # nothing new: the decision stands
