@@ -30,6 +30,7 @@ from graphopt.linearizer import Evaluation
 from graphopt.problem import Problem
 from graphopt.result import IterationInfo, OptimizationResult, StopReason
 from graphopt.robust_kernel import RobustKernel
+from graphopt.single_vertex import SingleVertexProblem
 from graphopt.solvers import LinearSolver, make_solver
 from graphopt.stopping import StoppingConfig
 from graphopt.storage import EdgeGroup
@@ -313,8 +314,10 @@ class SparseOptimizer(GraphEditing):
         if self._problem is None or self._structure_key != self.graph.structure_key():
             stores, groups, positions = self.graph.resolve()
             self._problem = None  # the old structure's memory goes before the new is built
-            self._problem = Problem(stores, groups, positions, make_solver(self._solver_spec),
-                                    self._schur)
+            solver = make_solver(self._solver_spec)
+            self._problem = (SingleVertexProblem.of(stores, groups, positions, solver,
+                                                    self._schur)
+                             or Problem(stores, groups, positions, solver, self._schur))
             self._structure_key = self.graph.structure_key()
         return True
 

@@ -1,0 +1,321 @@
+"""A problem with one free vertex and nothing to eliminate, linearised and solved in a few calls.
+
+ORB-SLAM's most frequent optimisation — a motion-only BA of about 100 matches, every frame —
+takes 13 iterations of a 6-unknown system: it is bound by Python calls, not flops. The general
+:class:`~graphopt.problem.Problem` builds a block index, a pattern, a Schur plan and the
+solver's analysis for it, and every iteration goes through the linearizer's per-state caches,
+the assembler, the Schur reduction and the solver interface. Here the structure is the one
+vertex's slot and, per edge group, which positions hold it; an iteration is the edge type's
+call, its weights, two products for ``H`` and ``b``, and LAPACK's ``dpotrf``/``dpotrs`` on
+``H + λD``. Every number is formed by the same operations as on the general path (the weighted
+rows of :func:`~graphopt.linearizer.weighted_rows`, the products of
+:class:`~graphopt.linear.single_block.SingleBlockAssembler`, the dense solver's rank rule), so
+both paths give the same iterations; the tests compare them.
+
+The general path's objects that only a few callers need — the :class:`~graphopt.linear.
+LinearSystem` (marginal covariances, :attr:`SparseOptimizer.linear_system`) and the solver's
+symbolic analysis — are built on first use.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import scipy.linalg as sla
+
+from graphopt.edge_output import raise_non_finite_edge
+from graphopt.linear import Assembly, LinearSystem, SchurConfig
+from graphopt.linear.single_block import SingleBlockAssembler, group_terms
+from graphopt.linearizer import (
+    TRIAL_LINEARIZE_EDGES,
+    Evaluation,
+    Linearizer,
+    Positions,
+    weighted_rows,
+)
+from graphopt.numeric import checked_oplus
+from graphopt.problem import Problem, Step, Timing
+from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
+from graphopt.solvers.dense import cholesky_solve
+from graphopt.solvers.rank import shift_diagonal
+from graphopt.storage import EdgeGroup, VertexStore
+
+#: Most unknowns of the one vertex (a dense ``d × d`` system; poses, Sim(3), cameras).
+MAX_DIMENSION = 64
+
+
+class SingleVertexProblem(Problem):
+    """:class:`~graphopt.problem.Problem` for graphs with exactly one free vertex, not
+    marginalised, and small edge groups. Use :meth:`of`, which returns ``None`` otherwise.
+
+    Args:
+        stores: The vertex stores.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+        solver: The dense (or automatic) solver, analysed only if :attr:`system` is used.
+        schur: Passed on to the :class:`LinearSystem` built on first use.
+        free: ``(store index, slot)`` of the free vertex.
+    """
+
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
+                 positions: Positions, solver: LinearSolver, schur: SchurConfig | None,
+                 free: tuple[int, int]) -> None:
+        self.stores = stores
+        self.groups = groups
+        self.positions = positions
+        self.solver = solver
+        self._schur_config = schur
+        self._system: LinearSystem | None = None
+        self.linearizer = Linearizer(stores, groups, positions)
+        self.trial_linearization = True
+        self.timing = Timing()
+        self._saved: list[np.ndarray] = []
+        si, slot = free
+        self._store, self._slot = si, slot
+        self._free = [si]
+        self.d = d = stores[si].vtype.dimension
+        self._diag = np.arange(d) * (d + 1)  # diagonal positions in H's column-major data
+        self._ones = np.ones(d)
+        self._ones.flags.writeable = False
+        # Per group: whether the free vertex is at each position, per edge.
+        on = [[(s == si) & (slots == slot) for s, slots in pos] for pos in positions]
+        self._on_any = [np.logical_or.reduce(o) if o else np.zeros(0, dtype=bool) for o in on]
+        #: Groups whose Jacobians reach ``H`` (the others are evaluated for their chi2 only).
+        self._touch = [bool(a.any()) for a in self._on_any]
+        self._assembler = SingleBlockAssembler(d, [group_terms(o) for o in on])
+        # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
+        # linearisation at that state.
+        self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
+                           list[tuple[np.ndarray, ...]]] | None = None
+        self._idle_key: tuple[tuple[int, int], ...] | None = None
+        self._idle = False
+
+    @classmethod
+    def of(cls, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+           solver: LinearSolver, schur: SchurConfig | None = None
+           ) -> SingleVertexProblem | None:
+        """The single-vertex problem of a resolved graph, or ``None`` if it has another number
+        of free vertices, a marginalised one, a group larger than
+        :data:`~graphopt.linearizer.TRIAL_LINEARIZE_EDGES`, a reduced linearisation, or a solver
+        other than the dense or automatic one (a user's solver object is called as given).
+
+        Args:
+            stores: The vertex stores.
+            groups: The finalised edge groups.
+            positions: Per group, per vertex position: ``(store index, slots (m,))``.
+            solver: The solver made for the problem.
+            schur: The Schur configuration.
+        """
+        if type(solver) not in (LinearSolverDense, LinearSolverAuto):
+            return None
+        free = [(si, np.flatnonzero(~st.fixed)) for si, st in enumerate(stores)]
+        if sum(len(f) for _, f in free) != 1:
+            return None
+        si, slots = next((si, f) for si, f in free if len(f))
+        slot = int(slots[0])
+        st = stores[si]
+        if st.marginalized[slot] or st.vtype.dimension > MAX_DIMENSION:
+            return None
+        if any(g.size > TRIAL_LINEARIZE_EDGES or g.etype.linearization_rows is not None
+               for g in groups):
+            return None
+        return cls(stores, groups, positions, solver, schur, (si, slot))
+
+    @property
+    def system(self) -> LinearSystem:  # type: ignore[override]
+        """The general linear system (built, and the solver analysed, on first use)."""
+        if self._system is None:
+            self._system = LinearSystem(self.stores, self.groups, self.positions,
+                                        self._schur_config)
+            self.solver.analyze(self._system.pattern, self._system.udims)
+        return self._system
+
+    # --- evaluation --------------------------------------------------------------------------
+
+    def _evaluate(self, linearize: bool, every: bool = False) -> Evaluation:
+        """Every group's errors and, with ``linearize``, the normal equations' terms of the
+        groups that reach ``H`` and linearise on trial steps (``every``: of all that reach
+        ``H``), kept for :meth:`linearize` at this state; the totals."""
+        lz = self.linearizer
+        totals = [0.0, 0.0, 0.0]
+        state = lz._state()
+        ht = bu = None
+        jac: list[tuple[np.ndarray, ...]] = []
+        complete = True
+        for gi, g in enumerate(self.groups):
+            touch = self._touch[gi]
+            lin = linearize and touch and (every or lz.on_trial[gi])
+            out = lz._run(gi, "linearize" if lin else "evaluate")
+            out, oe, s = lz._weigh(gi, g, out, state)
+            rho, w = lz._robustify(g, s, weights=lin)
+            lz._record(g, s, rho, out.active, totals)
+            if lin:
+                assert w is not None
+                J, wj, we = weighted_rows(g, out.jacobians, oe, w, lz._live[gi])
+                ht, bu = self._assembler.add_group(gi, J, wj, we, ht, bu)
+                jac.append(J)
+            else:
+                complete = complete and not touch
+                jac.append(())
+        ev = lz._finish(totals, state)
+        self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
+        return ev
+
+    def evaluate(self, linearize: bool = True) -> Evaluation:
+        """See :meth:`Problem.evaluate`.
+
+        Args:
+            linearize: Keep the Jacobians for the next :meth:`linearize` at this state.
+        """
+        return self._evaluate(linearize)
+
+    def robust_chi2(self, linearize: bool = True) -> float:
+        """See :meth:`Problem.robust_chi2`.
+
+        Args:
+            linearize: Linearise the trial (its Jacobians serve the next iteration).
+        """
+        chi = self._evaluate(linearize).robust_chi2
+        if not math.isfinite(chi):
+            self._check_finite_estimates()
+        return chi
+
+    def _idle_vertex(self) -> bool:
+        """Whether no active edge reaches the free vertex (levels only, as :class:`~graphopt.
+        activity.IdleAnchors`): ``H`` then gets the identity and the step is zero."""
+        key = tuple(g.activity_version for g in self.groups)
+        if key != self._idle_key:
+            self._idle_key = key
+            self._idle = True
+            for g, on in zip(self.groups, self._on_any, strict=True):
+                act = g.active_edges
+                if on.any() and (act is None or bool((act & on).any())):
+                    self._idle = False
+                    break
+        return self._idle
+
+    def linearize(self) -> tuple[Assembly, float]:
+        """See :meth:`Problem.linearize`.
+
+        Raises:
+            FloatingPointError: a non-finite error or Jacobian (naming the edge).
+        """
+        t0 = time.perf_counter()
+        lz = self.linearizer
+        terms = self._terms
+        if terms is None or terms[0] != lz.state_key():
+            self._evaluate(True, every=True)
+            terms = self._terms
+        assert terms is not None and lz.last is not None
+        self._terms = None
+        ev = lz.last
+        _, ht, bu, jac = terms
+        if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
+            for g, J in zip(self.groups, jac, strict=True):
+                if J:
+                    raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
+        asm = self._assembler.finish(ht, bu)
+        if self._idle_vertex():
+            asm.h_data[self._diag] += 1.0
+        if not (np.isfinite(asm.h_data).all() and np.isfinite(asm.bu).all()):
+            for g, J in zip(self.groups, jac, strict=True):
+                if J:
+                    raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
+            raise FloatingPointError("the normal equations are not finite (overflow)")
+        self.timing.linearize += time.perf_counter() - t0
+        return asm, ev.robust_chi2
+
+    # --- the linear algebra ------------------------------------------------------------------
+
+    def damping(self, asm: Assembly, diagonal: bool) -> Step:
+        """See :meth:`Problem.damping`.
+
+        Args:
+            asm: The assembly.
+            diagonal: Marquardt's scaling instead of the identity.
+        """
+        if diagonal:
+            return np.clip(asm.h_data[self._diag], 1e-6, 1e32), []
+        return self._ones, []
+
+    def max_diagonal(self, asm: Assembly) -> float:
+        """See :meth:`Problem.max_diagonal`.
+
+        Args:
+            asm: The assembly.
+        """
+        return float(asm.h_data[self._diag].max())
+
+    def solve(self, asm: Assembly, lam: float, damping: Step | None = None) -> Step:
+        """``(H + λD) Δ = b`` by LAPACK's Cholesky, with the dense solver's rank rule.
+
+        Args:
+            asm: The assembly.
+            lam: Damping λ (0 for none).
+            damping: ``D`` from :meth:`damping`; ``None`` for the identity.
+
+        Raises:
+            NotPositiveDefiniteError: if the damped system is not positive definite.
+        """
+        t0 = time.perf_counter()
+        data = asm.h_data.copy()
+        if lam:
+            data[self._diag] += lam * (self._ones if damping is None else damping[0])
+        d = self.d
+        factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
+                                   overwrite_a=1, clean=0)
+        du = cholesky_solve("dense", factor, data[self._diag], asm.bu.copy(),
+                            lambda s: _shifted_is_definite(data, self._diag, s))
+        self.timing.solve += time.perf_counter() - t0
+        return du, []
+
+    def hessian_product(self, asm: Assembly, step: Step) -> Step:
+        """See :meth:`Problem.hessian_product`.
+
+        Args:
+            asm: The assembly.
+            step: A vector in the step layout.
+        """
+        d = self.d
+        return asm.h_data.reshape(d, d).T @ step[0], []
+
+    # --- the state ---------------------------------------------------------------------------
+
+    def state_norm(self) -> float:
+        """See :meth:`Problem.state_norm`."""
+        est = self.stores[self._store].estimates
+        x = est if len(est) == 1 else est[self._slot:self._slot + 1]
+        return math.sqrt(float(np.vdot(x, x)))
+
+    def apply(self, step: Step) -> None:
+        """``x ← x ⊞ Δ`` on the free vertex (``oplus`` gets a copy; see
+        :meth:`Problem.apply`).
+
+        Args:
+            step: ``(Δ (d,), [])``.
+
+        Raises:
+            GraphError: ``oplus`` returned the wrong shape (naming the vertex type).
+        """
+        st = self.stores[self._store]
+        est = st.estimates
+        delta = step[0].reshape(1, -1)
+        if len(est) == 1:
+            st.estimates = checked_oplus(st.vtype, est.copy(), delta)
+            return
+        new = est.copy()
+        k = self._slot
+        new[k:k + 1] = checked_oplus(st.vtype, est[k:k + 1].copy(), delta)
+        st.estimates = new
+
+
+def _shifted_is_definite(data: np.ndarray, diag: np.ndarray, scale: np.ndarray) -> bool:
+    """Whether ``A + τ·S`` (``A``'s column-major data) has a Cholesky factor with positive,
+    finite pivots (the rank rule's step 3)."""
+    d = len(diag)
+    c, info = sla.lapack.dpotrf(shift_diagonal(data, diag, scale).reshape(d, d).T.copy(
+        order="F"), lower=1, overwrite_a=1, clean=0)
+    p = np.diagonal(c)
+    return info == 0 and bool(np.all(np.isfinite(p)) and np.all(p > 0))
