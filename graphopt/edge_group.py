@@ -397,8 +397,12 @@ class EdgeGroup:
     def _compact_kernels(self) -> None:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
         self._kernels_stale = False
-        used = np.unique(self._kidx)
-        used = used[used >= 0]
+        kidx = self._kidx
+        if len(kidx) and kidx.strides == (0,):  # one kernel (or none) for all: no sort
+            used = kidx[:1] if kidx[0] >= 0 else kidx[:0]
+        else:
+            used = np.unique(kidx)
+            used = used[used >= 0]
         if len(used) != len(self._kernels):
             remap = np.full(len(self._kernels) + 1, -1, dtype=np.int64)
             remap[used] = np.arange(len(used))

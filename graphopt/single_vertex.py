@@ -25,6 +25,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
+from graphopt.edge import Linearization
 from graphopt.edge_output import raise_non_finite_edge
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linear.single_block import SingleBlockAssembler, group_terms
@@ -39,7 +40,7 @@ from graphopt.numeric import checked_oplus
 from graphopt.problem import Problem, Step, Timing
 from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
 from graphopt.solvers.dense import cholesky_solve
-from graphopt.solvers.rank import shift_diagonal
+from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
 from graphopt.storage import EdgeGroup, VertexStore
 
 #: Most unknowns of the one vertex (a dense ``d × d`` system; poses, Sim(3), cameras).
@@ -134,10 +135,17 @@ class SingleVertexProblem(Problem):
 
     # --- evaluation --------------------------------------------------------------------------
 
-    def _evaluate(self, linearize: bool, every: bool = False) -> Evaluation:
+    def _evaluate(self, linearize: bool, every: bool = False, safe: bool = False
+                  ) -> Evaluation:
         """Every group's errors and, with ``linearize``, the normal equations' terms of the
         groups that reach ``H`` and linearise on trial steps (``every``: of all that reach
-        ``H``), kept for :meth:`linearize` at this state; the totals."""
+        ``H``), kept for :meth:`linearize` at this state; the totals.
+
+        Inactive edges (other levels, or deactivated by their type) weigh zero. Unless
+        ``safe``, their rows are not zeroed first, as :func:`~graphopt.activity.only_active`
+        does, but their weights: the same numbers, two array passes fewer — unless one of their
+        Jacobians is not finite, which :meth:`linearize` finds in ``H`` and then evaluates
+        again with ``safe``."""
         lz = self.linearizer
         totals = [0.0, 0.0, 0.0]
         state = lz._state()
@@ -148,12 +156,16 @@ class SingleVertexProblem(Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             out = lz._run(gi, "linearize" if lin else "evaluate")
-            out, oe, s = lz._weigh(gi, g, out, state)
-            rho, w = lz._robustify(g, s, weights=lin)
-            lz._record(g, s, rho, out.active, totals)
+            if safe:
+                out, oe, s = lz._weigh(gi, g, out, state)
+                rho, w = lz._robustify(g, s, weights=lin)
+                lz._record(g, s, rho, out.active, totals)
+                if lin:
+                    assert w is not None
+                    J, wj, we = weighted_rows(g, out.jacobians, oe, w, lz._live[gi])
+            else:
+                J, wj, we = self._lean_terms(gi, g, out, state, lin, totals)
             if lin:
-                assert w is not None
-                J, wj, we = weighted_rows(g, out.jacobians, oe, w, lz._live[gi])
                 ht, bu = self._assembler.add_group(gi, J, wj, we, ht, bu)
                 jac.append(J)
             else:
@@ -162,6 +174,48 @@ class SingleVertexProblem(Problem):
         ev = lz._finish(totals, state)
         self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
         return ev
+
+    def _lean_terms(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...],
+                    lin: bool, totals: list[float]
+                    ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], np.ndarray]:
+        """What :meth:`Linearizer._weigh`, ``_robustify``, ``_record`` and
+        :func:`~graphopt.linearizer.weighted_rows` do for one group, inactive edges weighed
+        zero instead of zeroed: ``(J, ρ'ΩJ, ρ'Ωe)`` if ``lin``, else empty."""
+        lz = self.linearizer
+        e = out.error
+        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
+                       g.removals), e)
+        act = g.active_edges
+        if out.active is not None:
+            own = np.asarray(out.active, dtype=bool)
+            act = own if act is None else act & own
+        oe, s = lz._sq(g, e)
+        if act is not None:
+            s = np.where(act, s, 0.0)
+            if not math.isfinite(float(oe.sum())):  # an inactive edge's error: not weighed
+                oe = np.where(act[:, None], oe, 0.0)
+        rho, w = lz._robustify(g, s, weights=lin)
+        lz._record(g, s, rho, act, totals)
+        if not lin:
+            return (), (), oe
+        assert w is not None
+        wv = w if act is None else w * act
+        weighted = bool(g.kernels) or act is not None
+        J = tuple(np.ascontiguousarray(j) for j in out.jacobians)
+        live = lz._live[gi]
+        if g.info_diagonal is not None and not g.info_is_identity:
+            d = (g.info_diagonal * wv[:, None] if weighted else g.info_diagonal)[..., None]
+            wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
+        else:
+            wj = J
+            if not g.info_is_identity:
+                assert g.information is not None
+                wj = tuple(np.matmul(g.information, j) if a else j
+                           for j, a in zip(J, live, strict=True))
+            if weighted:
+                wj = tuple(j * wv[:, None, None] if a else j
+                           for j, a in zip(wj, live, strict=True))
+        return J, wj, oe * wv[:, None] if weighted else oe
 
     def evaluate(self, linearize: bool = True) -> Evaluation:
         """See :meth:`Problem.evaluate`.
@@ -196,8 +250,11 @@ class SingleVertexProblem(Problem):
                     break
         return self._idle
 
-    def linearize(self) -> tuple[Assembly, float]:
+    def linearize(self, safe: bool = False) -> tuple[Assembly, float]:
         """See :meth:`Problem.linearize`.
+
+        Args:
+            safe: Inactive rows zeroed (after a non-finite Jacobian of an inactive edge).
 
         Raises:
             FloatingPointError: a non-finite error or Jacobian (naming the edge).
@@ -206,7 +263,7 @@ class SingleVertexProblem(Problem):
         lz = self.linearizer
         terms = self._terms
         if terms is None or terms[0] != lz.state_key():
-            self._evaluate(True, every=True)
+            self._evaluate(True, every=True, safe=safe)
             terms = self._terms
         assert terms is not None and lz.last is not None
         self._terms = None
@@ -220,6 +277,10 @@ class SingleVertexProblem(Problem):
         if self._idle_vertex():
             asm.h_data[self._diag] += 1.0
         if not (np.isfinite(asm.h_data).all() and np.isfinite(asm.bu).all()):
+            if not safe and any(g.active_count < g.size for g in self.groups):
+                # An inactive edge's non-finite Jacobian: zero the rows, as the general path.
+                self._evaluate(True, every=True, safe=True)
+                return self.linearize(safe=True)
             for g, J in zip(self.groups, jac, strict=True):
                 if J:
                     raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
@@ -266,6 +327,15 @@ class SingleVertexProblem(Problem):
         d = self.d
         factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
                                    overwrite_a=1, clean=0)
+        c, info = factor
+        if info == 0:  # the rank rule's first screen in floats (d pivots: 1 µs, not 4)
+            diag = data[self._diag].tolist()
+            if all(p * p > PIVOT_SCREEN * abs(q) for p, q in zip(c.diagonal().tolist(), diag,
+                                                                  strict=True)):
+                du, info = sla.lapack.dpotrs(c, asm.bu, lower=1)
+                if info == 0 and math.isfinite(sum(du.tolist())):
+                    self.timing.solve += time.perf_counter() - t0
+                    return du, []
         du = cholesky_solve("dense", factor, data[self._diag], asm.bu.copy(),
                             lambda s: _shifted_is_definite(data, self._diag, s))
         self.timing.solve += time.perf_counter() - t0
