@@ -25,8 +25,9 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
-from graphopt.edge import Linearization
+from graphopt.edge import EdgeContext, Linearization
 from graphopt.edge_output import raise_non_finite_edge
+from graphopt.errors import GraphError
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linear.single_block import SingleBlockAssembler, group_terms
 from graphopt.linearizer import (
@@ -86,6 +87,9 @@ class SingleVertexProblem(Problem):
         #: Groups whose Jacobians reach ``H`` (the others are evaluated for their chi2 only).
         self._touch = [bool(a.any()) for a in self._on_any]
         self._assembler = SingleBlockAssembler(d, [group_terms(o) for o in on])
+        # Per group, its context once its output has been checked (None: not yet, or it uses
+        # derived values, which change with the estimates).
+        self._ctx: list[EdgeContext | None] = [None] * len(groups)
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
@@ -155,7 +159,7 @@ class SingleVertexProblem(Problem):
         for gi, g in enumerate(self.groups):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
-            out = lz._run(gi, "linearize" if lin else "evaluate")
+            out = self._call(gi, g, "linearize" if lin else "evaluate")
             if safe:
                 out, oe, s = lz._weigh(gi, g, out, state)
                 rho, w = lz._robustify(g, s, weights=lin)
@@ -175,6 +179,22 @@ class SingleVertexProblem(Problem):
         self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
         return ev
 
+    def _call(self, gi: int, g: EdgeGroup, method: str) -> Linearization:
+        """:meth:`Linearizer._run` without its per-call bookkeeping once a group's output was
+        checked: the context kept (no derived values), the type's method called directly."""
+        lz = self.linearizer
+        ctx = self._ctx[gi]
+        key = (id(g), method, g.size)
+        if ctx is None or key not in lz._trusted:
+            if ctx is None and not g.etype.uses_derived:
+                self._ctx[gi] = g.context()
+            return lz._run(gi, method)
+        try:
+            out = getattr(g.etype, method)(lz.gather(gi), g.measurements, ctx)
+        except (GraphError, ValueError):  # named, or a broadcast input written: the full path
+            return lz._run(gi, method)
+        return out if type(out) is Linearization else lz._run(gi, method)
+
     def _lean_terms(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...],
                     lin: bool, totals: list[float]
                     ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], np.ndarray]:
@@ -190,21 +210,38 @@ class SingleVertexProblem(Problem):
             own = np.asarray(out.active, dtype=bool)
             act = own if act is None else act & own
         oe, s = lz._sq(g, e)
-        if act is not None:
+        if act is not None:  # an inactive edge's non-finite error reaches b: linearize sees it
             s = np.where(act, s, 0.0)
-            if not math.isfinite(float(oe.sum())):  # an inactive edge's error: not weighed
-                oe = np.where(act[:, None], oe, 0.0)
-        rho, w = lz._robustify(g, s, weights=lin)
-        lz._record(g, s, rho, act, totals)
+        kernels = g.kernels
+        if len(kernels) == 1 and g.kernel_index.strides == (0,) and g.kernel_index[0] == 0:
+            kern = kernels[0]  # one kernel for all (Linearizer._robustify's first case)
+            if lin:
+                rho, w = kern.cost_and_weight(s)
+                if not kern.nonnegative_weight:
+                    w = np.maximum(w, 0.0)
+            else:
+                rho, w = kern.cost(s), None
+        elif kernels:
+            rho, w = lz._robustify(g, s, weights=lin)
+        else:
+            rho, w = s, None
+        # Linearizer._record
+        g.last_chi2 = s
+        g.active_count = g.size if act is None else int(np.count_nonzero(act))
+        chi2 = float(s.sum())
+        totals[0] += chi2
+        totals[1] += chi2 if rho is s else float(rho.sum())
+        totals[2] += g.active_count
         if not lin:
             return (), (), oe
-        assert w is not None
-        wv = w if act is None else w * act
-        weighted = bool(g.kernels) or act is not None
-        J = tuple(np.ascontiguousarray(j) for j in out.jacobians)
+        weighted = w is not None or act is not None
+        wv = (w if act is None else act if w is None else w * act) if weighted else None
+        J = out.jacobians
+        if not all(j.flags.c_contiguous for j in J):
+            J = tuple(np.ascontiguousarray(j) for j in J)
         live = lz._live[gi]
         if g.info_diagonal is not None and not g.info_is_identity:
-            d = (g.info_diagonal * wv[:, None] if weighted else g.info_diagonal)[..., None]
+            d = (g.info_diagonal * wv[:, None] if wv is not None else g.info_diagonal)[..., None]
             wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
         else:
             wj = J
@@ -212,10 +249,10 @@ class SingleVertexProblem(Problem):
                 assert g.information is not None
                 wj = tuple(np.matmul(g.information, j) if a else j
                            for j, a in zip(J, live, strict=True))
-            if weighted:
+            if wv is not None:
                 wj = tuple(j * wv[:, None, None] if a else j
                            for j, a in zip(wj, live, strict=True))
-        return J, wj, oe * wv[:, None] if weighted else oe
+        return J, wj, oe * wv[:, None] if wv is not None else oe
 
     def evaluate(self, linearize: bool = True) -> Evaluation:
         """See :meth:`Problem.evaluate`.

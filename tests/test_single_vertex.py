@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from test_single_block import one_free_pose
+from test_single_block import CAM, one_free_pose
 
 from graphopt import SparseOptimizer
 from graphopt.problem import Problem
@@ -16,6 +16,7 @@ from graphopt.single_vertex import SingleVertexProblem
 from graphopt.solvers import LinearSolverDense
 from graphopt.solvers.cholmod import LinearSolverCholmod
 from graphopt.stopping import StoppingConfig
+from graphopt.types import EdgeSE3ProjectXYZOnlyPose
 
 
 @pytest.fixture
@@ -128,3 +129,27 @@ def test_chosen_only_where_it_applies() -> None:
         opt.initialize_optimization()
         assert type(opt.problem) is Problem
         assert opt.problem.solver is solver
+
+
+def _with_a_point_at_the_camera_centre() -> tuple[SparseOptimizer, object]:
+    opt = one_free_pose(False)
+    T = opt.vertex(0).estimate
+    centre = -T[:3, :3].T @ T[:3, 3]  # projects to 0/0: a non-finite error and Jacobian
+    bad = opt.add_edges(EdgeSE3ProjectXYZOnlyPose, [[0]], [[320.0, 240.0]], params=CAM,
+                        data={"Xw": centre[None]})
+    bad.set_level(1)
+    return opt, bad
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_an_inactive_edges_non_finite_rows_do_not_reach_the_system(general: Callable[[], None]
+                                                                  ) -> None:
+    """The fast path weighs inactive rows zero instead of zeroing them; where one is not
+    finite it evaluates again with the rows zeroed, as the general path does."""
+    fast, bad = _with_a_point_at_the_camera_centre()
+    fast.initialize_optimization(0)
+    assert not np.isfinite(bad.chi2()).all()
+    a = _run(fast)
+    general()
+    slow, _ = _with_a_point_at_the_camera_centre()
+    _compare(fast, slow, a, _run(slow))
