@@ -69,7 +69,7 @@ class WeightedLinearization:
     weighted_errors: list[np.ndarray]
 
 
-def _broadcast_row(a: np.ndarray, one: int, m: int, transposed: bool) -> np.ndarray:
+def broadcast_row(a: np.ndarray, one: int, m: int, transposed: bool) -> np.ndarray:
     """Row ``one`` of ``a`` (column ``one`` of a transposed store) repeated ``m`` times, as a
     read-only view with stride 0 (1 µs; ``np.broadcast_to`` takes 4)."""
     if not a.flags.c_contiguous:
@@ -199,7 +199,7 @@ class Linearizer:
         if a is None:
             return None
         if one >= 0:
-            return _broadcast_row(a, one, len(slots), transposed)
+            return broadcast_row(a, one, len(slots), transposed)
         # take, not a[slots]: 4x faster on (n, 4, 4) poses (a 33 against 8 µs gather of
         # 4,807 edges' poses); the method, not np.take: 1 against 2.5 µs a call.
         return a.take(slots, axis=1).T if transposed else a.take(slots, axis=0)

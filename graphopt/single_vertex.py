@@ -35,6 +35,7 @@ from graphopt.linearizer import (
     Evaluation,
     Linearizer,
     Positions,
+    broadcast_row,
     weighted_rows,
 )
 from graphopt.numeric import checked_oplus
@@ -90,6 +91,9 @@ class SingleVertexProblem(Problem):
         # Per group, its context once its output has been checked (None: not yet, or it uses
         # derived values, which change with the estimates).
         self._ctx: list[EdgeContext | None] = [None] * len(groups)
+        # Per group: one position, the free vertex at every edge (a pose's unary edges; more
+        # than one edge, as the linearizer's broadcast gather).
+        self._unary = [len(o) == 1 and len(o[0]) > 1 and bool(o[0].all()) for o in on]
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
@@ -189,8 +193,13 @@ class SingleVertexProblem(Problem):
             if ctx is None and not g.etype.uses_derived:
                 self._ctx[gi] = g.context()
             return lz._run(gi, method)
+        if self._unary[gi] and lz._one[gi] is not None:  # the free vertex's row, broadcast
+            est = self.stores[self._store].estimates
+            x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
+        else:
+            x = lz.gather(gi)
         try:
-            out = getattr(g.etype, method)(lz.gather(gi), g.measurements, ctx)
+            out = getattr(g.etype, method)(x, g.measurements, ctx)
         except (GraphError, ValueError):  # named, or a broadcast input written: the full path
             return lz._run(gi, method)
         return out if type(out) is Linearization else lz._run(gi, method)
@@ -389,6 +398,15 @@ class SingleVertexProblem(Problem):
         return asm.h_data.reshape(d, d).T @ step[0], []
 
     # --- the state ---------------------------------------------------------------------------
+
+    @staticmethod
+    def max_abs(step: Step) -> float:
+        """See :meth:`Problem.max_abs` (in floats: the gradient test's ``b``, finite here).
+
+        Args:
+            step: A vector in the step layout.
+        """
+        return max(map(abs, step[0].tolist()), default=0.0)
 
     def state_norm(self) -> float:
         """See :meth:`Problem.state_norm`."""
