@@ -25,6 +25,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
+from graphopt.allocator import tune as tune_allocator
 from graphopt.edge import EdgeContext, Linearization
 from graphopt.edge_output import raise_non_finite_edge
 from graphopt.errors import GraphError
@@ -65,6 +66,7 @@ class SingleVertexProblem(Problem):
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
                  positions: Positions, solver: LinearSolver, schur: SchurConfig | None,
                  free: tuple[int, int]) -> None:
+        tune_allocator()  # no page faults for the arrays every iteration allocates again
         self.stores = stores
         self.groups = groups
         self.positions = positions
