@@ -116,6 +116,15 @@ def weighted_rows(g: EdgeGroup, J: tuple[np.ndarray, ...], oe: np.ndarray, w: np
     return J, wj, oe * w[:, None] if weighted else oe
 
 
+def row_dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(m,)`` ``Σ_k a_mk b_mk``. Two columns (a projection's error) as one sum of two column
+    products: the same bits as ``einsum``'s, 4x faster on 83,718 BAL edges (84 against 339 µs),
+    whose inner loop of 2 runs per edge; other widths through ``einsum``."""
+    if a.ndim == 2 and a.shape[1] == 2:
+        return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
+    return np.einsum("me,me->m", a, b)
+
+
 class Linearizer:
     """Evaluates and linearises every edge group.
 
@@ -354,12 +363,12 @@ class Linearizer:
     def _sq(g: EdgeGroup, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``Ω e`` and ``e'Ω e`` per edge."""
         if g.info_is_identity:
-            return e, np.einsum("me,me->m", e, e)
+            return e, row_dots(e, e)
         info, diag = g.information, g.info_diagonal  # diag: per-edge diagonal, a row scaling
         assert info is not None
         oe = (e @ info if info.ndim == 2 else e * diag if diag is not None
               else np.einsum("mij,mj->mi", info, e))
-        return oe, np.einsum("me,me->m", e, oe)
+        return oe, row_dots(e, oe)
 
     def _weigh(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...]
                ) -> tuple[Linearization, np.ndarray, np.ndarray]:
