@@ -156,15 +156,9 @@ class EdgeGroup:
         self._kernel_keys = {kernel_key(k): i for i, k in enumerate(self._kernels)}
         self._members_checked = changes
 
-    def append(
-        self,
-        vids: np.ndarray,
-        meas: np.ndarray,
-        info: np.ndarray,
-        kernel: int | np.ndarray,
-        data: dict[str, np.ndarray],
-        levels: int | np.ndarray = 0,
-    ) -> int:
+    def append(self, vids: np.ndarray, meas: np.ndarray, info: np.ndarray,
+               kernel: int | np.ndarray, data: dict[str, np.ndarray],
+               levels: int | np.ndarray = 0) -> int:
         """Append validated edges; returns the uid of the first one (the others follow).
 
         Args:
@@ -397,12 +391,9 @@ class EdgeGroup:
     def _compact_kernels(self) -> None:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
         self._kernels_stale = False
-        kidx = self._kidx
-        if len(kidx) and kidx.strides == (0,):  # one kernel (or none) for all: no sort
-            used = kidx[:1] if kidx[0] >= 0 else kidx[:0]
-        else:
-            used = np.unique(kidx)
-            used = used[used >= 0]
+        kidx = self._kidx  # one kernel (or none) for all, a broadcast: no sort
+        used = kidx[:1] if len(kidx) and kidx.strides == (0,) else np.unique(kidx)
+        used = used[used >= 0]
         if len(used) != len(self._kernels):
             remap = np.full(len(self._kernels) + 1, -1, dtype=np.int64)
             remap[used] = np.arange(len(used))

@@ -446,3 +446,18 @@ def _shifted_is_definite(data: np.ndarray, diag: np.ndarray, scale: np.ndarray) 
         order="F"), lower=1, overwrite_a=1, clean=0)
     p = np.diagonal(c)
     return info == 0 and bool(np.all(np.isfinite(p)) and np.all(p > 0))
+
+
+def make_problem(stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+                 solver: LinearSolver, schur: SchurConfig | None = None) -> Problem:
+    """The :class:`SingleVertexProblem` where it applies, else the general :class:`Problem`.
+
+    Args:
+        stores: The vertex stores.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+        solver: The linear solver.
+        schur: How to form the Schur complement.
+    """
+    return (SingleVertexProblem.of(stores, groups, positions, solver, schur)
+            or Problem(stores, groups, positions, solver, schur))
