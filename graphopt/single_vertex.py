@@ -7,9 +7,10 @@ solver's analysis for it, and every iteration goes through the linearizer's per-
 the assembler, the Schur reduction and the solver interface. Here the structure is the one
 vertex's slot and, per edge group, which positions hold it; an iteration is the edge type's
 call, its weights, two products for ``H`` and ``b``, and LAPACK's ``dpotrf``/``dpotrs`` on
-``H + λD``. Every number is formed by the same operations as on the general path (the weighted
-rows of :func:`~graphopt.linearizer.weighted_rows`, the products of
-:class:`~graphopt.linear.single_block.SingleBlockAssembler`, the dense solver's rank rule), so
+``H + λD``. The numbers are formed as on the general path (the row weights of
+:func:`~graphopt.linearizer.weighted_rows`, with inactive edges weighted zero where the general
+path zeroes their rows; the products of
+:class:`~graphopt.linear.single_block.SingleBlockAssembler`; the dense solver's rank rule), so
 both paths give the same iterations; the tests compare them.
 
 The general path's objects that only a few callers need — the :class:`~graphopt.linear.
@@ -110,7 +111,8 @@ class SingleVertexProblem(Problem):
         """The single-vertex problem of a resolved graph, or ``None`` if it has another number
         of free vertices, a marginalised one, a group larger than
         :data:`~graphopt.linearizer.TRIAL_LINEARIZE_EDGES`, a reduced linearisation, or a solver
-        other than the dense or automatic one (a user's solver object is called as given).
+        of another class than the dense or automatic one (a user's own solver is called as
+        given).
 
         Args:
             stores: The vertex stores.
