@@ -23,7 +23,8 @@ from graphopt.autodiff.structure import Structure, detect
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
 
-__all__ = ["BLOCK_EDGES", "autodiff_linearize", "check_independent_edges", "seeded"]
+__all__ = ["BLOCK_EDGES", "autodiff_linearize", "check_independent_edges", "distinct_vertices",
+           "seeded"]
 
 #: Edges per jet evaluation: one block's tangents (``k × block × …`` values per temporary)
 #: stay in the CPU cache, and the Python cost per operation is paid once per block.
@@ -118,6 +119,14 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None,
 _UNIQUE: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
 
 
+def distinct_vertices(slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)`` of edges' vertex indices (``slots`` ``(m,)``): ``first`` ``(k,)``
+    one edge per distinct vertex, ``inverse`` ``(m,)`` each edge's entry in ``first``
+    (``slots[first][inverse] == slots``), for :attr:`EdgeContext.vertices`."""
+    _, first, inverse = np.unique(slots, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)
+
+
 def _regathers(flat: np.ndarray, first: np.ndarray, inv: np.ndarray) -> bool:
     """``flat[first][inv] == flat`` exactly (``flat`` ``(m, s)``), gathered along its
     contiguous axis (the optimizer gathers 2-D estimates in Fortran order)."""
@@ -182,8 +191,12 @@ class _Position:
     """
 
     def __init__(self, vtype: type[_VertexType], x: np.ndarray, lo: int, n: int,
-                 derived: bool) -> None:
+                 derived: bool, distinct: tuple[np.ndarray, np.ndarray] | None = None,
+                 given: np.ndarray | None = None) -> None:
         self.vtype, self.x, self.lo, self.n = vtype, x, lo, n
+        # The derived values the optimizer gathered (ctx.derived): the per-edge values, as
+        # the plain error reads them (no second gather).
+        self.given = given
         self.vector = vtype.oplus is VertexVector.oplus and x.ndim == 2
         self.inverse: np.ndarray | None = None
         self.jet: Jet | None = None
@@ -193,7 +206,8 @@ class _Position:
         self.struct: Structure | None = None
         self.dstruct: Structure | None = None
         if not self.vector:
-            first, inv = _unique_rows(vtype, x)
+            # The optimizer's grouping (edges that share a vertex), else found from x.
+            first, inv = _unique_rows(vtype, x) if distinct is None else distinct
             if len(first) < len(x):
                 self.inverse = inv
                 key = (vtype, lo, n, derived)
@@ -238,7 +252,12 @@ class _Position:
         else:
             index = sl if self.inverse is None else self.inverse[sl]
             j = _gather(self.jet, index, self.x[sl], self.struct)
-            d = _gather(self.derived, index, None, self.dstruct)
+            g, dv = self.given, getattr(self.derived, "value", None)
+            if g is not None and not (dv is not None and g.shape[1:] == dv.shape[1:]
+                                      and g.dtype == dv.dtype
+                                      and (g.ndim != 2 or g.flags.f_contiguous)):
+                g = self.given = None  # (2-D: Fortran order, as a gather here makes it)
+            d = _gather(self.derived, index, None if g is None else g[sl], self.dstruct)
         j.rows = (0, sl.stop - sl.start)
         if type(d) is Jet:
             d.rows = j.rows
@@ -292,7 +311,10 @@ def _linearize(
     offsets = np.concatenate([[0], np.cumsum(dims)]).astype(int).tolist()
     m = len(measurement)
     want = bool(getattr(edge_type, "uses_derived", False)) and ctx is not None
-    pos = [_Position(vt, np.asarray(xi), offsets[i], n, want)
+    groups = getattr(ctx, "vertices", None) or (None,) * len(dims)
+    given = (getattr(ctx, "derived", None) if want else None) or (None,) * len(dims)
+    pos = [_Position(vt, np.asarray(xi), offsets[i], n, want, groups[i],
+                     None if given[i] is None or len(given[i]) != len(xi) else given[i])
            for i, (vt, xi) in enumerate(zip(edge_type.vertex_types, x, strict=True))]
     want = want and all(p.derived_ok for p in pos)
     dim = edge_type.dimension
