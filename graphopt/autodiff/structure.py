@@ -212,11 +212,11 @@ def contract(J: Any, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: in
             J.add(lo + k, lo + k + 1, a, b, prod, c)
 
 
-#: ``(leaf node, plan, g, x, rows)`` per deferred product (see :func:`defer`).
-_DEFERRED: list[tuple[Any, Plan, np.ndarray, np.ndarray, tuple[int, int]]] = []
+#: ``(leaf node, plan, g, x, rows, v ⊙ x)`` per deferred product (see :func:`defer`).
+_DEFERRED: list[tuple[Any, Plan, np.ndarray, np.ndarray, tuple[int, int], Any]] = []
 
 
-def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray) -> bool:
+def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray, y: Any = None) -> bool:
     """Keep the adjoint ``g ⊙ x`` of one entry ``v`` of a structured matrix (the factor of a
     recorded ``v * x``) as the pair, for :func:`contract_deferred`; ``False`` if ``v`` is no
     longer that leaf or its generators are dense (the caller forms ``g ⊙ x``).
@@ -232,6 +232,7 @@ def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray) -> bool:
         leaf: Its recorded node when the product was recorded.
         g: ``(r, m)`` the adjoint of the product.
         x: ``(m,)`` the other factor's value.
+        y: ``(m,)`` the product ``v ⊙ x`` (its value, computed already), if known.
     """
     if v._tape is not leaf or v.rows is None:
         return False
@@ -239,7 +240,7 @@ def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray) -> bool:
     plan = leaf.struct.plan(entries, len(leaf.source))
     if plan is None:
         return False
-    _DEFERRED.append((leaf, plan, g, x, v.rows))
+    _DEFERRED.append((leaf, plan, g, x, v.rows, y))
     return True
 
 
@@ -252,8 +253,13 @@ def contract_deferred(J: Any) -> None:
         J: The block's Jacobian rows (:class:`graphopt.autodiff.reverse.Rows`).
     """
     groups: dict[tuple[Any, ...], list[Any]] = {}
-    for leaf, plan, g, x, (a, b) in _DEFERRED:
+    # The recorded products v ⊙ x by entry (flat column of V) and factor: where the
+    # contraction needs the same product (V_jb x_b of another row's entry) it is reused.
+    known: dict[tuple[int, int, int], np.ndarray] = {}
+    for leaf, plan, g, x, (a, b), y in _DEFERRED:
         lo, one = leaf.struct.lo, leaf.struct.one
+        if y is not None and leaf.entries is not None and leaf.entries.size == 1:
+            known[id(x), id(leaf.full), int(leaf.entries.flat[0])] = y
         for _, col, ks in plan:
             key = (id(g), lo, a, b, tuple(ks))
             grp = groups.get(key)
@@ -269,7 +275,9 @@ def contract_deferred(J: Any) -> None:
             for name in names:
                 if name not in products:
                     x, full, col, is_one = members[name]
-                    products[name] = x if is_one else x * _column(full, col)
+                    y = known.get(name)
+                    products[name] = (x if is_one else y if y is not None
+                                      else x * _column(full, col))
             s = products[names[0]]
             for name in names[1:]:
                 s = s + products[name]

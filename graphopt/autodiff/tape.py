@@ -439,9 +439,9 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
 
     def back(g: np.ndarray) -> list[Any]:
         out = []
-        if ja and not (sa and structure.defer(a, la, g, vb)):
+        if ja and not (sa and structure.defer(a, la, g, vb, y)):
             out.append((a, _unbroadcast(fn(g, va, vb, y, 0), va.shape), None))
-        if jb and not (sb and structure.defer(b, lb, g, va)):
+        if jb and not (sb and structure.defer(b, lb, g, va, y)):
             out.append((b, _unbroadcast(fn(g, va, vb, y, 1), vb.shape), None))
         return out
 
