@@ -34,7 +34,9 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
               if p._tape is None or p._tape.source is not None}
     if any(p.rows is None or p.value.ndim == 0 for p in leaves.values()):
         return None
-    g0 = np.zeros((r, m, r))
+    # Each output column's adjoint rows contiguous over the edges (an error made by
+    # stacking columns hands g0[:, :, c] to each; strided rows slow every product after).
+    g0 = np.zeros((r, r, m)).transpose(1, 2, 0)
     for i in range(r):
         g0[i, :, i] = 1.0
     adj: dict[int, list[Any]] = {id(out): [out, g0, True]}
