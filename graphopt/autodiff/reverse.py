@@ -10,7 +10,7 @@ import numpy as np
 
 import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import Jet
-from graphopt.autodiff.tape import _ancestors, _Node, _unbroadcast
+from graphopt.autodiff.tape import _Node, _unbroadcast, recorded
 
 __all__ = ["backward"]
 
@@ -29,7 +29,7 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
     _SOURCES.clear()
     structure.clear()
     m, r = out.value.shape
-    nodes = _ancestors(out)
+    nodes = recorded(out)
     leaves = {id(p): p for a in nodes for p in _inputs(a)
               if p._tape is None or p._tape.source is not None}
     if any(p.rows is None or p.value.ndim == 0 for p in leaves.values()):

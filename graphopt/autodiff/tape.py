@@ -70,6 +70,9 @@ class _Node:
 class _State:
     seq = 0
     pending: list[Jet] = []
+    # A container was written since recording began: its place in the order moved (its
+    # seq), so the recorded jets are no longer in the order of `pending`.
+    reordered = False
 
 
 def _record(value: np.ndarray, n: int, node: _Node) -> Jet:
@@ -85,17 +88,26 @@ def _record(value: np.ndarray, n: int, node: _Node) -> Jet:
 def recording() -> Iterator[None]:
     """Record jet operations (for :func:`graphopt.autodiff.reverse.backward`) inside the block."""
     Tape.active = ENABLED
-    _State.pending = []
+    _State.pending, _State.reordered = [], False
     try:
         yield
     finally:
-        Tape.active = False
-        _State.pending = []  # (only a write during recording needs them all)
+        Tape.active = False  # (the recorded jets stay listed for the reverse pass: clear())
 
 
 def clear() -> None:
     """Forget the recorded operations (after :func:`backward`)."""
     _State.pending = []
+
+
+def recorded(out: Jet) -> list[Jet]:
+    """The recorded jets that may reach ``out``, in the order they were recorded: those of
+    the last :func:`recording` still recorded (cheaper than walking back from ``out``; a jet
+    that does not reach it gets no adjoint), or ``out``'s ancestors when containers were
+    written (their order changed)."""
+    if _State.reordered:
+        return _ancestors(out)
+    return [a for a in _State.pending if a._tape is not None]
 
 
 def _pending_container(a: Any) -> Jet | None:
@@ -337,6 +349,7 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
     j.value[k] = item.value if type(item) is Jet else item
     root._tape.writes.append((j._tape.chain + (k,), item))
     _State.seq += 1
+    _State.reordered = True
     root._tape.seq = _State.seq  # after its sources, for the reverse order
     return True
 
@@ -345,6 +358,7 @@ def container(value: np.ndarray, like: Jet) -> Jet:
     """A recorded container: zero derivatives until written."""
     node = _Node((), None, None, True)
     node.writes, node.like = [], like
+    _State.reordered = True
     return _record(value, like.n, node)
 
 
