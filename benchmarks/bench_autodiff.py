@@ -117,7 +117,7 @@ def bench_bal(m: int, repeats: int, rng: np.random.Generator) -> None:
     z = rng.normal(0, 200, (m, 2))
     # What the optimizer passes: derived values and, for an automatically differentiated
     # type, which edges share a vertex (structure, found once per group).
-    ctx = EdgeContext(derived=(VertexCameraBAL.derived(cams)[ci], None),
+    ctx = EdgeContext(derived=(np.asfortranarray(VertexCameraBAL.derived(cams)[ci]), None),
                       vertices=(distinct_vertices(ci), distinct_vertices(pi)))
     _compare(f"{m:,} EdgeBALProjection edges", EdgeBALProjection, EdgeBALAutodiff, (cam, X), z,
              ctx, repeats)
