@@ -95,6 +95,18 @@ class Rows:
         else:
             target += sign * value
 
+    def add_product(self, d: int, a: int, b: int, g: np.ndarray, s: np.ndarray,
+                    c: float) -> None:
+        """``J[:, d, a:b] += c · g ⊙ s`` (``g`` ``(r, m)``, ``s`` ``(m,)``), into the rows
+        themselves when they are not written yet (no temporary ``g ⊙ s``)."""
+        target = self.J[:, d, a:b]
+        if a == 0 and b == self.m and self.fresh[d]:
+            self.fresh[d] = False
+            np.multiply(g, s if c == 1.0 else c * s, out=target)
+            return
+        self.zero(d, d + 1)
+        target += g * (s if c == 1.0 else c * s)
+
     def zero(self, lo: int, hi: int) -> None:
         """Zero the rows of directions ``lo…hi−1`` not written yet."""
         for d in range(lo, hi):

@@ -212,6 +212,11 @@ def contract(J: Any, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: in
             J.add(lo + k, lo + k + 1, a, b, prod, c)
 
 
+#: Recorded sums of products of structured entries and arrays, by their terms (see
+#: ``_Node.terms`` in :mod:`graphopt.autodiff.tape`): ``Σ_b V_jb x_b`` of an error written
+#: entry by entry is such a sum, which :func:`contract_deferred` reuses.
+SUMS: dict[frozenset[tuple[int, int, int]], np.ndarray] = {}
+
 #: ``(leaf node, plan, g, x, rows, v ⊙ x)`` per deferred product (see :func:`defer`).
 _DEFERRED: list[tuple[Any, Plan, np.ndarray, np.ndarray, tuple[int, int], Any]] = []
 
@@ -272,6 +277,8 @@ def contract_deferred(J: Any) -> None:
         names = tuple(sorted(members))
         s = sums.get(names)
         if s is None:
+            s = sums[names] = SUMS.get(frozenset(names))
+        if s is None:
             for name in names:
                 if name not in products:
                     x, full, col, is_one = members[name]
@@ -282,7 +289,11 @@ def contract_deferred(J: Any) -> None:
             for name in names[1:]:
                 s = s + products[name]
             sums[names] = s
+        if len(ks) == 1:  # (a rotation's generators: one direction each)
+            J.add_product(lo + ks[0][0], a, b, g, s, ks[0][1])
+            continue
         prod = (g * s)[:, None, :]
         for k, c in ks:
             J.add(lo + k, lo + k + 1, a, b, prod, c)
     _DEFERRED.clear()
+    SUMS.clear()

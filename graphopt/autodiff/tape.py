@@ -58,6 +58,10 @@ class _Node:
     # Products with these rows whose contribution the reverse pass adds directly (a
     # structured A in A @ B): (plan, adjoint of the product, the product).
     direct: list[tuple[Any, np.ndarray, np.ndarray]] | None = None
+    # A product of a structured matrix's entry and an array, or a sum of such products: its
+    # terms as (id of the array, id of the matrix, flat entry), the names
+    # structure.contract_deferred gives them (it reuses such a sum's value).
+    terms: frozenset[tuple[int, int, int]] | None = None
 
     def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
                  replay: Callable[[], Any] | None, special: bool = False) -> None:
@@ -89,6 +93,7 @@ def recording() -> Iterator[None]:
     """Record jet operations (for :func:`graphopt.autodiff.reverse.backward`) inside the block."""
     Tape.active = ENABLED
     _State.pending, _State.reordered = [], False
+    structure.SUMS.clear()
     try:
         yield
     finally:
@@ -460,7 +465,17 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
         return out
 
     n = a.n if ja else b.n
-    return _record(y, n, _Node((a, b) if ja and jb else ((a,) if ja else (b,)), back, replay))
+    node = _Node((a, b) if ja and jb else ((a,) if ja else (b,)), back, replay)
+    if sa or sb:
+        leaf, other = (la, vb) if sa else (lb, va)
+        if leaf.entries is not None and leaf.entries.size == 1:
+            node.terms = frozenset(((id(other), id(leaf.full), int(leaf.entries.flat[0])),))
+    elif uf is np.add and ja and jb and a._tape is not None and b._tape is not None:
+        ta, tb = a._tape.terms, b._tape.terms
+        if ta is not None and tb is not None and va.shape == vb.shape:
+            node.terms = ta | tb
+            structure.SUMS[node.terms] = y
+    return _record(y, n, node)
 
 
 def _entry(v: Jet, vv: np.ndarray, other: Any) -> bool:
