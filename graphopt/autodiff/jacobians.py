@@ -372,10 +372,9 @@ def _linearize(
             buffer = _scratch(dim * n * min(m, size))
         J = backward(eb, n, buffer) if eb._tape is not None else None
         tape.clear()
-        if J is not None:  # reverse accumulation: J (rows, n, mb), per row (a faster copy)
+        if J is not None:  # reverse accumulation: J (rows, n, mb), one copy per position
             for i, d in enumerate(dims):
-                for row in range(dim):
-                    jac[i][sl, row, :] = J[row, offsets[i]: offsets[i] + d].T
+                jac[i][sl] = J[:, offsets[i]: offsets[i] + d].transpose(2, 0, 1)
             continue
         t, lo = eb.tangent, eb.lo
         for i, d in enumerate(dims):
