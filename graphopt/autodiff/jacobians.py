@@ -349,13 +349,19 @@ def _linearize(
         blocks = [p.block(sl) for p in pos]
         sub = ctx.subset(sl) if ctx is not None and size < m else ctx
         if sub is not None and (want or getattr(sub, "derived", None) is not None):
-            sub = replace(sub, derived=tuple(b[1] for b in blocks) if want else None)
+            derived = tuple(b[1] for b in blocks) if want else None
+            if sub is ctx:  # (the caller's: not changed)
+                sub = replace(sub, derived=derived)
+            else:
+                sub.derived = derived
         mb = sl.stop - sl.start
         with tape.recording():
             ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
         eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
-        if tuple(np.shape(eb)) != (mb, dim):
-            raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(eb)}, "
+        # (a jet's own shape: np.shape would go through the array-function protocol)
+        shape = eb.value.shape if type(eb) is Jet else np.shape(eb)
+        if tuple(shape) != (mb, dim):
+            raise GraphError(f"{edge_type.__name__}.error returned shape {tuple(shape)}, "
                              f"expected {(mb, dim)}")
         if ab is not None:
             if active is None:
