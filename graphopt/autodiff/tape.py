@@ -29,7 +29,7 @@ import numpy as np
 import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
 
-__all__ = ["ENABLED", "clear", "container", "gathered", "recording"]
+__all__ = ["ENABLED", "binary", "clear", "container", "gathered", "recorded", "recording"]
 
 #: Record for reverse accumulation (``False``: forward jets throughout, e.g. to compare).
 ENABLED = True
@@ -378,26 +378,6 @@ def _unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     if axes:
         g = g.sum(axis=axes, keepdims=True)
     return g.reshape((g.shape[0],) + shape)
-
-
-def ufunc(uf: np.ufunc, inputs: tuple[Any, ...], rules: dict[Any, Any],
-          replay: Callable[[], Any]) -> Jet | None:
-    """A recorded elementwise ufunc (``rules``: the unary derivative rules), or ``None``."""
-    if len(inputs) == 2:
-        return binary(uf, inputs[0], inputs[1], replay)
-    if len(inputs) != 1:
-        return None
-    a = _operand(inputs[0])
-    v = a.value
-    if v.dtype.kind != "f":
-        return None
-    if uf is np.negative:
-        return _record(uf(v), a.n, _Node((a,), lambda g: [(a, -g, None)], replay))
-    rule = rules.get(uf)
-    if rule is None or (uf is np.sqrt and not np.all(v)):
-        return None
-    y = uf(v)
-    return _record(y, a.n, _Node((a,), lambda g: [(a, g * rule(v, y), None)], replay))
 
 
 _SCALARS = (float, int, np.float64)
