@@ -270,25 +270,36 @@ def contract_deferred(J: Any) -> None:
             grp = groups.get(key)
             if grp is None:
                 grp = groups[key] = [g, lo, a, b, ks, {}]
-            grp[5][id(x), id(leaf.full), col] = (x, leaf.full, col, bool(one[col]))
+            # (the same product twice — `v * x + v * x` — counts twice)
+            name = (id(x), id(leaf.full), col)
+            hit = grp[5].get(name)
+            if hit is None:
+                grp[5][name] = [x, leaf.full, col, bool(one[col]), 1]
+            else:
+                hit[4] += 1
     products: dict[tuple[int, int, int], np.ndarray] = {}
     sums: dict[tuple[Any, ...], np.ndarray] = {}
     for g, lo, a, b, ks, members in groups.values():
         names = tuple(sorted(members))
-        s = sums.get(names)
-        if s is None:
-            s = sums[names] = SUMS.get(frozenset(names))
+        counts = tuple(members[n][4] for n in names)
+        once = max(counts) == 1
+        skey = names if once else (names, counts)
+        s = sums.get(skey)
+        if s is None and once:  # (a recorded sum adds each product once)
+            s = sums[skey] = SUMS.get(frozenset(names))
         if s is None:
             for name in names:
                 if name not in products:
-                    x, full, col, is_one = members[name]
+                    x, full, col, is_one, _ = members[name]
                     y = known.get(name)
                     products[name] = (x if is_one else y if y is not None
                                       else x * _column(full, col))
-            s = products[names[0]]
-            for name in names[1:]:
-                s = s + products[name]
-            sums[names] = s
+            terms = [products[n] if c == 1 else c * products[n]
+                     for n, c in zip(names, counts, strict=True)]
+            s = terms[0]
+            for t in terms[1:]:
+                s = s + t
+            sums[skey] = s
         if len(ks) == 1:  # (a rotation's generators: one direction each)
             J.add_product(lo + ks[0][0], a, b, g, s, ks[0][1])
             continue

@@ -452,7 +452,8 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
             node.terms = frozenset(((id(other), id(leaf.full), int(leaf.entries.flat[0])),))
     elif uf is np.add and ja and jb and a._tape is not None and b._tape is not None:
         ta, tb = a._tape.terms, b._tape.terms
-        if ta is not None and tb is not None and va.shape == vb.shape:
+        # (disjoint: a sum of distinct products, each once, is what contract_deferred needs)
+        if ta is not None and tb is not None and va.shape == vb.shape and ta.isdisjoint(tb):
             node.terms = ta | tb
             structure.SUMS[node.terms] = y
     return _record(y, n, node)
