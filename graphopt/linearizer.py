@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from graphopt.activity import only_active
+from graphopt.autodiff.jacobians import distinct_vertices
 from graphopt.edge import EdgeContext, Linearization
 from graphopt.edge_output import checked_output, raise_non_finite_edge, reduced_error, where
 from graphopt.errors import GraphError
@@ -149,6 +151,8 @@ class Linearizer:
         # whether it is stored transposed).
         self._state_cache: dict[tuple[int, str], tuple[int, np.ndarray | None, bool]] = {}
         self.last: Evaluation | None = None
+        # (group, first edge, end) -> (the slots, their EdgeContext.vertices): see _vertices.
+        self._distinct: dict[tuple[int, int, int], tuple[Any, Any]] = {}
         # (group, method, edges) whose output passed _checked as it was (no conversion): a type
         # returns the same kinds and shapes at every call, so later calls are trusted.
         self._trusted: set[tuple[int, str, int]] = set()
@@ -224,7 +228,20 @@ class Linearizer:
         if g.etype.uses_derived:
             ctx.derived = tuple(self._gather_rows(si, "derived", slots)
                                 for si, slots in self.positions[gi])
+        ctx.vertices = self._vertices(gi, slice(0, g.size))
         return ctx
+
+    def _vertices(self, gi: int, sl: slice) -> tuple[tuple[np.ndarray, np.ndarray], ...] | None:
+        """:attr:`EdgeContext.vertices` of edges ``sl`` of group ``gi`` for a type that is
+        differentiated automatically (else ``None``): structure, found once per chunk."""
+        if self.groups[gi].etype.differentiation_method() != "autodiff":
+            return None
+        slots = tuple(s for _, s in self.positions[gi])
+        hit = self._distinct.get((gi, sl.start, sl.stop))
+        if hit is None or any(a is not b for a, b in zip(hit[0], slots, strict=True)):
+            hit = (slots, tuple(distinct_vertices(s[sl]) for s in slots))
+            self._distinct[gi, sl.start, sl.stop] = hit
+        return hit[1]
 
     def _state(self) -> tuple[int, ...]:
         """Versions of every store's estimates: the key of cached linearisations."""
@@ -284,6 +301,7 @@ class Linearizer:
             if g.etype.uses_derived:
                 ctx.derived = tuple(self._gather_rows(si, "derived", slots[sl])
                                     for si, slots in self.positions[gi])
+            ctx.vertices = self._vertices(gi, sl)
             out = self._call(g, method, x, ctx, sl)
             del x, ctx
             parts = [out.error, *out.jacobians, out.reduced_error, out.active]
