@@ -14,7 +14,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.errors import GraphError
-from graphopt.robust_kernel import RobustKernel, kernel_changes
+from graphopt.robust_kernel import RobustKernel, kernel_changes, kernel_key
 
 
 def join_chunks(chunks: list[np.ndarray]) -> np.ndarray:
@@ -465,20 +465,6 @@ class EdgeGroup:
         self._active = None
         self.finalize()
         self.activity_count += 1
-
-
-def kernel_key(kernel: RobustKernel) -> Any:
-    """What makes two kernels interchangeable: their type and parameters (or identity).
-
-    Args:
-        kernel: A kernel.
-    """
-    key = (type(kernel), *kernel.__dict__.values())
-    try:
-        hash(key)
-    except TypeError:
-        return id(kernel)
-    return key
 
 
 def _per_edge(value: int | np.ndarray, n: int) -> np.ndarray:

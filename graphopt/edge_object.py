@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from graphopt.errors import GraphError
-from graphopt.robust_kernel import RobustKernel
+from graphopt.robust_kernel import RobustKernel, kernel_key
 from graphopt.vertex import BaseVertex, _own  # one copy rule for both kinds of object
 
 if TYPE_CHECKING:
@@ -170,8 +170,6 @@ class EdgeObject:
     def _given(self, slot: RobustKernel | None) -> RobustKernel | None:
         """The kernel given to this edge if the group's ``slot`` for it is equal to it by value,
         else ``slot`` (a kernel set on the edge's group since, e.g. through an ``EdgeSet``)."""
-        from graphopt.edge_group import kernel_key
-
         mine = self._robust_kernel
         if slot is None or mine is None or mine is slot:
             return slot

@@ -8,7 +8,7 @@ the assembler, the Schur reduction and the solver interface. Here the structure 
 vertex's slot and, per edge group, which positions hold it; an iteration is the edge type's
 call, its weights, two products for ``H`` and ``b``, and LAPACK's ``dpotrf``/``dpotrs`` on
 ``H + λD``. The numbers are formed as on the general path (the row weights of
-:func:`~graphopt.linearizer.weighted_rows`, with inactive edges weighted zero where the general
+:func:`~graphopt.row_weights.weighted_rows`, with inactive edges weighted zero where the general
 path zeroes their rows; the products of
 :class:`~graphopt.linear.single_block.SingleBlockAssembler`; the dense solver's rank rule), so
 both paths give the same iterations; the tests compare them.
@@ -38,10 +38,10 @@ from graphopt.linearizer import (
     Linearizer,
     Positions,
     broadcast_row,
-    weighted_rows,
 )
 from graphopt.numeric import checked_oplus
 from graphopt.problem import Problem, Step, Timing
+from graphopt.row_weights import weighted_rows
 from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
 from graphopt.solvers.dense import cholesky_solve
 from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
@@ -212,7 +212,7 @@ class SingleVertexProblem(Problem):
                     lin: bool, totals: list[float]
                     ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], np.ndarray]:
         """What :meth:`Linearizer._weigh`, ``_robustify``, ``_record`` and
-        :func:`~graphopt.linearizer.weighted_rows` do for one group, inactive edges weighed
+        :func:`~graphopt.row_weights.weighted_rows` do for one group, inactive edges weighed
         zero instead of zeroed: ``(J, ρ'ΩJ, ρ'Ωe)`` if ``lin``, else empty."""
         lz = self.linearizer
         e = out.error

@@ -152,7 +152,7 @@ def test_per_edge_diagonal_information_scales_rows_with_the_products_values() ->
 def test_row_dots_are_einsums_bits() -> None:
     """The two-column fast form of ``e'Ωe`` gives einsum's bits (so chi2 and every iteration
     are unchanged); other widths are einsum itself."""
-    from graphopt.linearizer import row_dots
+    from graphopt.row_weights import row_dots
 
     rng = np.random.default_rng(3)
     for r in (1, 2, 3, 6):
