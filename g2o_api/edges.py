@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from graphopt.errors import GraphError
+
 from .vertices import BaseVertex
 
 __all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
@@ -203,9 +205,15 @@ class BaseEdge:
         """The error's dimension."""
         return self._dim
 
+    def _detach(self) -> None:
+        """Leave the optimizer (removed, or the optimizer is gone)."""
+        self._opt = self._batch = None
+
     def _structure_changed(self) -> None:
         if self._batch is not None:
-            self._opt._structure_changed()
+            opt = self._opt()  # the optimizer, unless it is gone
+            if opt is not None:
+                opt._structure_changed()
             self._batch = None
 
     # --- evaluation (batched) ----------------------------------------------------------------
@@ -237,7 +245,13 @@ class BaseEdge:
         if self._batch is None:
             if self._opt is None:
                 raise RuntimeError(f"{type(self).__name__}: add the edge to an optimizer first")
-            self._opt._prepare()
+            opt = self._opt()
+            if opt is None:
+                raise GraphError(f"{type(self).__name__} on vertices "
+                                 f"{[v._id if v is not None else None for v in self._v]}: its "
+                                 "optimizer was deleted after the edge changed; add it to an "
+                                 "optimizer again")
+            opt._prepare()
         return self._batch
 
     # --- conversion (overridden per type) ----------------------------------------------------
