@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.algorithms import LevenbergConfig
 from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
 from graphopt.stopping import StoppingConfig
@@ -33,13 +32,14 @@ from graphopt.stopping import StoppingConfig
 from .batch import Batch, bucket_edges, stack_information, stack_measurements
 from .edges import BaseEdge
 from .params import Parameter
-from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
+from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg, iteration_line
 from .vertices import Bank, BaseVertex, core_type
 
 __all__ = ["SparseOptimizer"]
 
-_VERTICES_OF = attrgetter("_v")
 _ID = attrgetter("_id")
+#: An edge's vertex ids at positions 0 and 1, its further vertices.
+_ID0, _ID1, _MORE = attrgetter("_v0._id"), attrgetter("_v1._id"), attrgetter("_vn")
 
 
 class SparseOptimizer:
@@ -161,14 +161,19 @@ class SparseOptimizer:
             edge: The edge record.
         """
         try:
-            vs = edge._v
+            v0, v1, vn = edge._v0, edge._v1, edge._vn
         except AttributeError:
             raise TypeError(f"add_edge: expected a g2o edge, got {type(edge).__name__}"
                             ) from None
-        if (edge._opt is not None and not self._orphan(edge)) or None in vs or (
-                len(vs) == 2 and vs[0] is vs[1]) or (
-                len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
+        if edge._opt is not None and not self._orphan(edge):
             return False
+        if vn is None:  # one or two vertices (v1 is None for one)
+            if v0 is None or v1 is v0 or (v1 is None and edge._k != 1):
+                return False
+        else:
+            vs = edge._v
+            if None in vs or len(set(map(id, vs))) < len(vs):
+                return False
         self._edges[edge] = None
         edge._opt = self._ref
         self._records_dirty = True
@@ -299,10 +304,12 @@ class SparseOptimizer:
             gtype = cls._core_type(pkey)
             m, k = len(recs), len(recs[0]._v)  # the class's count, or the edges' own (LotsOf)
             perm = cls._perm if len(cls._perm) == k else tuple(range(k))
-            vs = list(map(_VERTICES_OF, recs))
+            more = list(map(_MORE, recs)) if k > 2 else []
             vids = np.empty((m, k), dtype=np.int64)
             for g in range(k):  # vertex ids column by column, in C loops
-                vids[:, g] = np.fromiter(map(_ID, map(itemgetter(g), vs)), np.int64, count=m)
+                ids = (map(_ID0, recs) if g == 0 else map(_ID1, recs) if g == 1
+                       else map(_ID, map(itemgetter(g - 2), more)))
+                vids[:, g] = np.fromiter(ids, np.int64, count=m)
             missing = ~np.isin(vids, known)
             if missing.any():
                 i, g = (int(a[0]) for a in np.nonzero(missing))
@@ -412,17 +419,8 @@ class SparseOptimizer:
             core.stop()
 
     def _print_line(self, core: CoreOptimizer, info: Any) -> None:
-        """g2o's iteration line; LM's ``lambda`` is the value after the iteration's update,
-        as g2o prints it."""
         self._cum_time += info.seconds
-        p = core.problem
-        schur = 1 if p is not None and p.system.schur else 0
-        alg = core.algorithm
-        fields = (f"\t lambda= {alg.lam:f}\t levenbergIter= {info.trials}"
-                  if isinstance(alg.config, LevenbergConfig) else alg.line_fields(info))
-        print(f"iteration= {info.iteration}\t chi2= {info.chi2:f}\t time= {info.seconds:g}"
-              f"\t cumTime= {self._cum_time:g}\t edges= {core.active_edge_count()}"
-              f"\t schur= {schur}{fields}", file=sys.stderr)
+        print(iteration_line(core, info, self._cum_time), file=sys.stderr)
 
     def compute_active_errors(self) -> None:
         """Evaluate the active edges at the current estimates."""
