@@ -164,8 +164,9 @@ def test_records_outlive_their_optimizer() -> None:
     # A changed estimate changes the edges' values (the arrays are still there).
     p = out["pts"][0]
     p.set_estimate(p.estimate() + 1.0)
-    on_p = [e for e in edges[:-1] if e.vertex(0) is p]
-    assert all(e.chi2() != c for e, c in zip(on_p, out["chi2"], strict=False))
+    on_p = [i for i, e in enumerate(edges[:-1]) if e.vertex(0) is p]
+    assert on_p and all(edges[i].chi2() != out["chi2"][i] for i in on_p)
+    assert all(edges[i].chi2() == c for i, c in enumerate(out["chi2"]) if i not in on_p)
     # Levels and kernels are accepted (nothing to tell), structural edits need an optimizer.
     edges[0].set_level(0)
     edges[0].set_robust_kernel(g2o.RobustKernelHuber(1.0))
@@ -195,3 +196,43 @@ def test_records_join_a_new_optimizer_after_theirs_is_gone() -> None:
     opt.initialize_optimization()
     opt.optimize(1)
     assert np.isfinite(opt.active_chi2())
+
+
+def test_edge_vertex_positions() -> None:
+    """Vertices 0 and 1 live in slots, further ones in a list: positions, bounds and the
+    variable-count edges behave as a list of the type's length."""
+    vs = []
+    for i in range(4):
+        v = g2o.VertexPointXY()
+        v.set_id(i)
+        vs.append(v)
+    one, two = g2o.EdgeXYPrior(), g2o.EdgePointXY()
+    three = g2o.EdgeSE2TwoPointsXY()
+    assert one.vertices() == [None] and two.vertices() == [None, None]
+    assert three.vertices() == [None, None, None]
+    with pytest.raises(IndexError):
+        one.set_vertex(1, vs[0])
+    with pytest.raises(IndexError):
+        two.set_vertex(2, vs[0])
+    two.set_vertex(-1, vs[1])
+    two.set_vertex(0, vs[0])
+    three.set_vertex(2, vs[2])
+    assert two.vertices() == [vs[0], vs[1]] and two.vertex(-2) is vs[0]
+    assert three.vertex(2) is vs[2] and three.vertices() == [None, None, vs[2]]
+    lots = g2o.EdgeSE2LotsOfXY()
+    lots.resize(4)
+    for i, v in enumerate(vs):
+        lots.set_vertex(i, v)
+    assert lots.vertices() == vs and lots.dimension() == 6
+    lots.resize(2)
+    assert lots.vertices() == [None, None] and lots.dimension() == 2
+    opt = g2o.SparseOptimizer()
+    for v in vs:
+        opt.add_vertex(v)
+    assert not opt.add_edge(three)  # vertex 0 and 1 missing
+    three.set_vertex(0, vs[0])
+    three.set_vertex(1, vs[2])
+    assert not opt.add_edge(three)  # vertex 2 named twice
+    three.set_vertex(1, vs[1])
+    assert opt.add_edge(three) and opt.add_edge(two)
+    assert not opt.add_edge(one)  # no vertex
