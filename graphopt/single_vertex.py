@@ -195,7 +195,7 @@ class SingleVertexProblem(Problem):
         key = (id(g), method, g.size)
         if ctx is None or key not in lz._trusted:
             if ctx is None and not g.etype.uses_derived:
-                self._ctx[gi] = g.context()
+                self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
             return lz._run(gi, method)
         if self._unary[gi] and lz._one[gi] is not None:  # the free vertex's row, broadcast
             est = self.stores[self._store].estimates
