@@ -212,6 +212,18 @@ def _graphopt() -> Callable[..., Any]:
     return ns["pose_optimization"]
 
 
+def _medians(calls: dict[str, Callable[[], Any]], runs: int) -> dict[str, float]:
+    """CPU ms per call of each, the median of ``runs`` batches of 50, the sides interleaved."""
+    times: dict[str, list[float]] = {k: [] for k in calls}
+    for _ in range(runs):
+        for k, fn in calls.items():
+            t = time.process_time()
+            for _ in range(50):
+                fn()
+            times[k].append((time.process_time() - t) / 50 * 1e3)
+    return {k: float(np.median(v)) for k, v in times.items()}
+
+
 def g2o_semantics(args: argparse.Namespace) -> None:
     """The ``--g2o-semantics`` table (see the module docstring)."""
     import slam_backend_g2o as g2o_side
@@ -250,14 +262,7 @@ def g2o_semantics(args: argparse.Namespace) -> None:
         _, inl_go, _ = calls["graphopt.g2o"]()
         assert np.array_equal(inl_b, inl_g) and np.array_equal(inl_go, inl_g), \
             "the inlier sets differ"
-        times: dict[str, list[float]] = {k: [] for k in calls}
-        for _ in range(args.runs):
-            for k, fn in calls.items():
-                t = time.process_time()
-                for _ in range(50):
-                    fn()
-                times[k].append((time.process_time() - t) / 50 * 1e3)
-        med = {k: float(np.median(v)) for k, v in times.items()}
+        med = _medians(calls, args.runs)
         print(f"| {m} | {med['g2opy']:.2f} | {med['graphopt.g2o']:.2f} | {med['bare']:.2f} | "
               f"{med['graphopt.g2o'] / med['g2opy']:.2f} | {med['bare'] / med['g2opy']:.2f} | "
               f"{counted[0]}, {counted[1]} | {chi_b:.6g}, {quality():.6g} |")
@@ -298,14 +303,7 @@ def main() -> None:
         _, inl_b, chi_b = calls["bare"]()
         iters = count[0]
         res = gopt(s.T_init, s.Xw, s.z, s.inv_sigma2, scenes.CAM)
-        times: dict[str, list[float]] = {k: [] for k in calls}
-        for _ in range(args.runs):
-            for k, fn in calls.items():
-                t = time.process_time()
-                for _ in range(50):
-                    fn()
-                times[k].append((time.process_time() - t) / 50 * 1e3)
-        med = {k: float(np.median(v)) for k, v in times.items()}
+        med = _medians(calls, args.runs)
         g2o_ms = med.get("g2opy", float("nan"))
         assert np.array_equal(inl_b, res[1]), "bare and graphopt disagree on the inliers"
         print(f"| {m} | {g2o_ms:.2f} | {med['bare']:.2f} | {med['graphopt']:.2f} | "

@@ -360,15 +360,13 @@ class SingleVertexProblem(Problem):
         return float(asm.h_data[self._diag].max())
 
     def solve(self, asm: Assembly, lam: float, damping: Step | None = None) -> Step:
-        """``(H + λD) Δ = b`` by LAPACK's Cholesky, with the dense solver's rank rule.
+        """See :meth:`Problem.solve`: LAPACK's Cholesky of ``H + λD`` (``D``: ``damping``, the
+        identity if ``None``), held to the dense solver's rank rule.
 
         Args:
             asm: The assembly.
             lam: Damping λ (0 for none).
-            damping: ``D`` from :meth:`damping`; ``None`` for the identity.
-
-        Raises:
-            NotPositiveDefiniteError: if the damped system is not positive definite.
+            damping: ``D`` from :meth:`damping`.
         """
         t0 = time.perf_counter()
         data = asm.h_data.copy()
