@@ -32,6 +32,7 @@ import numpy as np
 
 from graphopt import EdgeContext, LevenbergConfig, SparseOptimizer, StoppingConfig
 from graphopt.autodiff import tape
+from graphopt.autodiff.jacobians import distinct_vertices
 from graphopt.lie import se3_exp
 from graphopt.numeric import numeric_jacobians
 from graphopt.types import (
@@ -114,7 +115,10 @@ def bench_bal(m: int, repeats: int, rng: np.random.Generator) -> None:
     pts = rng.normal(0, 1, (npt, 3)) + [0, 0, -10]
     cam, X = np.asfortranarray(cams[ci]), np.asfortranarray(pts[pi])  # as the optimizer gathers
     z = rng.normal(0, 200, (m, 2))
-    ctx = EdgeContext(derived=(VertexCameraBAL.derived(cams)[ci], None))
+    # What the optimizer passes: derived values and, for an automatically differentiated
+    # type, which edges share a vertex (structure, found once per group).
+    ctx = EdgeContext(derived=(np.asfortranarray(VertexCameraBAL.derived(cams)[ci]), None),
+                      vertices=(distinct_vertices(ci), distinct_vertices(pi)))
     _compare(f"{m:,} EdgeBALProjection edges", EdgeBALProjection, EdgeBALAutodiff, (cam, X), z,
              ctx, repeats)
 
@@ -126,7 +130,8 @@ def bench_se3(m: int, repeats: int, rng: np.random.Generator) -> None:
     pc = np.c_[rng.normal(0, 0.5, (m, 2)), rng.uniform(4, 8, m)]
     X = np.asfortranarray(np.einsum("mji,mj->mi", Tm[:, :3, :3], pc - Tm[:, :3, 3]))
     z = rng.normal(300, 50, (m, 2))
-    ctx = EdgeContext(CameraParameters(500, 510, 320, 240))
+    ctx = EdgeContext(CameraParameters(500, 510, 320, 240),
+                      vertices=(distinct_vertices(ci), distinct_vertices(np.arange(m))))
     _compare(f"{m:,} EdgeSE3ProjectXYZ edges", EdgeSE3ProjectXYZ, EdgeSE3ProjectXYZAutodiff,
              (Tm, X), z, ctx, repeats)
 

@@ -5,6 +5,7 @@ once per state; ``set_level`` and ``set_robust_kernel`` as one entry of an array
 
 from __future__ import annotations
 
+import weakref
 from collections import deque
 from itertools import repeat
 from operator import attrgetter, is_
@@ -42,12 +43,15 @@ def kernel_key(kernel: Any) -> Any:
 class Batch:
     """All edges of one g2o edge class with equal parameters.
 
+    The batch points at its optimizer weakly and not at its records (the optimizer holds them):
+    records point at their batch, so anything else would be a reference cycle.
+
     Args:
         owner: The g2o optimizer.
         cls: The g2o edge class.
         gtype: graphopt's edge type.
         params: graphopt's parameter object for the group.
-        records: The edge records, in order.
+        records: The edge records, in order (given their batch and index, not kept).
         vids: ``(m, k)`` vertex ids in graphopt's position order.
         banks: The bank of each graphopt position.
         meas: ``(m, *measurement_shape)``.
@@ -58,10 +62,11 @@ class Batch:
     def __init__(self, owner: Any, cls: type, gtype: type, params: Any, records: list[Any],
                  vids: np.ndarray, banks: list[Bank], meas: np.ndarray, info: np.ndarray | None,
                  data: dict[str, np.ndarray]) -> None:
-        self.owner, self.cls, self.gtype, self.params = owner, cls, gtype, params
-        self.records, self.vids, self.banks = records, vids, banks
+        self._owner = weakref.ref(owner)
+        self.cls, self.gtype, self.params = cls, gtype, params
+        self.vids, self.banks = vids, banks
         self.meas, self.info, self.data = meas, info, data
-        m = len(records)
+        self.m = m = len(records)
         self.slots = []
         for p, b in enumerate(banks):  # a vertex of another type at this position
             slots, ok = b.slots_of(vids[:, p])
@@ -128,7 +133,7 @@ class Batch:
         self.kcodes[i] = -1 if kernel is None else self.code(kernel)  # None: outlier passes
         if self.group is not None and not self.kernels_dirty:
             self.kernels_dirty = True
-            self.owner._batch_changed(self)
+            self._notify()
 
     def set_level(self, i: int, level: int) -> None:
         """Edge ``i``'s level; it reaches the optimizer at the next ``initialize_optimization``
@@ -144,7 +149,13 @@ class Batch:
         self.levels[i] = level
         if self.group is not None and not self.levels_dirty:
             self.levels_dirty = True
-            self.owner._batch_changed(self)
+            self._notify()
+
+    def _notify(self) -> None:
+        """Tell the optimizer (if it still exists) that the batch has changes to write."""
+        owner = self._owner()
+        if owner is not None:
+            owner._batch_changed(self)
 
     def sync(self, levels: bool) -> None:
         """Write the kernels (and the levels) into the optimizer's group: one assignment per
@@ -171,7 +182,7 @@ class Batch:
         Args:
             core: A :class:`graphopt.SparseOptimizer` holding the banks' stores.
         """
-        if not len(self.records):
+        if not self.m:
             return
         es = core.add_edges(self.gtype, self.vids, self.meas, self.info, None, self.params,
                             self.data or None)
@@ -232,7 +243,8 @@ class Batch:
         edge's, whatever its level), else the batch's."""
         state = self._state()
         if self._cache is None or self._cache[0] != state:
-            g, core = self.group, self.owner._core
+            owner = self._owner()
+            g, core = self.group, (owner._core if owner is not None else None)
             if g is not None and core is not None and self.banks[0].store is not None:
                 e_all, s_all = group_errors(core.graph, g)
                 r = self.rows  # (sorted, unique) the group is this batch, in order:

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from graphopt.errors import GraphError
+
 from .vertices import BaseVertex
 
 __all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
@@ -32,8 +34,10 @@ _LAST_INFO: list[tuple[bytes, np.ndarray] | None] = [None]
 class BaseEdge:
     """A g2o edge record."""
 
-    __slots__ = ("_v", "_meas", "_info", "_kernel", "_level", "_pids", "_id", "_opt",
-                 "_batch", "_idx", "__weakref__")
+    # Vertices 0 and 1 in slots, any further ones in ``_vn`` (``None`` for one- and two-vertex
+    # edges): no list per edge for the cyclic collector to scan (``_v`` gives them as a list).
+    __slots__ = ("_v0", "_v1", "_vn", "_meas", "_info", "_kernel", "_level", "_pids", "_id",
+                 "_opt", "_batch", "_idx", "__weakref__")
     _k = 2
     _dim = 2
     _gname = ""
@@ -47,7 +51,10 @@ class BaseEdge:
     _param_type = ""
 
     def __init__(self) -> None:
-        self._v: list[BaseVertex | None] = [None] * self._k
+        self._v0: BaseVertex | None = None
+        self._v1: BaseVertex | None = None
+        # Vertices 2, 3, ... (see _v): a list only for types of more than two.
+        self._vn: list[BaseVertex | None] | None = None if self._k < 3 else [None] * (self._k - 2)
         self._meas: Any = None
         self._info: Any = None
         self._kernel: Any = None
@@ -67,7 +74,14 @@ class BaseEdge:
             i: Position (g2o's order).
             vertex: The vertex.
         """
-        self._v[i] = vertex
+        if i == 0:
+            self._v0 = vertex
+        elif i == 1 and self._k != 1:
+            self._v1 = vertex
+        else:  # further vertices, negative or bad positions
+            vs = self._v
+            vs[i] = vertex
+            self._v = vs
         if self._batch is not None:
             self._structure_changed()
 
@@ -77,7 +91,27 @@ class BaseEdge:
         Args:
             i: Position.
         """
+        if i == 0:
+            return self._v0
+        if i == 1 and self._k != 1:
+            return self._v1
         return self._v[i]
+
+    @property
+    def _v(self) -> list[BaseVertex | None]:
+        """The vertices in g2o's order, as a new list (the type's count, or ``resize``'s)."""
+        vn = self._vn
+        if vn is None:
+            return [self._v0] if self._k == 1 else [self._v0, self._v1]
+        return [self._v0, self._v1, *vn]
+
+    @_v.setter
+    def _v(self, vertices: list[BaseVertex | None]) -> None:
+        n = len(vertices)
+        self._v0 = vertices[0] if n else None
+        self._v1 = vertices[1] if n > 1 else None
+        # A list for more than two vertices, or for a count that is not the class's (resize).
+        self._vn = list(vertices[2:]) if n > 2 or n != self._k else None
 
     def vertices(self) -> list[BaseVertex | None]:
         """The vertices in g2o's order."""
@@ -203,9 +237,15 @@ class BaseEdge:
         """The error's dimension."""
         return self._dim
 
+    def _detach(self) -> None:
+        """Leave the optimizer (removed, or the optimizer is gone)."""
+        self._opt = self._batch = None
+
     def _structure_changed(self) -> None:
         if self._batch is not None:
-            self._opt._structure_changed()
+            opt = self._opt()  # the optimizer, unless it is gone
+            if opt is not None:
+                opt._structure_changed()
             self._batch = None
 
     # --- evaluation (batched) ----------------------------------------------------------------
@@ -237,7 +277,13 @@ class BaseEdge:
         if self._batch is None:
             if self._opt is None:
                 raise RuntimeError(f"{type(self).__name__}: add the edge to an optimizer first")
-            self._opt._prepare()
+            opt = self._opt()
+            if opt is None:
+                raise GraphError(f"{type(self).__name__} on vertices "
+                                 f"{[v._id if v is not None else None for v in self._v]}: its "
+                                 "optimizer was deleted after the edge changed; add it to an "
+                                 "optimizer again")
+            opt._prepare()
         return self._batch
 
     # --- conversion (overridden per type) ----------------------------------------------------

@@ -159,7 +159,7 @@ class EdgeSim3ProjectXYZ(BaseEdge):
     _camera = 1
 
     def _params_key(self) -> tuple[Any, ...]:
-        return self._v[1].camera(self._camera)  # type: ignore[union-attr]
+        return self._v1.camera(self._camera)  # type: ignore[union-attr]
 
 
 class EdgeInverseSim3ProjectXYZ(EdgeSim3ProjectXYZ):

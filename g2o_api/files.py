@@ -95,7 +95,7 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
         recs = []
         for vid, fixed in zip(store.ids.tolist(), store.fixed.tolist(), strict=True):
             r = cls()
-            r._id, r._fixed, r._opt = vid, fixed, opt
+            r._id, r._fixed, r._opt = vid, fixed, opt._ref
             opt._vertices[vid] = r
             recs.append(r)
         banks[gtype] = Bank(gtype, recs, store.estimates.copy())
@@ -108,7 +108,7 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
         offsets[id(p)] = pid
     for pid, (tag, v) in graph.parameters.items():
         opt._parameters[pid] = _parameter(pid, tag, np.asarray(v, float))
-    batches = []
+    batches: dict[Batch, list[Any]] = {}
     for g in core.edge_groups():
         g.finalize()
         cls = _api_class(g.etype.__name__, _EDGE_CLASSES, "edges")
@@ -132,15 +132,15 @@ def _load(opt: Any, filename: str | os.PathLike[str]) -> None:
         for row, z, inf in zip(g.vertex_ids.tolist(), raws, infos, strict=True):
             e = cls()
             e._v = [vmap[row[p]] for p in where]
-            e._meas, e._info, e._opt = z, inf, opt
+            e._meas, e._info, e._opt = z, inf, opt._ref
             if pids:
                 e._pids = tuple(pids)
             edges[e] = None
             recs.append(e)
         banks_of = [opt._vertices[v]._bank for v in g.vertex_ids[0].tolist()]
-        batches.append(Batch(opt, cls, g.etype, opt._core_param(cls, key), recs,
-                             g.vertex_ids.copy(), banks_of, meas,
-                             None if g.info_is_identity else info.copy(), {}))
+        batch = Batch(opt, cls, g.etype, opt._core_param(cls, key), recs, g.vertex_ids.copy(),
+                      banks_of, meas, None if g.info_is_identity else info.copy(), {})
+        batches[batch] = recs
     opt._banks, opt._batches = banks, batches
     opt._records_dirty, opt._core = False, None
 
@@ -252,15 +252,15 @@ def save(opt: Any, filename: str | os.PathLike[str]) -> None:
         vertices[tag] = VertexBlock(bank.ids.copy(), values, np.zeros(len(bank.ids), np.int64))
         fixed.append(bank.ids[bank.user_fixed])
     edges = {}
-    for b in opt._batches:
+    for b, recs in opt._batches.items():
         name = b.gtype.__name__
-        m, d = len(b.records), b.gtype.dimension
+        m, d = len(recs), b.gtype.dimension
         info = np.broadcast_to(np.eye(d) if b.info is None else b.info, (m, d, d)).copy()
         if name not in _EDGES:
-            pids = np.array([list(r._pids) for r in b.records], np.int64).reshape(m, -1)
+            pids = np.array([list(r._pids) for r in recs], np.int64).reshape(m, -1)
             try:
                 if name in _GICP_TYPES:
-                    key, block = _GICP, _gicp_block(b, info)
+                    key, block = _GICP, _gicp_block(b, recs, info)
                 else:
                     key, block = slam_tags.edge_block(name, b.vids, b.meas, info, pids)
             except NotImplementedError:
@@ -277,7 +277,7 @@ def save(opt: Any, filename: str | os.PathLike[str]) -> None:
         meas = pose_to_qt(b.meas) if tag == "EDGE_SE3:QUAT" else b.meas.copy()
         params = None
         if tag == "EDGE_SE3_TRACKXYZ":
-            params = np.full(m, b.records[0]._pids[0] if b.records else 0, np.int64)
+            params = np.full(m, recs[0]._pids[0] if recs else 0, np.int64)
         block = EdgeBlock(b.vids.copy(), meas, info, np.zeros(m, np.int64), params)
         if tag in edges:  # several batches of one tag (parameters): one block
             old = edges[tag]
@@ -310,12 +310,12 @@ def _parameter_line(p: Any) -> tuple[str, np.ndarray] | None:
     return None
 
 
-def _gicp_block(b: Batch, info: np.ndarray) -> EdgeBlock:
+def _gicp_block(b: Batch, recs: list[Any], info: np.ndarray) -> EdgeBlock:
     """The ``EDGE_V_V_GICP`` lines of a GICP batch: ``pos0 normal0 pos1 normal1`` (the
     normals the records hold; g2o's defaults ``(0, 0, 1)`` where a vector was given)."""
-    m = len(b.records)
+    m = len(recs)
     normals = np.tile([0.0, 0.0, 1.0, 0.0, 0.0, 1.0], (m, 1))
-    for i, r in enumerate(b.records):
+    for i, r in enumerate(recs):
         if isinstance(r._meas, EdgeGICP):
             normals[i] = [*np.ravel(r._meas.normal0), *np.ravel(r._meas.normal1)]
     pos = np.asarray(b.meas, float).reshape(m, 6)

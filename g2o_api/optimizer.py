@@ -19,12 +19,12 @@ from __future__ import annotations
 import gc
 import os
 import sys
+import weakref
 from operator import attrgetter, itemgetter
 from typing import Any
 
 import numpy as np
 
-from graphopt.algorithms import LevenbergConfig
 from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
 from graphopt.stopping import StoppingConfig
@@ -32,19 +32,24 @@ from graphopt.stopping import StoppingConfig
 from .batch import Batch, bucket_edges, stack_information, stack_measurements
 from .edges import BaseEdge
 from .params import Parameter
-from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg
+from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg, iteration_line
 from .vertices import Bank, BaseVertex, core_type
 
 __all__ = ["SparseOptimizer"]
 
-_VERTICES_OF = attrgetter("_v")
 _ID = attrgetter("_id")
+#: An edge's vertex ids at positions 0 and 1, its further vertices.
+_ID0, _ID1, _MORE = attrgetter("_v0._id"), attrgetter("_v1._id"), attrgetter("_vn")
 
 
 class SparseOptimizer:
     """g2o's ``SparseOptimizer`` (both bindings' method names)."""
 
     def __init__(self) -> None:
+        # Records point back weakly (this weak reference, shared by all of them), and batches
+        # and banks do not point at records: a finished program's graph is freed by reference
+        # counting, not left to the cyclic collector.
+        self._ref = weakref.ref(self)
         self._vertices: dict[int, BaseVertex] = {}
         self._edges: dict[BaseEdge, None] = {}
         self._parameters: dict[int, Parameter] = {}
@@ -53,7 +58,8 @@ class SparseOptimizer:
         self._flag: Any = None
         self._core: CoreOptimizer | None = None
         self._banks: dict[type, Bank] = {}
-        self._batches: list[Batch] = []
+        #: The batches and, for each, its edge records in order (a batch does not hold them).
+        self._batches: dict[Batch, list[BaseEdge]] = {}
         self._records_dirty = True
         self._level = 0
         self._core_params: dict[Any, Any] = {}
@@ -140,10 +146,10 @@ class SparseOptimizer:
         except AttributeError:
             raise TypeError(f"add_vertex: expected a g2o vertex, got {type(vertex).__name__}"
                             ) from None
-        if vid in self._vertices or vertex._opt is not None:
+        if vid in self._vertices or (vertex._opt is not None and not self._orphan(vertex)):
             return False
         self._vertices[vid] = vertex
-        vertex._opt = self
+        vertex._opt = self._ref
         self._records_dirty = True
         return True
 
@@ -155,16 +161,34 @@ class SparseOptimizer:
             edge: The edge record.
         """
         try:
-            vs = edge._v
+            v0, v1, vn = edge._v0, edge._v1, edge._vn
         except AttributeError:
             raise TypeError(f"add_edge: expected a g2o edge, got {type(edge).__name__}"
                             ) from None
-        if edge._opt is not None or None in vs or (len(vs) == 2 and vs[0] is vs[1]) or (
-                len(vs) > 2 and len(set(map(id, vs))) < len(vs)):
+        if edge._opt is not None and not self._orphan(edge):
             return False
+        if vn is None:  # one or two vertices (v1 is None for one)
+            if v0 is None or v1 is v0 or (v1 is None and edge._k != 1):
+                return False
+        else:
+            vs = edge._v
+            if None in vs or len(set(map(id, vs))) < len(vs):
+                return False
         self._edges[edge] = None
-        edge._opt = self
+        edge._opt = self._ref
         self._records_dirty = True
+        return True
+
+    @staticmethod
+    def _orphan(record: BaseVertex | BaseEdge) -> bool:
+        """Whether a record's optimizer is gone (then it is detached and may join another).
+
+        Args:
+            record: A vertex or edge record whose ``_opt`` is set.
+        """
+        if record._opt() is not None:
+            return False
+        record._detach()
         return True
 
     def vertex(self, vid: int) -> BaseVertex | None:
@@ -189,10 +213,10 @@ class SparseOptimizer:
         Args:
             edge: The edge.
         """
-        if edge._opt is not self:
+        if edge._opt is not self._ref:
             return False
         del self._edges[edge]
-        edge._opt, edge._batch = None, None
+        edge._detach()
         self._records_dirty = True
         return True
 
@@ -202,13 +226,12 @@ class SparseOptimizer:
         Args:
             vertex: The vertex.
         """
-        if vertex._opt is not self:
+        if vertex._opt is not self._ref:
             return False
         for e in [e for e in self._edges if any(v is vertex for v in e._v)]:
             self.remove_edge(e)
         del self._vertices[vertex._id]
-        self._capture(vertex)
-        vertex._opt, vertex._bank = None, None
+        vertex._detach()
         self._records_dirty = True
         return True
 
@@ -224,12 +247,6 @@ class SparseOptimizer:
         self._records_dirty = True
 
     # --- building ----------------------------------------------------------------------------
-
-    @staticmethod
-    def _capture(v: BaseVertex) -> None:
-        """Keep a bound vertex's current estimate in the record (its bank is being dropped)."""
-        if v._bank is not None:
-            v._est = v._from_row(v._bank.estimates()[v._slot])
 
     def _core_param(self, cls: type, key: tuple[Any, ...]) -> Any:
         """graphopt's parameter object of an edge batch (one object per key: graphopt groups
@@ -281,16 +298,18 @@ class SparseOptimizer:
         self._banks = banks
 
     def _file_edges(self) -> None:
-        batches = []
+        batches: dict[Batch, list[BaseEdge]] = {}
         known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
         for (cls, pkey), recs in bucket_edges(self._edges).items():
             gtype = cls._core_type(pkey)
             m, k = len(recs), len(recs[0]._v)  # the class's count, or the edges' own (LotsOf)
             perm = cls._perm if len(cls._perm) == k else tuple(range(k))
-            vs = list(map(_VERTICES_OF, recs))
+            more = list(map(_MORE, recs)) if k > 2 else []
             vids = np.empty((m, k), dtype=np.int64)
             for g in range(k):  # vertex ids column by column, in C loops
-                vids[:, g] = np.fromiter(map(_ID, map(itemgetter(g), vs)), np.int64, count=m)
+                ids = (map(_ID0, recs) if g == 0 else map(_ID1, recs) if g == 1
+                       else map(_ID, map(itemgetter(g - 2), more)))
+                vids[:, g] = np.fromiter(ids, np.int64, count=m)
             missing = ~np.isin(vids, known)
             if missing.any():
                 i, g = (int(a[0]) for a in np.nonzero(missing))
@@ -301,8 +320,9 @@ class SparseOptimizer:
             banks = [self._vertices[int(vids[0, p])]._bank for p in range(k)]
             meas = stack_measurements(cls, recs)
             info = stack_information(cls, recs, gtype.dimension)
-            batches.append(Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids,
-                                 banks, meas, info, cls._data(recs)))
+            batch = Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids, banks, meas,
+                          info, cls._data(recs))
+            batches[batch] = recs
         self._batches = batches
 
     def _build_core(self) -> None:
@@ -386,7 +406,10 @@ class SparseOptimizer:
         core.stopping = StoppingConfig.iterations_only(max(int(iterations), 1))
         core._callbacks["post_iteration"] = [self._after_iteration]
         self._cum_time = 0.0
-        result = core.optimize(int(iterations))
+        try:
+            result = core.optimize(int(iterations))
+        finally:  # the bound method would be a cycle (this optimizer -> core -> this one)
+            core._callbacks["post_iteration"] = []
         return len(result.info)
 
     def _after_iteration(self, core: CoreOptimizer, info: Any) -> None:
@@ -396,17 +419,8 @@ class SparseOptimizer:
             core.stop()
 
     def _print_line(self, core: CoreOptimizer, info: Any) -> None:
-        """g2o's iteration line; LM's ``lambda`` is the value after the iteration's update,
-        as g2o prints it."""
         self._cum_time += info.seconds
-        p = core.problem
-        schur = 1 if p is not None and p.system.schur else 0
-        alg = core.algorithm
-        fields = (f"\t lambda= {alg.lam:f}\t levenbergIter= {info.trials}"
-                  if isinstance(alg.config, LevenbergConfig) else alg.line_fields(info))
-        print(f"iteration= {info.iteration}\t chi2= {info.chi2:f}\t time= {info.seconds:g}"
-              f"\t cumTime= {self._cum_time:g}\t edges= {core.active_edge_count()}"
-              f"\t schur= {schur}{fields}", file=sys.stderr)
+        print(iteration_line(core, info, self._cum_time), file=sys.stderr)
 
     def compute_active_errors(self) -> None:
         """Evaluate the active edges at the current estimates."""
@@ -427,8 +441,8 @@ class SparseOptimizer:
     def active_edges(self) -> list[BaseEdge]:
         """The edges of the current level."""
         self._prepare()
-        return [r for b in self._batches for r, lv in zip(b.records, b.levels.tolist(),
-                                                             strict=True) if lv == self._level]
+        return [r for b, recs in self._batches.items()
+                for r, lv in zip(recs, b.levels.tolist(), strict=True) if lv == self._level]
 
     def active_vertices(self) -> list[BaseVertex]:
         """The vertices of the active edges."""

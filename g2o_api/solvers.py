@@ -247,3 +247,22 @@ def graphopt_kernel(kernel: Any) -> RobustKernel | None:
         return kernel.core(kernel._delta)
     raise TypeError(f"set_robust_kernel: expected a robust kernel or None, got "
                     f"{type(kernel).__name__}")
+
+
+def iteration_line(core: Any, info: Any, cum_time: float) -> str:
+    """g2o's iteration line; LM's ``lambda`` is the value after the iteration's update, as g2o
+    prints it.
+
+    Args:
+        core: graphopt's optimizer (after the iteration).
+        info: The iteration's record.
+        cum_time: Seconds of the ``optimize`` call so far.
+    """
+    p = core.problem
+    schur = 1 if p is not None and p.system.schur else 0
+    alg = core.algorithm
+    fields = (f"\t lambda= {alg.lam:f}\t levenbergIter= {info.trials}"
+              if isinstance(alg.config, LevenbergConfig) else alg.line_fields(info))
+    return (f"iteration= {info.iteration}\t chi2= {info.chi2:f}\t time= {info.seconds:g}"
+            f"\t cumTime= {cum_time:g}\t edges= {core.active_edge_count()}"
+            f"\t schur= {schur}{fields}")

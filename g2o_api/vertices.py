@@ -29,13 +29,13 @@ _F8 = np.dtype(np.float64)
 
 class Bank:
     """The graphopt store behind all records of one graphopt vertex type (replaced when the
-    core optimizer is rebuilt; records keep their slot)."""
+    core optimizer is rebuilt; records keep their slot). Records point at their bank, not the
+    bank at them (no reference cycle: the optimizer holds the records)."""
 
-    __slots__ = ("gtype", "store", "records", "ids", "user_fixed", "marg", "initial")
+    __slots__ = ("gtype", "store", "ids", "user_fixed", "marg", "initial")
 
     def __init__(self, gtype: type, records: list[BaseVertex], initial: np.ndarray) -> None:
         self.gtype = gtype
-        self.records = records
         self.store: VertexStore | None = None
         self.ids = np.array([r._id for r in records], dtype=np.int64)
         self.user_fixed = np.array([r._fixed for r in records], dtype=bool)
@@ -190,6 +190,14 @@ class BaseVertex:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(id={self._id})"
+
+    def _detach(self) -> None:
+        """Leave the optimizer (removed, or the optimizer is gone), keeping the current
+        estimate in the record."""
+        bank = self._bank
+        if bank is not None:
+            self._est = self._from_row(bank.estimates()[self._slot])
+        self._opt = self._bank = None
 
     # --- conversion (overridden per type) ----------------------------------------------------
 

@@ -140,6 +140,13 @@ class _Tests:
             norm = math.sqrt(_dot(step, step))
         return self.stopping.parameters_converged(norm, self._state_norm)
 
+    def predicts_function(self, chi: float, decrease: float) -> bool:
+        """The model's predicted decrease is under half the function tolerance: the trial will
+        most likely end the run, so it need not linearise (if it does not end it, the next
+        linearisation computes the Jacobians; the numbers are the same either way)."""
+        tol = self.stopping.function_tolerance
+        return tol > 0 and 0.0 <= decrease < 0.5 * tol * chi
+
     def function(self, chi: float, new_chi: float) -> bool:
         """The trial changed chi2 by a negligible fraction."""
         return (self.stopping.function_tolerance > 0 and math.isfinite(new_chi)
@@ -187,11 +194,12 @@ class Algorithm:
         """
         raise NotImplementedError
 
-    def _trial(self, p: Problem, step: Step) -> float:
-        """Apply a trial step (after :meth:`Problem.push`) and return the new robust chi2."""
+    def _trial(self, p: Problem, step: Step, last: bool = False) -> float:
+        """Apply a trial step (after :meth:`Problem.push`) and return the new robust chi2
+        (``last``: the step is expected to end the run, its Jacobians would not be used)."""
         p.push()
         p.apply(step)
-        return p.robust_chi2(self.trial_linearizes and not self.final_iteration)
+        return p.robust_chi2(self.trial_linearizes and not (self.final_iteration or last))
 
     def line_fields(self, info: IterationInfo) -> str:
         """The algorithm's fields of g2o's iteration line (after ``schur=``).
@@ -332,9 +340,9 @@ class LevenbergMarquardt(Algorithm):
                 return IterationInfo(iteration, chi, lam=self.lam, trials=trial, not_pd=not_pd,
                                      singular=singular, failed=True,
                                      stop=StopReason.PARAMETER_TOLERANCE)
-            new_chi = self._trial(p, step)
             # Predicted decrease of chi2 = Δ'(λDΔ + b) (g2o adds 1e-3 against a zero divisor).
             scale = _predicted_decrease(step, damp, self.lam, b) + 1e-3
+            new_chi = self._trial(p, step, tests.predicts_function(chi, scale - 1e-3))
             rho = (chi - new_chi) / scale
             stop = StopReason.FUNCTION_TOLERANCE if tests.function(chi, new_chi) else None
             if rho > 0 and math.isfinite(new_chi):

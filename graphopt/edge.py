@@ -85,15 +85,21 @@ class EdgeContext:
         measured: The edge type's :meth:`~BaseEdge.measurement_derived` values of the call's
             edges (``(m, k)``), or ``None``: constants of the measurements, computed when the
             group is finalised.
+        vertices: Per vertex position, ``(first (k,), inverse (m,))`` of the call's edges'
+            vertices — ``first`` one edge of each distinct vertex, ``inverse`` each edge's
+            entry in ``first`` — or ``None``. Structure the optimizer knows (edges that share
+            a vertex), given to automatically differentiated types: they run ``oplus`` once
+            per vertex without comparing estimates to find the shared ones.
     """
 
     params: Any = None
     data: dict[str, np.ndarray] = field(default_factory=dict)
     derived: tuple[np.ndarray | None, ...] | None = None
     measured: np.ndarray | None = None
+    vertices: tuple[tuple[np.ndarray, np.ndarray], ...] | None = None
 
     def subset(self, index: np.ndarray | slice) -> EdgeContext:
-        """A context restricted to some edges.
+        """A context restricted to some edges (without ``vertices``: a structure of all).
 
         Args:
             index: Edge indices or slice.

@@ -14,7 +14,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.errors import GraphError
-from graphopt.robust_kernel import RobustKernel, kernel_changes
+from graphopt.robust_kernel import RobustKernel, kernel_changes, kernel_key
 
 
 def join_chunks(chunks: list[np.ndarray]) -> np.ndarray:
@@ -156,15 +156,9 @@ class EdgeGroup:
         self._kernel_keys = {kernel_key(k): i for i, k in enumerate(self._kernels)}
         self._members_checked = changes
 
-    def append(
-        self,
-        vids: np.ndarray,
-        meas: np.ndarray,
-        info: np.ndarray,
-        kernel: int | np.ndarray,
-        data: dict[str, np.ndarray],
-        levels: int | np.ndarray = 0,
-    ) -> int:
+    def append(self, vids: np.ndarray, meas: np.ndarray, info: np.ndarray,
+               kernel: int | np.ndarray, data: dict[str, np.ndarray],
+               levels: int | np.ndarray = 0) -> int:
         """Append validated edges; returns the uid of the first one (the others follow).
 
         Args:
@@ -397,7 +391,8 @@ class EdgeGroup:
     def _compact_kernels(self) -> None:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
         self._kernels_stale = False
-        used = np.unique(self._kidx)
+        kidx = self._kidx  # one kernel (or none) for all, a broadcast: no sort
+        used = kidx[:1] if len(kidx) and kidx.strides == (0,) else np.unique(kidx)
         used = used[used >= 0]
         if len(used) != len(self._kernels):
             remap = np.full(len(self._kernels) + 1, -1, dtype=np.int64)
@@ -470,20 +465,6 @@ class EdgeGroup:
         self._active = None
         self.finalize()
         self.activity_count += 1
-
-
-def kernel_key(kernel: RobustKernel) -> Any:
-    """What makes two kernels interchangeable: their type and parameters (or identity).
-
-    Args:
-        kernel: A kernel.
-    """
-    key = (type(kernel), *kernel.__dict__.values())
-    try:
-        hash(key)
-    except TypeError:
-        return id(kernel)
-    return key
 
 
 def _per_edge(value: int | np.ndarray, n: int) -> np.ndarray:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from graphopt.errors import GraphError
-from graphopt.robust_kernel import RobustKernel
+from graphopt.robust_kernel import RobustKernel, kernel_key
 from graphopt.vertex import BaseVertex, _own  # one copy rule for both kinds of object
 
 if TYPE_CHECKING:
@@ -86,7 +86,7 @@ class EdgeObject:
             i = self._index
             self._measurement = self._group.measurements[i].copy()
             self._information = self._group.information_of(i)
-            self._robust_kernel = self._group.kernel_of(i)
+            self._robust_kernel = self._given(self._group.kernel_of(i))
             self._level = int(self._group.levels[i])
         self._group, self._uid, self._graph = None, -1, None
 
@@ -161,10 +161,19 @@ class EdgeObject:
 
     @property
     def robust_kernel(self) -> RobustKernel | None:
-        """The robust kernel or ``None``."""
+        """The robust kernel or ``None``: the object given to this edge while its group uses it
+        (kernels equal by value share one slot, whose object may be another edge's)."""
         if self._uid >= 0:
-            return self._group.kernel_of(self._index)
+            return self._given(self._group.kernel_of(self._index))
         return self._robust_kernel
+
+    def _given(self, slot: RobustKernel | None) -> RobustKernel | None:
+        """The kernel given to this edge if the group's ``slot`` for it is equal to it by value,
+        else ``slot`` (a kernel set on the edge's group since, e.g. through an ``EdgeSet``)."""
+        mine = self._robust_kernel
+        if slot is None or mine is None or mine is slot:
+            return slot
+        return mine if kernel_key(mine) == kernel_key(slot) else slot
 
     def set_robust_kernel(self, kernel: RobustKernel | None) -> None:
         """Set the robust kernel (also after the edge was added: no new structure).
@@ -172,10 +181,9 @@ class EdgeObject:
         Args:
             kernel: A kernel, or ``None`` for plain least squares.
         """
+        self._robust_kernel = kernel
         if self._uid >= 0:
             self._group.set_kernel(self._index, kernel)
-        else:
-            self._robust_kernel = kernel
 
     def level(self) -> int:
         """The edge's level (g2o's ``level()``): it is active when the optimizer is initialised

@@ -30,8 +30,8 @@ Positions = list[list[tuple[int, np.ndarray]]]
 
 def _flags(vtype: type[BaseVertex], name: str, value: Any, n: int) -> np.ndarray:
     """``(n,)`` flags from one flag or ``n`` of them, else a :class:`GraphError`."""
-    if isinstance(value, (bool, np.bool_)):  # the common case, without array round trips
-        return np.full(n, bool(value))
+    if type(value) is bool:  # one flag (the usual call): no broadcast
+        return np.full(n, value)
     arr = np.asarray(value, dtype=bool)
     if arr.shape not in ((), (n,)):
         raise GraphError(f"{vtype.__name__}: {name} must be one flag or {n} of them, got shape "
@@ -154,7 +154,7 @@ class Graph:
                 f"{vtype.__name__}: estimates have shape {est.shape}, expected {(n, *shape)} "
                 f"(first vertex id {int(ids[0]) if n else '-'})"
             )
-        if n > 1:
+        if n > 1:  # (a sort: not for the one pose of a motion-only BA)
             uniq, counts = np.unique(ids, return_counts=True)
             if np.any(counts > 1):
                 raise GraphError(f"duplicate vertex id {int(uniq[counts > 1][0])} "
@@ -314,8 +314,10 @@ class Graph:
         for pos, vt in enumerate(et.vertex_types):
             # Check each distinct id once; report the first edge that names a bad one.
             col = vids[:, pos]
+            first = col[0]  # one vertex at this position (a pose's unary edges): no sort
             # A few edges (an online step's): a set of ints beats np.unique's sort.
-            distinct = set(col.tolist()) if m <= 64 else np.unique(col).tolist()
+            distinct = ([int(first)] if (col == first).all() else set(col.tolist()) if m <= 64
+                        else np.unique(col).tolist())
             bad_ids = [v for v in distinct
                        if v not in self._ids or not issubclass(self._ids[v][0].vtype, vt)]
             if bad_ids:

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from graphopt.activity import only_active
+from graphopt.autodiff.jacobians import distinct_vertices
 from graphopt.edge import EdgeContext, Linearization
 from graphopt.edge_output import checked_output, raise_non_finite_edge, reduced_error, where
 from graphopt.errors import GraphError
+from graphopt.row_weights import row_dots, weighted_rows
 from graphopt.storage import EdgeGroup, VertexStore
 
 Positions = list[list[tuple[int, np.ndarray]]]
@@ -69,7 +72,7 @@ class WeightedLinearization:
     weighted_errors: list[np.ndarray]
 
 
-def _broadcast_row(a: np.ndarray, one: int, m: int, transposed: bool) -> np.ndarray:
+def broadcast_row(a: np.ndarray, one: int, m: int, transposed: bool) -> np.ndarray:
     """Row ``one`` of ``a`` (column ``one`` of a transposed store) repeated ``m`` times, as a
     read-only view with stride 0 (1 µs; ``np.broadcast_to`` takes 4)."""
     if not a.flags.c_contiguous:
@@ -108,6 +111,8 @@ class Linearizer:
         # whether it is stored transposed).
         self._state_cache: dict[tuple[int, str], tuple[int, np.ndarray | None, bool]] = {}
         self.last: Evaluation | None = None
+        # (group, first edge, end) -> (the slots, their EdgeContext.vertices): see _vertices.
+        self._distinct: dict[tuple[int, int, int], tuple[Any, Any]] = {}
         # (group, method, edges) whose output passed _checked as it was (no conversion): a type
         # returns the same kinds and shapes at every call, so later calls are trusted.
         self._trusted: set[tuple[int, str, int]] = set()
@@ -167,7 +172,7 @@ class Linearizer:
         if a is None:
             return None
         if one >= 0:
-            return _broadcast_row(a, one, len(slots), transposed)
+            return broadcast_row(a, one, len(slots), transposed)
         # take, not a[slots]: 4x faster on (n, 4, 4) poses (a 33 against 8 µs gather of
         # 4,807 edges' poses); the method, not np.take: 1 against 2.5 µs a call.
         return a.take(slots, axis=1).T if transposed else a.take(slots, axis=0)
@@ -183,7 +188,20 @@ class Linearizer:
         if g.etype.uses_derived:
             ctx.derived = tuple(self._gather_rows(si, "derived", slots)
                                 for si, slots in self.positions[gi])
+        ctx.vertices = self._vertices(gi, slice(0, g.size))
         return ctx
+
+    def _vertices(self, gi: int, sl: slice) -> tuple[tuple[np.ndarray, np.ndarray], ...] | None:
+        """:attr:`EdgeContext.vertices` of edges ``sl`` of group ``gi`` for a type that is
+        differentiated automatically (else ``None``): structure, found once per chunk."""
+        if self.groups[gi].etype.differentiation_method() != "autodiff":
+            return None
+        slots = tuple(s for _, s in self.positions[gi])
+        hit = self._distinct.get((gi, sl.start, sl.stop))
+        if hit is None or any(a is not b for a, b in zip(hit[0], slots, strict=True)):
+            hit = (slots, tuple(distinct_vertices(s[sl]) for s in slots))
+            self._distinct[gi, sl.start, sl.stop] = hit
+        return hit[1]
 
     def _state(self) -> tuple[int, ...]:
         """Versions of every store's estimates: the key of cached linearisations."""
@@ -243,6 +261,7 @@ class Linearizer:
             if g.etype.uses_derived:
                 ctx.derived = tuple(self._gather_rows(si, "derived", slots[sl])
                                     for si, slots in self.positions[gi])
+            ctx.vertices = self._vertices(gi, sl)
             out = self._call(g, method, x, ctx, sl)
             del x, ctx
             parts = [out.error, *out.jacobians, out.reduced_error, out.active]
@@ -322,12 +341,12 @@ class Linearizer:
     def _sq(g: EdgeGroup, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``Ω e`` and ``e'Ω e`` per edge."""
         if g.info_is_identity:
-            return e, np.einsum("me,me->m", e, e)
+            return e, row_dots(e, e)
         info, diag = g.information, g.info_diagonal  # diag: per-edge diagonal, a row scaling
         assert info is not None
         oe = (e @ info if info.ndim == 2 else e * diag if diag is not None
               else np.einsum("mij,mj->mi", info, e))
-        return oe, np.einsum("me,me->m", e, oe)
+        return oe, row_dots(e, oe)
 
     def _weigh(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...]
                ) -> tuple[Linearization, np.ndarray, np.ndarray]:
@@ -433,28 +452,10 @@ class Linearizer:
                 if not math.isfinite(chi2):  # one sum is cheaper than isfinite().all()
                     raise_non_finite_edge(g, e, J)
                 self._record(g, s, rho, out.active, totals, chi2)
-            J = tuple(np.ascontiguousarray(j) for j in J)
-            weighted = bool(g.kernels)
-            live = self._live[gi]
-            if g.info_diagonal is not None and not g.info_is_identity:
-                # A row scaling (3x faster than the products), the kernel's weight folded in:
-                # one pass over J (the row factors first, (e,) or (m, e), then (m, e, 1)).
-                d = g.info_diagonal * w[:, None] if weighted else g.info_diagonal
-                d = d[..., None]
-                wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
-            else:
-                if g.info_is_identity:
-                    wj = J
-                else:
-                    assert g.information is not None
-                    wj = tuple(np.matmul(g.information, j) if a else j
-                               for j, a in zip(J, live, strict=True))
-                if weighted:
-                    wj = tuple(j * w[:, None, None] if a else j
-                               for j, a in zip(wj, live, strict=True))
+            J, wj, we = weighted_rows(g, J, oe, w, self._live[gi])
             jac.append(J)
             wjac.append(wj)
-            wes.append(oe * w[:, None] if weighted else oe)
+            wes.append(we)
         ev = self.last if reuse and self.last is not None else self._finish(totals, state)
         return WeightedLinearization(jac, wjac, wes), ev
 

@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 
 from graphopt.edge import BaseEdge
-from graphopt.edge_group import EdgeGroup, kernel_key
+from graphopt.edge_group import EdgeGroup
 from graphopt.errors import GraphError
-from graphopt.robust_kernel import RobustKernel
+from graphopt.robust_kernel import RobustKernel, kernel_key
 from graphopt.vertex import BaseVertex
 
 _is_none = partial(is_, None)

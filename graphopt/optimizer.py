@@ -30,6 +30,7 @@ from graphopt.linearizer import Evaluation
 from graphopt.problem import Problem
 from graphopt.result import IterationInfo, OptimizationResult, StopReason
 from graphopt.robust_kernel import RobustKernel
+from graphopt.single_vertex import make_problem
 from graphopt.solvers import LinearSolver, make_solver
 from graphopt.stopping import StoppingConfig
 from graphopt.storage import EdgeGroup
@@ -246,16 +247,9 @@ class SparseOptimizer(GraphEditing):
         self.graph.add_edge(edge)
         return True
 
-    def add_edges(
-        self,
-        etype: type[BaseEdge],
-        vertex_ids: Any,
-        measurements: Any,
-        information: Any = None,
-        robust_kernel: RobustKernel | None = None,
-        params: Any = None,
-        data: dict[str, Any] | None = None,
-    ) -> EdgeSet:
+    def add_edges(self, etype: type[BaseEdge], vertex_ids: Any, measurements: Any,
+                  information: Any = None, robust_kernel: RobustKernel | None = None,
+                  params: Any = None, data: dict[str, Any] | None = None) -> EdgeSet:
         """Add many edges of one type at once (the fast path).
 
         Args:
@@ -313,8 +307,8 @@ class SparseOptimizer(GraphEditing):
         if self._problem is None or self._structure_key != self.graph.structure_key():
             stores, groups, positions = self.graph.resolve()
             self._problem = None  # the old structure's memory goes before the new is built
-            self._problem = Problem(stores, groups, positions, make_solver(self._solver_spec),
-                                    self._schur)
+            self._problem = make_problem(stores, groups, positions,
+                                         make_solver(self._solver_spec), self._schur)
             self._structure_key = self.graph.structure_key()
         return True
 

@@ -9,6 +9,7 @@ approximates a derivative (GemanMcClure's ρ'', DCS), the docstring says so.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -337,3 +338,17 @@ def make_kernel(name: str, delta: float = 1.0) -> RobustKernel:
     if key not in KERNELS:
         raise ValueError(f"unknown robust kernel {name!r}; choose one of {', '.join(KERNELS)}")
     return KERNELS[key](delta)
+
+
+def kernel_key(kernel: RobustKernel) -> Any:
+    """What makes two kernels interchangeable: their type and parameters (or identity).
+
+    Args:
+        kernel: A kernel.
+    """
+    key = (type(kernel), *kernel.__dict__.values())
+    try:
+        hash(key)
+    except TypeError:
+        return id(kernel)
+    return key

@@ -201,3 +201,39 @@ def test_gtsam_schedule_divides_and_multiplies_lambda_by_its_factor() -> None:
         LevenbergConfig(schedule="nielsen")
     with pytest.raises(ValueError, match="factor must be > 1"):
         LevenbergConfig(schedule="gtsam", factor=1.0)
+
+
+@pytest.mark.parametrize("free_poses", [1, 2])
+def test_a_trial_predicted_to_end_the_run_does_not_linearise(
+        monkeypatch: pytest.MonkeyPatch, free_poses: int) -> None:
+    """LM's trial whose predicted decrease is under half the function tolerance evaluates
+    errors only: the same iterations as when every trial linearises, fewer Jacobians (the
+    single-vertex and the general problem)."""
+    from test_single_block import one_free_pose
+
+    from graphopt.algorithms import _Tests
+    from graphopt.types import EdgeSE3ProjectXYZOnlyPose
+
+    calls = {"n": 0}
+    orig = EdgeSE3ProjectXYZOnlyPose.linearize.__func__
+
+    def counted(cls: type, *args: object) -> object:
+        calls["n"] += 1
+        return orig(cls, *args)
+
+    monkeypatch.setattr(EdgeSE3ProjectXYZOnlyPose, "linearize", classmethod(counted))
+    runs = []
+    for predict in (True, False):
+        if not predict:
+            monkeypatch.setattr(_Tests, "predicts_function", lambda self, chi, d: False)
+        opt = one_free_pose(False)
+        if free_poses == 2:
+            opt.vertex(1).set_fixed(False)
+        calls["n"] = 0
+        res = opt.optimize(20)
+        assert res.stop_reason is not None and res.stop_reason.value == "function_tolerance"
+        runs.append(([i.chi2 for i in res.info], calls["n"], opt.vertex(0).estimate))
+    (chi_a, n_a, x_a), (chi_b, n_b, x_b) = runs
+    assert chi_a == chi_b
+    np.testing.assert_array_equal(x_a, x_b)
+    assert n_a == n_b - 1  # the last trial's Jacobians

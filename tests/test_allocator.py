@@ -32,3 +32,23 @@ def test_opting_out_is_remembered(monkeypatch) -> None:
     assert allocator.tune() is False
     monkeypatch.delenv("GRAPHOPT_MALLOC_TUNE")
     assert allocator.tune() is False
+
+
+@pytest.mark.parametrize("free_poses", [1, 2])
+def test_every_problem_tunes_the_allocator(monkeypatch, free_poses: int) -> None:
+    """The single-vertex problem as the general one: without the thresholds a 2,000-match
+    motion-only BA's arrays (over 128 KB) were fresh pages at every iteration (8.0 against
+    4.3 ms a call)."""
+    from test_single_block import one_free_pose
+
+    calls = []
+    monkeypatch.setattr(allocator, "tune", lambda: calls.append(1) or True)
+    import graphopt.problem
+    import graphopt.single_vertex
+    monkeypatch.setattr(graphopt.problem, "tune_allocator", allocator.tune)
+    monkeypatch.setattr(graphopt.single_vertex, "tune_allocator", allocator.tune)
+    opt = one_free_pose(False)
+    if free_poses == 2:
+        opt.vertex(1).set_fixed(False)
+    opt.initialize_optimization()
+    assert calls == [1]

@@ -238,3 +238,44 @@ def test_small_angle_branches_give_exact_derivatives_at_zero() -> None:
     w = np.array([[3e-5, -2e-5, 1e-5]])
     r = _check(lambda a: so3_exp(a).reshape(1, 9), w, tol=1e-9)
     assert np.all(np.isfinite(r.tangent))
+
+
+def test_the_optimizers_vertex_grouping_gives_the_same_linearisation() -> None:
+    """``ctx.vertices`` (which edges share a vertex, from the optimizer) and ``ctx.derived``
+    change nothing: the same errors and Jacobians as found from the estimates, the error bit
+    for bit the plain one; an LM run reaches the analytic type's cost."""
+    from dataclasses import replace
+
+    from graphopt import EdgeContext, LevenbergConfig, StoppingConfig
+    from graphopt.autodiff.jacobians import autodiff_linearize, distinct_vertices
+    from graphopt.types import EdgeBALProjection, VertexCameraBAL, VertexPointXYZ
+
+    class EdgeBALAuto(EdgeBALProjection):
+        differentiation = "autodiff"
+
+    nc, npt, m = 4, 30, 120
+    cams = np.c_[RNG.normal(0, 0.3, (nc, 3)), RNG.normal(0, 1, (nc, 3)),
+                 RNG.uniform(400, 900, nc), RNG.normal(0, 0.1, nc), RNG.normal(0, 0.01, nc)]
+    pts = RNG.normal(0, 1, (npt, 3)) + [0, 0, -10]
+    ci, pi = np.r_[np.arange(nc), RNG.integers(0, nc, m - nc)], RNG.integers(0, npt, m)
+    x = (np.asfortranarray(cams[ci]), np.asfortranarray(pts[pi]))
+    z = EdgeBALProjection.error(x, np.zeros((m, 2)), None) + RNG.normal(0, 2, (m, 2))
+    plain = EdgeContext(derived=(np.asfortranarray(VertexCameraBAL.derived(cams)[ci]), None))
+    told = replace(plain, vertices=(distinct_vertices(ci), distinct_vertices(pi)))
+    e0, j0, _ = autodiff_linearize(EdgeBALAuto, x, z, EdgeContext())
+    e1, j1, _ = autodiff_linearize(EdgeBALAuto, x, z, told)
+    np.testing.assert_array_equal(e1, EdgeBALProjection.evaluate(x, z, plain).error)
+    np.testing.assert_allclose(e1, e0, rtol=1e-14, atol=1e-12)
+    for a, b, c in zip(j1, j0, EdgeBALProjection.jacobians(x, z, plain), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(a, c, rtol=1e-10, atol=1e-7)
+
+    def chi2(edge: type) -> float:
+        opt = SparseOptimizer(algorithm=LevenbergConfig(diagonal_damping=True))
+        opt.stopping = StoppingConfig.iterations_only()
+        opt.add_vertices(VertexCameraBAL, np.arange(nc), cams)
+        opt.add_vertices(VertexPointXYZ, nc + np.arange(npt), pts, marginalized=True)
+        opt.add_edges(edge, np.column_stack([ci, nc + pi]), z)
+        return opt.optimize(4).final_chi2
+
+    np.testing.assert_allclose(chi2(EdgeBALAuto), chi2(EdgeBALProjection), rtol=1e-10)

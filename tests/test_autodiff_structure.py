@@ -200,3 +200,28 @@ def test_entries_contracted_as_products(monkeypatch: Any) -> None:
     general = edge_jacobians(EdgeLeftEntries, x, z)
     numeric = edge_jacobians(EdgeLeftEntries, x, z, method="numeric")
     _assert_agree(auto, general, numeric)
+
+
+class EdgeLeftRepeated(EdgeLeft):
+    """Entry products repeated with the same factor arrays: ``V_i0 x0`` twice in one row's sum
+    (its deferred pairs count twice, and that sum is not one the contraction can reuse), and
+    a sum of distinct products the contraction reuses (``structure.SUMS``)."""
+
+    @classmethod
+    def error(cls, x: Any, z: np.ndarray, ctx: Any) -> Any:
+        T, X = x
+        R = [[T[:, i, j] for j in range(3)] for i in range(3)]
+        x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
+        P = [(R[i][0] * x0 + R[i][1] * x1) + (R[i][0] * x0 + R[i][2] * x2) + T[:, i, 3]
+             for i in range(2)]
+        P.append(R[2][0] * x0 + R[2][1] * x1 + R[2][2] * x2 + T[:, 2, 3])
+        return np.stack([P[0] / P[2], P[1] / P[2]], axis=1) - z
+
+
+def test_repeated_entry_products_count_each_time(monkeypatch: Any) -> None:
+    x, z = _inputs(VertexSE3Expmap)
+    auto = edge_jacobians(EdgeLeftRepeated, x, z)
+    monkeypatch.setattr(structure.Structure, "plan", lambda *a: None)
+    general = edge_jacobians(EdgeLeftRepeated, x, z)
+    numeric = edge_jacobians(EdgeLeftRepeated, x, z, method="numeric")
+    _assert_agree(auto, general, numeric)

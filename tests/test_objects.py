@@ -109,3 +109,29 @@ def test_a_rejected_vertex_takes_its_edges_down_with_a_clear_error() -> None:
                                          "does not exist"):
         opt.optimize(1)
     assert opt.num_edges() == 0 and opt.vertex_ids() == [0]
+
+
+def test_an_edge_returns_the_kernel_object_it_was_given() -> None:
+    """Kernels equal by value share one slot of the group; each edge still returns its own
+    object, after the flush and after removal, and a kernel set on the group since wins."""
+    from graphopt.edge_set import EdgeSet
+
+    sc = local_ba_scene(free=2, fixed=1, points=4, per_point=2, outliers=0.0, seed=1)
+    opt, _ = build(sc, rows=np.arange(3, len(sc.ids)))
+    kernels, edges = [], []
+    for (a, b), z in zip(sc.ids.tolist()[:3], sc.meas[:3], strict=True):
+        k = RobustKernelHuber(np.sqrt(5.991))  # equal to build()'s kernel
+        e = EdgeSE3ProjectXYZ((a, b), z, params=CAMERA, robust_kernel=k)
+        opt.add_edge(e)
+        kernels.append(k)
+        edges.append(e)
+    opt.initialize_optimization()  # flushed: one slot for the three equal kernels
+    g = edges[0]._group
+    assert len(g.kernels) == 1 and g.kernels[0] is not kernels[1]
+    assert [e.robust_kernel for e in edges] == kernels
+    assert all(e.robust_kernel is k for e, k in zip(edges, kernels, strict=True))
+    other = RobustKernelCauchy(1.0)
+    EdgeSet(opt.graph, g, np.array([edges[1]._uid])).set_robust_kernel(other)
+    assert edges[1].robust_kernel is other and edges[2].robust_kernel is kernels[2]
+    opt.remove_edge(edges[2])
+    assert edges[2].robust_kernel is kernels[2]

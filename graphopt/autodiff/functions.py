@@ -431,7 +431,8 @@ def _concatenate(arrays: Sequence[Any], axis: Any = 0, out: Any = None, **kw: An
 @_implements(np.stack)
 def _stack(arrays: Sequence[Any], axis: int = 0, out: Any = None, **kw: Any) -> Any:
     arrays = list(arrays)
-    nd = np.ndim(arrays[0]) + 1
+    a0 = arrays[0]  # (a jet's own ndim: np.ndim would dispatch through the protocol again)
+    nd = (a0.value.ndim if type(a0) is Jet else np.ndim(a0)) + 1
     ax = _pos(axis, nd)
     if Tape.active and out is None and not kw and any(type(a) is Jet for a in arrays):
         return tape_ops.concatenate(arrays, ax, True, lambda: _stack(arrays, ax))

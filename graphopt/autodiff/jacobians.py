@@ -10,6 +10,7 @@ differentiated as written (a series exact to first order at 0 gives the exact de
 from __future__ import annotations
 
 import gc
+import threading
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, Protocol
@@ -23,11 +24,13 @@ from graphopt.autodiff.structure import Structure, detect
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
 
-__all__ = ["BLOCK_EDGES", "autodiff_linearize", "check_independent_edges", "seeded"]
+__all__ = ["BLOCK_EDGES", "autodiff_linearize", "check_independent_edges", "distinct_vertices",
+           "seeded"]
 
-#: Edges per jet evaluation: one block's tangents (``k × block × …`` values per temporary)
-#: stay in the CPU cache, and the Python cost per operation is paid once per block.
-BLOCK_EDGES = 8192
+#: Edges per jet evaluation: one block's values and adjoints stay in the CPU caches, and the
+#: Python cost per operation (~0.3 ms a block for the BAL error) is paid once per block.
+#: Measured on 100,000 BAL edges: 10,000–14,000 alike, 8,192 ~7 % slower (docs/autodiff.md).
+BLOCK_EDGES = 12_000
 
 
 class _VertexType(Protocol):
@@ -118,6 +121,14 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None,
 _UNIQUE: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
 
 
+def distinct_vertices(slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)`` of edges' vertex indices (``slots`` ``(m,)``): ``first`` ``(k,)``
+    one edge per distinct vertex, ``inverse`` ``(m,)`` each edge's entry in ``first``
+    (``slots[first][inverse] == slots``), for :attr:`EdgeContext.vertices`."""
+    _, first, inverse = np.unique(slots, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)
+
+
 def _regathers(flat: np.ndarray, first: np.ndarray, inv: np.ndarray) -> bool:
     """``flat[first][inv] == flat`` exactly (``flat`` ``(m, s)``), gathered along its
     contiguous axis (the optimizer gathers 2-D estimates in Fortran order)."""
@@ -182,8 +193,12 @@ class _Position:
     """
 
     def __init__(self, vtype: type[_VertexType], x: np.ndarray, lo: int, n: int,
-                 derived: bool) -> None:
+                 derived: bool, distinct: tuple[np.ndarray, np.ndarray] | None = None,
+                 given: np.ndarray | None = None) -> None:
         self.vtype, self.x, self.lo, self.n = vtype, x, lo, n
+        # The derived values the optimizer gathered (ctx.derived): the per-edge values, as
+        # the plain error reads them (no second gather).
+        self.given = given
         self.vector = vtype.oplus is VertexVector.oplus and x.ndim == 2
         self.inverse: np.ndarray | None = None
         self.jet: Jet | None = None
@@ -193,7 +208,8 @@ class _Position:
         self.struct: Structure | None = None
         self.dstruct: Structure | None = None
         if not self.vector:
-            first, inv = _unique_rows(vtype, x)
+            # The optimizer's grouping (edges that share a vertex), else found from x.
+            first, inv = _unique_rows(vtype, x) if distinct is None else distinct
             if len(first) < len(x):
                 self.inverse = inv
                 key = (vtype, lo, n, derived)
@@ -238,11 +254,30 @@ class _Position:
         else:
             index = sl if self.inverse is None else self.inverse[sl]
             j = _gather(self.jet, index, self.x[sl], self.struct)
-            d = _gather(self.derived, index, None, self.dstruct)
+            g, dv = self.given, getattr(self.derived, "value", None)
+            if g is not None and not (dv is not None and g.shape[1:] == dv.shape[1:]
+                                      and g.dtype == dv.dtype
+                                      and (g.ndim != 2 or g.flags.f_contiguous)):
+                g = self.given = None  # (2-D: Fortran order, as a gather here makes it)
+            d = _gather(self.derived, index, None if g is None else g[sl], self.dstruct)
         j.rows = (0, sl.stop - sl.start)
         if type(d) is Jet:
             d.rows = j.rows
         return j, d
+
+
+_SCRATCH = threading.local()
+
+
+def _scratch(size: int) -> np.ndarray:
+    """A ``(≥ size,)`` float64 scratch array for a block's Jacobian rows, kept between calls
+    (per thread): a fresh one of a few MB would take its pages from the system again at
+    every linearisation (a page fault per 4 KB, ~10 % of a 100,000-edge BAL linearisation
+    whose heap an earlier large computation returned)."""
+    buf = getattr(_SCRATCH, "buffer", None)
+    if buf is None or buf.size < size:
+        buf = _SCRATCH.buffer = np.empty(size)
+    return buf
 
 
 def autodiff_linearize(
@@ -279,6 +314,7 @@ def autodiff_linearize(
     try:
         return _linearize(edge_type, x, measurement, ctx)
     finally:
+        tape.clear()  # (the last block's recorded jets, after an exception too)
         if enabled:
             gc.enable()
 
@@ -292,7 +328,10 @@ def _linearize(
     offsets = np.concatenate([[0], np.cumsum(dims)]).astype(int).tolist()
     m = len(measurement)
     want = bool(getattr(edge_type, "uses_derived", False)) and ctx is not None
-    pos = [_Position(vt, np.asarray(xi), offsets[i], n, want)
+    groups = getattr(ctx, "vertices", None) or (None,) * len(dims)
+    given = (getattr(ctx, "derived", None) if want else None) or (None,) * len(dims)
+    pos = [_Position(vt, np.asarray(xi), offsets[i], n, want, groups[i],
+                     None if given[i] is None or len(given[i]) != len(xi) else given[i])
            for i, (vt, xi) in enumerate(zip(edge_type.vertex_types, x, strict=True))]
     want = want and all(p.derived_ok for p in pos)
     dim = edge_type.dimension
@@ -310,32 +349,38 @@ def _linearize(
         blocks = [p.block(sl) for p in pos]
         sub = ctx.subset(sl) if ctx is not None and size < m else ctx
         if sub is not None and (want or getattr(sub, "derived", None) is not None):
-            sub = replace(sub, derived=tuple(b[1] for b in blocks) if want else None)
+            derived = tuple(b[1] for b in blocks) if want else None
+            if sub is ctx:  # (the caller's: not changed)
+                sub = replace(sub, derived=derived)
+            else:
+                sub.derived = derived
         mb = sl.stop - sl.start
         with tape.recording():
             ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
         eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
-        if tuple(np.shape(eb)) != (mb, dim):
-            raise GraphError(f"{edge_type.__name__}.error returned shape {np.shape(eb)}, "
+        # (a jet's own shape: np.shape would go through the array-function protocol)
+        shape = eb.value.shape if type(eb) is Jet else np.shape(eb)
+        if tuple(shape) != (mb, dim):
+            raise GraphError(f"{edge_type.__name__}.error returned shape {tuple(shape)}, "
                              f"expected {(mb, dim)}")
         if ab is not None:
             if active is None:
                 active = np.ones(m, dtype=bool)
             active[sl] = ab
         if type(eb) is not Jet:  # the error does not depend on the estimates
+            tape.clear()
             e[sl] = eb
             for Ji in jac:
                 Ji[sl] = 0.0
             continue
         e[sl] = eb.value
         if eb._tape is not None and buffer is None:
-            buffer = np.empty(dim * n * min(m, size))
+            buffer = _scratch(dim * n * min(m, size))
         J = backward(eb, n, buffer) if eb._tape is not None else None
         tape.clear()
-        if J is not None:  # reverse accumulation: J (rows, n, mb), per row (a faster copy)
+        if J is not None:  # reverse accumulation: J (rows, n, mb), one copy per position
             for i, d in enumerate(dims):
-                for row in range(dim):
-                    jac[i][sl, row, :] = J[row, offsets[i]: offsets[i] + d].T
+                jac[i][sl] = J[:, offsets[i]: offsets[i] + d].transpose(2, 0, 1)
             continue
         t, lo = eb.tangent, eb.lo
         for i, d in enumerate(dims):

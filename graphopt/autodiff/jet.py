@@ -56,6 +56,20 @@ def unit_row(m: int) -> np.ndarray:
     return t
 
 
+_EYES: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _identity(d: int, m: int) -> np.ndarray:
+    """The identity ``(d, m, d)`` broadcast over ``m`` edges, read-only, one array per shape
+    (a seed's tangent; made once, not per block)."""
+    t = _EYES.get((d, m))
+    if t is None:
+        if len(_EYES) > 16:
+            _EYES.clear()
+        t = _EYES[d, m] = np.broadcast_to(np.eye(d)[:, None, :], (d, m, d))
+    return t
+
+
 def is_jet(a: object) -> bool:
     """True for a :class:`Jet`."""
     return type(a) is Jet
@@ -350,7 +364,7 @@ class Jet(ArrayMethods, NDArrayOperatorsMixin):
             n: Total directions.
         """
         m, d = value.shape
-        out = cls(value, np.broadcast_to(np.eye(d)[:, None, :], (d, m, d)), lo, n)
+        out = cls(value, _identity(d, m), lo, n)
         out.seed = True
         out.columns = [(lo + j, lo + j + 1) for j in range(d)]
         return out
@@ -377,8 +391,7 @@ class Jet(ArrayMethods, NDArrayOperatorsMixin):
         m = len(self.value)
         if self.seed or (one and len(cols[a]) > 2 and cols[a][2]):  # unit: derivative 1
             k = hi - lo
-            t = (unit_row(m) if one else
-                 np.broadcast_to(np.eye(k)[:, None, :], (k, m, k)))
+            t = unit_row(m) if one else _identity(k, m)
         else:
             t = self.tangent[lo - self.lo: hi - self.lo, :, a if one else slice(a, b)]
         out = Jet(self.value[:, a] if one else self.value[:, a:b], t, lo, self.n)

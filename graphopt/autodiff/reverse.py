@@ -10,7 +10,7 @@ import numpy as np
 
 import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import Jet
-from graphopt.autodiff.tape import _ancestors, _Node, _unbroadcast
+from graphopt.autodiff.tape import _Node, _unbroadcast, recorded
 
 __all__ = ["backward"]
 
@@ -29,12 +29,14 @@ def backward(out: Jet, n: int, buffer: np.ndarray | None = None) -> np.ndarray |
     _SOURCES.clear()
     structure.clear()
     m, r = out.value.shape
-    nodes = _ancestors(out)
+    nodes = recorded(out)
     leaves = {id(p): p for a in nodes for p in _inputs(a)
               if p._tape is None or p._tape.source is not None}
     if any(p.rows is None or p.value.ndim == 0 for p in leaves.values()):
         return None
-    g0 = np.zeros((r, m, r))
+    # Each output column's adjoint rows contiguous over the edges (an error made by
+    # stacking columns hands g0[:, :, c] to each; strided rows slow every product after).
+    g0 = np.zeros((r, r, m)).transpose(1, 2, 0)
     for i in range(r):
         g0[i, :, i] = 1.0
     adj: dict[int, list[Any]] = {id(out): [out, g0, True]}
@@ -92,6 +94,18 @@ class Rows:
             target -= value
         else:
             target += sign * value
+
+    def add_product(self, d: int, a: int, b: int, g: np.ndarray, s: np.ndarray,
+                    c: float) -> None:
+        """``J[:, d, a:b] += c · g ⊙ s`` (``g`` ``(r, m)``, ``s`` ``(m,)``), into the rows
+        themselves when they are not written yet (no temporary ``g ⊙ s``)."""
+        target = self.J[:, d, a:b]
+        if a == 0 and b == self.m and self.fresh[d]:
+            self.fresh[d] = False
+            np.multiply(g, s if c == 1.0 else c * s, out=target)
+            return
+        self.zero(d, d + 1)
+        target += g * (s if c == 1.0 else c * s)
 
     def zero(self, lo: int, hi: int) -> None:
         """Zero the rows of directions ``lo…hi−1`` not written yet."""

@@ -212,11 +212,16 @@ def contract(J: Any, lo: int, plan: Plan, full: np.ndarray, g: np.ndarray, a: in
             J.add(lo + k, lo + k + 1, a, b, prod, c)
 
 
-#: ``(leaf node, plan, g, x, rows)`` per deferred product (see :func:`defer`).
-_DEFERRED: list[tuple[Any, Plan, np.ndarray, np.ndarray, tuple[int, int]]] = []
+#: Recorded sums of products of structured entries and arrays, by their terms (see
+#: ``_Node.terms`` in :mod:`graphopt.autodiff.tape`): ``Σ_b V_jb x_b`` of an error written
+#: entry by entry is such a sum, which :func:`contract_deferred` reuses.
+SUMS: dict[frozenset[tuple[int, int, int]], np.ndarray] = {}
+
+#: ``(leaf node, plan, g, x, rows, v ⊙ x)`` per deferred product (see :func:`defer`).
+_DEFERRED: list[tuple[Any, Plan, np.ndarray, np.ndarray, tuple[int, int], Any]] = []
 
 
-def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray) -> bool:
+def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray, y: Any = None) -> bool:
     """Keep the adjoint ``g ⊙ x`` of one entry ``v`` of a structured matrix (the factor of a
     recorded ``v * x``) as the pair, for :func:`contract_deferred`; ``False`` if ``v`` is no
     longer that leaf or its generators are dense (the caller forms ``g ⊙ x``).
@@ -232,6 +237,7 @@ def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray) -> bool:
         leaf: Its recorded node when the product was recorded.
         g: ``(r, m)`` the adjoint of the product.
         x: ``(m,)`` the other factor's value.
+        y: ``(m,)`` the product ``v ⊙ x`` (its value, computed already), if known.
     """
     if v._tape is not leaf or v.rows is None:
         return False
@@ -239,7 +245,7 @@ def defer(v: Any, leaf: Any, g: np.ndarray, x: np.ndarray) -> bool:
     plan = leaf.struct.plan(entries, len(leaf.source))
     if plan is None:
         return False
-    _DEFERRED.append((leaf, plan, g, x, v.rows))
+    _DEFERRED.append((leaf, plan, g, x, v.rows, y))
     return True
 
 
@@ -252,29 +258,53 @@ def contract_deferred(J: Any) -> None:
         J: The block's Jacobian rows (:class:`graphopt.autodiff.reverse.Rows`).
     """
     groups: dict[tuple[Any, ...], list[Any]] = {}
-    for leaf, plan, g, x, (a, b) in _DEFERRED:
+    # The recorded products v ⊙ x by entry (flat column of V) and factor: where the
+    # contraction needs the same product (V_jb x_b of another row's entry) it is reused.
+    known: dict[tuple[int, int, int], np.ndarray] = {}
+    for leaf, plan, g, x, (a, b), y in _DEFERRED:
         lo, one = leaf.struct.lo, leaf.struct.one
+        if y is not None and leaf.entries is not None and leaf.entries.size == 1:
+            known[id(x), id(leaf.full), int(leaf.entries.flat[0])] = y
         for _, col, ks in plan:
             key = (id(g), lo, a, b, tuple(ks))
             grp = groups.get(key)
             if grp is None:
                 grp = groups[key] = [g, lo, a, b, ks, {}]
-            grp[5][id(x), id(leaf.full), col] = (x, leaf.full, col, bool(one[col]))
+            # (the same product twice — `v * x + v * x` — counts twice)
+            name = (id(x), id(leaf.full), col)
+            hit = grp[5].get(name)
+            if hit is None:
+                grp[5][name] = [x, leaf.full, col, bool(one[col]), 1]
+            else:
+                hit[4] += 1
     products: dict[tuple[int, int, int], np.ndarray] = {}
     sums: dict[tuple[Any, ...], np.ndarray] = {}
     for g, lo, a, b, ks, members in groups.values():
         names = tuple(sorted(members))
-        s = sums.get(names)
+        counts = tuple(members[n][4] for n in names)
+        once = max(counts) == 1
+        skey = names if once else (names, counts)
+        s = sums.get(skey)
+        if s is None and once:  # (a recorded sum adds each product once)
+            s = sums[skey] = SUMS.get(frozenset(names))
         if s is None:
             for name in names:
                 if name not in products:
-                    x, full, col, is_one = members[name]
-                    products[name] = x if is_one else x * _column(full, col)
-            s = products[names[0]]
-            for name in names[1:]:
-                s = s + products[name]
-            sums[names] = s
+                    x, full, col, is_one, _ = members[name]
+                    y = known.get(name)
+                    products[name] = (x if is_one else y if y is not None
+                                      else x * _column(full, col))
+            terms = [products[n] if c == 1 else c * products[n]
+                     for n, c in zip(names, counts, strict=True)]
+            s = terms[0]
+            for t in terms[1:]:
+                s = s + t
+            sums[skey] = s
+        if len(ks) == 1:  # (a rotation's generators: one direction each)
+            J.add_product(lo + ks[0][0], a, b, g, s, ks[0][1])
+            continue
         prod = (g * s)[:, None, :]
         for k, c in ks:
             J.add(lo + k, lo + k + 1, a, b, prod, c)
     _DEFERRED.clear()
+    SUMS.clear()

@@ -29,7 +29,7 @@ import numpy as np
 import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
 
-__all__ = ["ENABLED", "clear", "container", "gathered", "recording"]
+__all__ = ["ENABLED", "binary", "clear", "container", "gathered", "recorded", "recording"]
 
 #: Record for reverse accumulation (``False``: forward jets throughout, e.g. to compare).
 ENABLED = True
@@ -58,6 +58,10 @@ class _Node:
     # Products with these rows whose contribution the reverse pass adds directly (a
     # structured A in A @ B): (plan, adjoint of the product, the product).
     direct: list[tuple[Any, np.ndarray, np.ndarray]] | None = None
+    # A product of a structured matrix's entry and an array, or a sum of such products: its
+    # terms as (id of the array, id of the matrix, flat entry), the names
+    # structure.contract_deferred gives them (it reuses such a sum's value).
+    terms: frozenset[tuple[int, int, int]] | None = None
 
     def __init__(self, parents: tuple[Any, ...], back: Callable[..., Any] | None,
                  replay: Callable[[], Any] | None, special: bool = False) -> None:
@@ -70,6 +74,9 @@ class _Node:
 class _State:
     seq = 0
     pending: list[Jet] = []
+    # A container was written since recording began: its place in the order moved (its
+    # seq), so the recorded jets are no longer in the order of `pending`.
+    reordered = False
 
 
 def _record(value: np.ndarray, n: int, node: _Node) -> Jet:
@@ -85,17 +92,27 @@ def _record(value: np.ndarray, n: int, node: _Node) -> Jet:
 def recording() -> Iterator[None]:
     """Record jet operations (for :func:`graphopt.autodiff.reverse.backward`) inside the block."""
     Tape.active = ENABLED
-    _State.pending = []
+    _State.pending, _State.reordered = [], False
+    structure.SUMS.clear()
     try:
         yield
     finally:
-        Tape.active = False
-        _State.pending = []  # (only a write during recording needs them all)
+        Tape.active = False  # (the recorded jets stay listed for the reverse pass: clear())
 
 
 def clear() -> None:
     """Forget the recorded operations (after :func:`backward`)."""
     _State.pending = []
+
+
+def recorded(out: Jet) -> list[Jet]:
+    """The recorded jets that may reach ``out``, in the order they were recorded: those of
+    the last :func:`recording` still recorded (cheaper than walking back from ``out``; a jet
+    that does not reach it gets no adjoint), or ``out``'s ancestors when containers were
+    written (their order changed)."""
+    if _State.reordered:
+        return _ancestors(out)
+    return [a for a in _State.pending if a._tape is not None]
 
 
 def _pending_container(a: Any) -> Jet | None:
@@ -337,6 +354,7 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
     j.value[k] = item.value if type(item) is Jet else item
     root._tape.writes.append((j._tape.chain + (k,), item))
     _State.seq += 1
+    _State.reordered = True
     root._tape.seq = _State.seq  # after its sources, for the reverse order
     return True
 
@@ -345,6 +363,7 @@ def container(value: np.ndarray, like: Jet) -> Jet:
     """A recorded container: zero derivatives until written."""
     node = _Node((), None, None, True)
     node.writes, node.like = [], like
+    _State.reordered = True
     return _record(value, like.n, node)
 
 
@@ -359,26 +378,6 @@ def _unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     if axes:
         g = g.sum(axis=axes, keepdims=True)
     return g.reshape((g.shape[0],) + shape)
-
-
-def ufunc(uf: np.ufunc, inputs: tuple[Any, ...], rules: dict[Any, Any],
-          replay: Callable[[], Any]) -> Jet | None:
-    """A recorded elementwise ufunc (``rules``: the unary derivative rules), or ``None``."""
-    if len(inputs) == 2:
-        return binary(uf, inputs[0], inputs[1], replay)
-    if len(inputs) != 1:
-        return None
-    a = _operand(inputs[0])
-    v = a.value
-    if v.dtype.kind != "f":
-        return None
-    if uf is np.negative:
-        return _record(uf(v), a.n, _Node((a,), lambda g: [(a, -g, None)], replay))
-    rule = rules.get(uf)
-    if rule is None or (uf is np.sqrt and not np.all(v)):
-        return None
-    y = uf(v)
-    return _record(y, a.n, _Node((a,), lambda g: [(a, g * rule(v, y), None)], replay))
 
 
 _SCALARS = (float, int, np.float64)
@@ -439,14 +438,25 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
 
     def back(g: np.ndarray) -> list[Any]:
         out = []
-        if ja and not (sa and structure.defer(a, la, g, vb)):
+        if ja and not (sa and structure.defer(a, la, g, vb, y)):
             out.append((a, _unbroadcast(fn(g, va, vb, y, 0), va.shape), None))
-        if jb and not (sb and structure.defer(b, lb, g, va)):
+        if jb and not (sb and structure.defer(b, lb, g, va, y)):
             out.append((b, _unbroadcast(fn(g, va, vb, y, 1), vb.shape), None))
         return out
 
     n = a.n if ja else b.n
-    return _record(y, n, _Node((a, b) if ja and jb else ((a,) if ja else (b,)), back, replay))
+    node = _Node((a, b) if ja and jb else ((a,) if ja else (b,)), back, replay)
+    if sa or sb:
+        leaf, other = (la, vb) if sa else (lb, va)
+        if leaf.entries is not None and leaf.entries.size == 1:
+            node.terms = frozenset(((id(other), id(leaf.full), int(leaf.entries.flat[0])),))
+    elif uf is np.add and ja and jb and a._tape is not None and b._tape is not None:
+        ta, tb = a._tape.terms, b._tape.terms
+        # (disjoint: a sum of distinct products, each once, is what contract_deferred needs)
+        if ta is not None and tb is not None and va.shape == vb.shape and ta.isdisjoint(tb):
+            node.terms = ta | tb
+            structure.SUMS[node.terms] = y
+    return _record(y, n, node)
 
 
 def _entry(v: Jet, vv: np.ndarray, other: Any) -> bool:

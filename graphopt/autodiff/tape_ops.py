@@ -1,6 +1,7 @@
-"""Recorded products, joins and reductions of the batched tape (:mod:`graphopt.autodiff.tape`):
-``matmul`` of stacked matrices, ``stack``/``concatenate`` and ``sum``/``mean`` over non-edge
-axes, each computing its value now and its adjoints in the reverse pass."""
+"""Recorded ufuncs, products, joins and reductions of the batched tape
+(:mod:`graphopt.autodiff.tape`): elementwise ufuncs, ``matmul`` of stacked matrices,
+``stack``/``concatenate`` and ``sum``/``mean`` over non-edge axes, each computing its value
+now and its adjoints in the reverse pass."""
 
 from __future__ import annotations
 
@@ -10,9 +11,9 @@ from typing import Any
 import numpy as np
 
 from graphopt.autodiff.jet import Jet
-from graphopt.autodiff.tape import _Node, _operand, _record, _unbroadcast
+from graphopt.autodiff.tape import _Node, _operand, _record, _unbroadcast, binary
 
-__all__ = ["concatenate", "matmul", "reduce"]
+__all__ = ["concatenate", "matmul", "reduce", "ufunc"]
 
 
 def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
@@ -94,3 +95,23 @@ def reduce(fn: Any, a: Jet, axis: Any, keepdims: bool, replay: Callable[[], Any]
         return [(a, c, None)]
 
     return _record(np.asarray(y), a.n, _Node((a,), back, replay))
+
+
+def ufunc(uf: np.ufunc, inputs: tuple[Any, ...], rules: dict[Any, Any],
+          replay: Callable[[], Any]) -> Jet | None:
+    """A recorded elementwise ufunc (``rules``: the unary derivative rules), or ``None``."""
+    if len(inputs) == 2:
+        return binary(uf, inputs[0], inputs[1], replay)
+    if len(inputs) != 1:
+        return None
+    a = _operand(inputs[0])
+    v = a.value
+    if v.dtype.kind != "f":
+        return None
+    if uf is np.negative:
+        return _record(uf(v), a.n, _Node((a,), lambda g: [(a, -g, None)], replay))
+    rule = rules.get(uf)
+    if rule is None or (uf is np.sqrt and not np.all(v)):
+        return None
+    y = uf(v)
+    return _record(y, a.n, _Node((a,), lambda g: [(a, g * rule(v, y), None)], replay))

@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-import graphopt.autodiff.tape as tape
 import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, combine, expand, make, parts
 
@@ -142,7 +141,7 @@ def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
     if Tape.active and ufunc not in _VALUE_ONLY:
         replay = lambda: _call(ufunc, inputs)  # noqa: E731 - the forward rule
         lazy = (tape_ops.matmul(inputs[0], inputs[1], _mm, replay) if ufunc is np.matmul
-                else tape.ufunc(ufunc, inputs, _UNARY, replay))
+                else tape_ops.ufunc(ufunc, inputs, _UNARY, replay))
         if lazy is not None:
             return lazy
     out = _forward(ufunc, inputs)

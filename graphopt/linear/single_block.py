@@ -24,14 +24,27 @@ if TYPE_CHECKING:
 _Terms = tuple[list[tuple[int, int, np.ndarray | None]], list[tuple[int, np.ndarray | None]]]
 
 
+def group_terms(on: list[np.ndarray]) -> _Terms:
+    """One group's Hessian and gradient terms on the one block.
+
+    Args:
+        on: Per vertex position, ``(m,)`` whether the edge's vertex there is the free one.
+    """
+    k = len(on)
+    sel = [None if o.all() else np.flatnonzero(o) for o in on]
+    hterms = [(a, b, None if sel[a] is None and sel[b] is None else np.flatnonzero(on[a] & on[b]))
+              for a in range(k) for b in range(a, k) if (on[a] & on[b]).any()]
+    return hterms, [(a, sel[a]) for a in range(k) if on[a].any()]
+
+
 class SingleBlockAssembler:
     """The assembler of a block index with one U block, no V class and a formed ``S``.
 
     Use :meth:`of`, which returns ``None`` for any other index.
 
     Args:
-        index: The block index.
-        terms: Per group, its terms (see :meth:`of`).
+        d: The block's dimension.
+        terms: Per group, its terms (:func:`group_terms`).
 
     Attributes:
         jw: Always ``None`` (the system is not matrix-free).
@@ -41,10 +54,9 @@ class SingleBlockAssembler:
     jw = None
     u_gram_terms = 0
 
-    def __init__(self, index: BlockIndex, terms: list[_Terms]) -> None:
-        self.index = index
+    def __init__(self, d: int, terms: list[_Terms]) -> None:
         self.terms = terms
-        self.d = int(index.n)
+        self.d = d
 
     @classmethod
     def of(cls, index: BlockIndex) -> SingleBlockAssembler | None:
@@ -60,17 +72,8 @@ class SingleBlockAssembler:
         csc = index.pattern.csc
         if csc.nnz != d * d:  # the one block's pattern is full: data in column-major order
             return None
-        terms: list[_Terms] = []
-        for gi, g in enumerate(index.groups):
-            ub, _ = index.blocks_of(gi)
-            on = [u >= 0 for u in ub]
-            sel = [None if o.all() else np.flatnonzero(o) for o in on]
-            hterms = [(a, b, None if sel[a] is None and sel[b] is None
-                       else np.flatnonzero(on[a] & on[b]))
-                      for a in range(g.k) for b in range(a, g.k) if (on[a] & on[b]).any()]
-            gterms = [(a, sel[a]) for a in range(g.k) if on[a].any()]
-            terms.append((hterms, gterms))
-        return cls(index, terms)
+        return cls(d, [group_terms([u >= 0 for u in index.blocks_of(gi)[0]])
+                       for gi in range(len(index.groups))])
 
     def assemble(self, jacobians: GroupArrays, weighted: GroupArrays,
                  weighted_errors: list[np.ndarray]) -> Assembly:
@@ -82,25 +85,51 @@ class SingleBlockAssembler:
             weighted: Per group, per position ``ρ' Ω J`` ``(m, e, d)`` (C-contiguous).
             weighted_errors: Per group ``ρ' Ω e`` ``(m, e)``.
         """
-        d = self.d
         ht: np.ndarray | None = None  # Hᵀ: its C order is H's column-major data
         bu: np.ndarray | None = None
-        for (hterms, gterms), J, WJ, we in zip(self.terms, jacobians, weighted,
-                                               weighted_errors, strict=True):
-            for a, b, sel in hterms:
-                ja, wjb = J[a], WJ[b]
-                if sel is not None:
-                    ja, wjb = ja[sel], wjb[sel]
-                blk = wjb.reshape(-1, d).T @ ja.reshape(-1, d)  # (J_aᵀ ρ'Ω J_b)ᵀ
-                if a != b:  # both positions on the one vertex: the term and its transpose
-                    blk += blk.T
-                ht = blk if ht is None else ht + blk
-            for a, sel in gterms:
-                ja, wa = J[a], we
-                if sel is not None:
-                    ja, wa = ja[sel], wa[sel]
-                gb = wa.reshape(-1) @ ja.reshape(-1, d)
-                bu = gb if bu is None else bu + gb
+        for gi, (J, WJ, we) in enumerate(zip(jacobians, weighted, weighted_errors, strict=True)):
+            ht, bu = self.add_group(gi, J, WJ, we, ht, bu)
+        return self.finish(ht, bu)
+
+    def add_group(self, gi: int, J: tuple[np.ndarray, ...], WJ: tuple[np.ndarray, ...],
+                  we: np.ndarray, ht: np.ndarray | None, bu: np.ndarray | None
+                  ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Add group ``gi``'s terms to ``Hᵀ`` and ``Jᵀρ'Ωe`` (``None``: nothing yet).
+
+        Args:
+            gi: Group index.
+            J: Its Jacobians per position ``(m, e, d)`` (C-contiguous).
+            WJ: ``ρ' Ω J`` per position.
+            we: ``ρ' Ω e`` ``(m, e)``.
+            ht: ``Hᵀ`` ``(d, d)`` so far.
+            bu: ``Jᵀρ'Ωe`` ``(d,)`` so far.
+        """
+        d = self.d
+        hterms, gterms = self.terms[gi]
+        for a, b, sel in hterms:
+            ja, wjb = J[a], WJ[b]
+            if sel is not None:
+                ja, wjb = ja[sel], wjb[sel]
+            blk = wjb.reshape(-1, d).T @ ja.reshape(-1, d)  # (J_aᵀ ρ'Ω J_b)ᵀ
+            if a != b:  # both positions on the one vertex: the term and its transpose
+                blk += blk.T
+            ht = blk if ht is None else ht + blk
+        for a, sel in gterms:
+            ja, wa = J[a], we
+            if sel is not None:
+                ja, wa = ja[sel], wa[sel]
+            gb = wa.reshape(-1) @ ja.reshape(-1, d)
+            bu = gb if bu is None else bu + gb
+        return ht, bu
+
+    def finish(self, ht: np.ndarray | None, bu: np.ndarray | None) -> Assembly:
+        """The assembly of the summed terms (``b = −Jᵀρ'Ωe``).
+
+        Args:
+            ht: ``Hᵀ`` ``(d, d)``, or ``None`` for no term.
+            bu: ``Jᵀρ'Ωe`` ``(d,)``, or ``None``.
+        """
+        d = self.d
         h = np.zeros(d * d) if ht is None else ht.reshape(-1)
         bu = np.zeros(d) if bu is None else np.negative(bu, out=bu)
         return Assembly(h, bu, [], [], [])

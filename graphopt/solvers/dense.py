@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -59,20 +61,38 @@ class LinearSolverDense(LinearSolver):
             data: Values in the analysed pattern.
             rhs: Right-hand side.
         """
-        c, info = self._factor(data)
-        if info < 0:
-            raise ValueError(f"dpotrf: illegal argument {-info}")
-        done = info - 1 if info > 0 else len(c)  # dpotrf stops at pivot info - 1
+        return cholesky_solve(self.name, self._factor(data), data[self.diag_pos], rhs,
+                              lambda s: self._shifted_is_definite(data, s))
 
-        def apply_inverse(b: np.ndarray) -> np.ndarray:
-            x, info = sla.lapack.dpotrs(c, b, lower=1)
-            if info != 0:
-                raise NotPositiveDefiniteError(f"dense Cholesky solve failed (LAPACK info {info})")
-            return x
 
-        x = checked_solve(self.name, c.diagonal()[:done] ** 2, data[self.diag_pos],
-                          apply_inverse, rhs, lambda s: self._shifted_is_definite(data, s),
-                          stopped_at=None if info == 0 else done)
-        if not np.isfinite(x).all():
-            raise NotPositiveDefiniteError("dense Cholesky produced non-finite values")
+def cholesky_solve(name: str, factor: tuple[np.ndarray, int], diag: np.ndarray, rhs: np.ndarray,
+                   shifted_is_definite: Callable[[np.ndarray], bool]) -> np.ndarray:
+    """Solve with ``dpotrf``'s factor, held to the rank rule of :mod:`graphopt.solvers.rank`.
+
+    Args:
+        name: The solver's name, for messages.
+        factor: ``(L, info)`` as ``dpotrf`` returned them (lower triangle).
+        diag: The matrix's diagonal.
+        rhs: The right-hand side.
+        shifted_is_definite: See :func:`~graphopt.solvers.rank.checked_solve`.
+
+    Raises:
+        NotPositiveDefiniteError: the matrix is not positive definite (or singular), or the
+            solution is not finite.
+    """
+    c, info = factor
+    if info < 0:
+        raise ValueError(f"dpotrf: illegal argument {-info}")
+    done = info - 1 if info > 0 else len(c)  # dpotrf stops at pivot info - 1
+
+    def apply_inverse(b: np.ndarray) -> np.ndarray:
+        x, info = sla.lapack.dpotrs(c, b, lower=1)
+        if info != 0:
+            raise NotPositiveDefiniteError(f"dense Cholesky solve failed (LAPACK info {info})")
         return x
+
+    x = checked_solve(name, c.diagonal()[:done] ** 2, diag, apply_inverse, rhs,
+                      shifted_is_definite, stopped_at=None if info == 0 else done)
+    if not np.isfinite(x).all():
+        raise NotPositiveDefiniteError("dense Cholesky produced non-finite values")
+    return x

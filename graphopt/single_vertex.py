@@ -1,0 +1,463 @@
+"""A problem with one free vertex and nothing to eliminate, linearised and solved in a few calls.
+
+ORB-SLAM's most frequent optimisation — a motion-only BA of about 100 matches, every frame —
+takes 13 iterations of a 6-unknown system: it is bound by Python calls, not flops. The general
+:class:`~graphopt.problem.Problem` builds a block index, a pattern, a Schur plan and the
+solver's analysis for it, and every iteration goes through the linearizer's per-state caches,
+the assembler, the Schur reduction and the solver interface. Here the structure is the one
+vertex's slot and, per edge group, which positions hold it; an iteration is the edge type's
+call, its weights, two products for ``H`` and ``b``, and LAPACK's ``dpotrf``/``dpotrs`` on
+``H + λD``. The numbers are formed as on the general path (the row weights of
+:func:`~graphopt.row_weights.weighted_rows`, with inactive edges weighted zero where the general
+path zeroes their rows; the products of
+:class:`~graphopt.linear.single_block.SingleBlockAssembler`; the dense solver's rank rule), so
+both paths give the same iterations; the tests compare them.
+
+The general path's objects that only a few callers need — the :class:`~graphopt.linear.
+LinearSystem` (marginal covariances, :attr:`SparseOptimizer.linear_system`) and the solver's
+symbolic analysis — are built on first use.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import scipy.linalg as sla
+
+from graphopt.allocator import tune as tune_allocator
+from graphopt.edge import EdgeContext, Linearization
+from graphopt.edge_output import raise_non_finite_edge
+from graphopt.errors import GraphError
+from graphopt.linear import Assembly, LinearSystem, SchurConfig
+from graphopt.linear.single_block import SingleBlockAssembler, group_terms
+from graphopt.linearizer import (
+    TRIAL_LINEARIZE_EDGES,
+    Evaluation,
+    Linearizer,
+    Positions,
+    broadcast_row,
+)
+from graphopt.numeric import checked_oplus
+from graphopt.problem import Problem, Step, Timing
+from graphopt.row_weights import weighted_rows
+from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
+from graphopt.solvers.dense import cholesky_solve
+from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
+from graphopt.storage import EdgeGroup, VertexStore
+
+#: Most unknowns of the one vertex (a dense ``d × d`` system; poses, Sim(3), cameras).
+MAX_DIMENSION = 64
+
+
+class SingleVertexProblem(Problem):
+    """:class:`~graphopt.problem.Problem` for graphs with exactly one free vertex, not
+    marginalised, and small edge groups. Use :meth:`of`, which returns ``None`` otherwise.
+
+    Args:
+        stores: The vertex stores.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+        solver: The dense (or automatic) solver, analysed only if :attr:`system` is used.
+        schur: Passed on to the :class:`LinearSystem` built on first use.
+        free: ``(store index, slot)`` of the free vertex.
+    """
+
+    def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
+                 positions: Positions, solver: LinearSolver, schur: SchurConfig | None,
+                 free: tuple[int, int]) -> None:
+        tune_allocator()  # no page faults for the arrays every iteration allocates again
+        self.stores = stores
+        self.groups = groups
+        self.positions = positions
+        self.solver = solver
+        self._schur_config = schur
+        self._system: LinearSystem | None = None
+        self.linearizer = Linearizer(stores, groups, positions)
+        self.trial_linearization = True
+        self.timing = Timing()
+        self._saved: list[np.ndarray] = []
+        si, slot = free
+        self._store, self._slot = si, slot
+        self._free = [si]
+        self.d = d = stores[si].vtype.dimension
+        self._diag = np.arange(d) * (d + 1)  # diagonal positions in H's column-major data
+        self._ones = np.ones(d)
+        self._ones.flags.writeable = False
+        # Per group: whether the free vertex is at each position, per edge.
+        on = [[(s == si) & (slots == slot) for s, slots in pos] for pos in positions]
+        self._on_any = [np.logical_or.reduce(o) if o else np.zeros(0, dtype=bool) for o in on]
+        #: Groups whose Jacobians reach ``H`` (the others are evaluated for their chi2 only).
+        self._touch = [bool(a.any()) for a in self._on_any]
+        self._assembler = SingleBlockAssembler(d, [group_terms(o) for o in on])
+        # Per group, its context once its output has been checked (None: not yet, or it uses
+        # derived values, which change with the estimates).
+        self._ctx: list[EdgeContext | None] = [None] * len(groups)
+        # Per group: one position, the free vertex at every edge (a pose's unary edges; more
+        # than one edge, as the linearizer's broadcast gather).
+        self._unary = [len(o) == 1 and len(o[0]) > 1 and bool(o[0].all()) for o in on]
+        # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
+        # linearisation at that state.
+        self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
+                           list[tuple[np.ndarray, ...]]] | None = None
+        self._idle_key: tuple[tuple[int, int], ...] | None = None
+        self._idle = False
+
+    @classmethod
+    def of(cls, stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+           solver: LinearSolver, schur: SchurConfig | None = None
+           ) -> SingleVertexProblem | None:
+        """The single-vertex problem of a resolved graph, or ``None`` if it has another number
+        of free vertices, a marginalised one, a group larger than
+        :data:`~graphopt.linearizer.TRIAL_LINEARIZE_EDGES`, a reduced linearisation, or a solver
+        of another class than the dense or automatic one (a user's own solver is called as
+        given).
+
+        Args:
+            stores: The vertex stores.
+            groups: The finalised edge groups.
+            positions: Per group, per vertex position: ``(store index, slots (m,))``.
+            solver: The solver made for the problem.
+            schur: The Schur configuration.
+        """
+        if type(solver) not in (LinearSolverDense, LinearSolverAuto):
+            return None
+        free = [(si, np.flatnonzero(~st.fixed)) for si, st in enumerate(stores)]
+        if sum(len(f) for _, f in free) != 1:
+            return None
+        si, slots = next((si, f) for si, f in free if len(f))
+        slot = int(slots[0])
+        st = stores[si]
+        if st.marginalized[slot] or st.vtype.dimension > MAX_DIMENSION:
+            return None
+        if any(g.size > TRIAL_LINEARIZE_EDGES or g.etype.linearization_rows is not None
+               for g in groups):
+            return None
+        return cls(stores, groups, positions, solver, schur, (si, slot))
+
+    @property
+    def system(self) -> LinearSystem:  # type: ignore[override]
+        """The general linear system (built, and the solver analysed, on first use)."""
+        if self._system is None:
+            self._system = LinearSystem(self.stores, self.groups, self.positions,
+                                        self._schur_config)
+            self.solver.analyze(self._system.pattern, self._system.udims)
+        return self._system
+
+    # --- evaluation --------------------------------------------------------------------------
+
+    def _evaluate(self, linearize: bool, every: bool = False, safe: bool = False
+                  ) -> Evaluation:
+        """Every group's errors and, with ``linearize``, the normal equations' terms of the
+        groups that reach ``H`` and linearise on trial steps (``every``: of all that reach
+        ``H``), kept for :meth:`linearize` at this state; the totals.
+
+        Inactive edges (other levels, or deactivated by their type) weigh zero. Unless
+        ``safe``, their rows are not zeroed first, as :func:`~graphopt.activity.only_active`
+        does, but their weights: the same numbers, two array passes fewer — unless one of their
+        Jacobians is not finite, which :meth:`linearize` finds in ``H`` and then evaluates
+        again with ``safe``."""
+        lz = self.linearizer
+        totals = [0.0, 0.0, 0.0]
+        state = lz._state()
+        ht = bu = None
+        jac: list[tuple[np.ndarray, ...]] = []
+        complete = True
+        for gi, g in enumerate(self.groups):
+            touch = self._touch[gi]
+            lin = linearize and touch and (every or lz.on_trial[gi])
+            out = self._call(gi, g, "linearize" if lin else "evaluate")
+            if safe:
+                out, oe, s = lz._weigh(gi, g, out, state)
+                rho, w = lz._robustify(g, s, weights=lin)
+                lz._record(g, s, rho, out.active, totals)
+                if lin:
+                    assert w is not None
+                    J, wj, we = weighted_rows(g, out.jacobians, oe, w, lz._live[gi])
+            else:
+                J, wj, we = self._lean_terms(gi, g, out, state, lin, totals)
+            if lin:
+                ht, bu = self._assembler.add_group(gi, J, wj, we, ht, bu)
+                jac.append(J)
+            else:
+                complete = complete and not touch
+                jac.append(())
+        ev = lz._finish(totals, state)
+        self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
+        return ev
+
+    def _call(self, gi: int, g: EdgeGroup, method: str) -> Linearization:
+        """:meth:`Linearizer._run` without its per-call bookkeeping once a group's output was
+        checked: the context kept (no derived values), the type's method called directly."""
+        lz = self.linearizer
+        ctx = self._ctx[gi]
+        key = (id(g), method, g.size)
+        if ctx is None or key not in lz._trusted:
+            if ctx is None and not g.etype.uses_derived:
+                self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
+            return lz._run(gi, method)
+        if self._unary[gi] and lz._one[gi] is not None:  # the free vertex's row, broadcast
+            est = self.stores[self._store].estimates
+            x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
+        else:
+            x = lz.gather(gi)
+        try:
+            out = getattr(g.etype, method)(x, g.measurements, ctx)
+        except (GraphError, ValueError):  # named, or a broadcast input written: the full path
+            return lz._run(gi, method)
+        return out if type(out) is Linearization else lz._run(gi, method)
+
+    def _lean_terms(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...],
+                    lin: bool, totals: list[float]
+                    ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], np.ndarray]:
+        """What :meth:`Linearizer._weigh`, ``_robustify``, ``_record`` and
+        :func:`~graphopt.row_weights.weighted_rows` do for one group, inactive edges weighed
+        zero instead of zeroed: ``(J, ρ'ΩJ, ρ'Ωe)`` if ``lin``, else empty."""
+        lz = self.linearizer
+        e = out.error
+        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
+                       g.removals), e)
+        act = g.active_edges
+        if out.active is not None:
+            own = np.asarray(out.active, dtype=bool)
+            act = own if act is None else act & own
+        oe, s = lz._sq(g, e)
+        if act is not None:  # an inactive edge's non-finite error reaches b: linearize sees it
+            s = np.where(act, s, 0.0)
+        kernels = g.kernels
+        if len(kernels) == 1 and g.kernel_index.strides == (0,) and g.kernel_index[0] == 0:
+            kern = kernels[0]  # one kernel for all (Linearizer._robustify's first case)
+            if lin:
+                rho, w = kern.cost_and_weight(s)
+                if not kern.nonnegative_weight:
+                    w = np.maximum(w, 0.0)
+            else:
+                rho, w = kern.cost(s), None
+        elif kernels:
+            rho, w = lz._robustify(g, s, weights=lin)
+        else:
+            rho, w = s, None
+        # Linearizer._record
+        g.last_chi2 = s
+        g.active_count = g.size if act is None else int(np.count_nonzero(act))
+        chi2 = float(s.sum())
+        totals[0] += chi2
+        totals[1] += chi2 if rho is s else float(rho.sum())
+        totals[2] += g.active_count
+        if not lin:
+            return (), (), oe
+        weighted = w is not None or act is not None
+        wv = (w if act is None else act if w is None else w * act) if weighted else None
+        J = out.jacobians
+        if not all(j.flags.c_contiguous for j in J):
+            J = tuple(np.ascontiguousarray(j) for j in J)
+        live = lz._live[gi]
+        if g.info_diagonal is not None and not g.info_is_identity:
+            d = (g.info_diagonal * wv[:, None] if wv is not None else g.info_diagonal)[..., None]
+            wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
+        else:
+            wj = J
+            if not g.info_is_identity:
+                assert g.information is not None
+                wj = tuple(np.matmul(g.information, j) if a else j
+                           for j, a in zip(J, live, strict=True))
+            if wv is not None:
+                wj = tuple(j * wv[:, None, None] if a else j
+                           for j, a in zip(wj, live, strict=True))
+        return J, wj, oe * wv[:, None] if wv is not None else oe
+
+    def evaluate(self, linearize: bool = True) -> Evaluation:
+        """See :meth:`Problem.evaluate`.
+
+        Args:
+            linearize: Keep the Jacobians for the next :meth:`linearize` at this state.
+        """
+        return self._evaluate(linearize)
+
+    def robust_chi2(self, linearize: bool = True) -> float:
+        """See :meth:`Problem.robust_chi2`.
+
+        Args:
+            linearize: Linearise the trial (its Jacobians serve the next iteration).
+        """
+        chi = self._evaluate(linearize).robust_chi2
+        if not math.isfinite(chi):
+            self._check_finite_estimates()
+        return chi
+
+    def _idle_vertex(self) -> bool:
+        """Whether no active edge reaches the free vertex (levels only, as :class:`~graphopt.
+        activity.IdleAnchors`): ``H`` then gets the identity and the step is zero."""
+        key = tuple(g.activity_version for g in self.groups)
+        if key != self._idle_key:
+            self._idle_key = key
+            self._idle = True
+            for g, on in zip(self.groups, self._on_any, strict=True):
+                act = g.active_edges
+                if on.any() and (act is None or bool((act & on).any())):
+                    self._idle = False
+                    break
+        return self._idle
+
+    def linearize(self, safe: bool = False) -> tuple[Assembly, float]:
+        """See :meth:`Problem.linearize`.
+
+        Args:
+            safe: Inactive rows zeroed (after a non-finite Jacobian of an inactive edge).
+
+        Raises:
+            FloatingPointError: a non-finite error or Jacobian (naming the edge).
+        """
+        t0 = time.perf_counter()
+        lz = self.linearizer
+        terms = self._terms
+        if terms is None or terms[0] != lz.state_key():
+            self._evaluate(True, every=True, safe=safe)
+            terms = self._terms
+        assert terms is not None and lz.last is not None
+        self._terms = None
+        ev = lz.last
+        _, ht, bu, jac = terms
+        if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
+            for g, J in zip(self.groups, jac, strict=True):
+                if J:
+                    raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
+        asm = self._assembler.finish(ht, bu)
+        if self._idle_vertex():
+            asm.h_data[self._diag] += 1.0
+        if not (np.isfinite(asm.h_data).all() and np.isfinite(asm.bu).all()):
+            if not safe and any(g.active_count < g.size for g in self.groups):
+                # An inactive edge's non-finite Jacobian: zero the rows, as the general path.
+                self._evaluate(True, every=True, safe=True)
+                return self.linearize(safe=True)
+            for g, J in zip(self.groups, jac, strict=True):
+                if J:
+                    raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
+            raise FloatingPointError("the normal equations are not finite (overflow)")
+        self.timing.linearize += time.perf_counter() - t0
+        return asm, ev.robust_chi2
+
+    # --- the linear algebra ------------------------------------------------------------------
+
+    def damping(self, asm: Assembly, diagonal: bool) -> Step:
+        """See :meth:`Problem.damping`.
+
+        Args:
+            asm: The assembly.
+            diagonal: Marquardt's scaling instead of the identity.
+        """
+        if diagonal:
+            return np.clip(asm.h_data[self._diag], 1e-6, 1e32), []
+        return self._ones, []
+
+    def max_diagonal(self, asm: Assembly) -> float:
+        """See :meth:`Problem.max_diagonal`.
+
+        Args:
+            asm: The assembly.
+        """
+        return float(asm.h_data[self._diag].max())
+
+    def solve(self, asm: Assembly, lam: float, damping: Step | None = None) -> Step:
+        """See :meth:`Problem.solve`: LAPACK's Cholesky of ``H + λD`` (``D``: ``damping``, the
+        identity if ``None``), held to the dense solver's rank rule.
+
+        Args:
+            asm: The assembly.
+            lam: Damping λ (0 for none).
+            damping: ``D`` from :meth:`damping`.
+        """
+        t0 = time.perf_counter()
+        data = asm.h_data.copy()
+        if lam:
+            data[self._diag] += lam * (self._ones if damping is None else damping[0])
+        d = self.d
+        factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
+                                   overwrite_a=1, clean=0)
+        c, info = factor
+        if info == 0:  # the rank rule's first screen in floats (d pivots: 1 µs, not 4)
+            diag = data[self._diag].tolist()
+            if all(p * p > PIVOT_SCREEN * abs(q) for p, q in zip(c.diagonal().tolist(), diag,
+                                                                  strict=True)):
+                du, info = sla.lapack.dpotrs(c, asm.bu, lower=1)
+                if info == 0 and math.isfinite(sum(du.tolist())):
+                    self.timing.solve += time.perf_counter() - t0
+                    return du, []
+        du = cholesky_solve("dense", factor, data[self._diag], asm.bu.copy(),
+                            lambda s: _shifted_is_definite(data, self._diag, s))
+        self.timing.solve += time.perf_counter() - t0
+        return du, []
+
+    def hessian_product(self, asm: Assembly, step: Step) -> Step:
+        """See :meth:`Problem.hessian_product`.
+
+        Args:
+            asm: The assembly.
+            step: A vector in the step layout.
+        """
+        d = self.d
+        return asm.h_data.reshape(d, d).T @ step[0], []
+
+    # --- the state ---------------------------------------------------------------------------
+
+    @staticmethod
+    def max_abs(step: Step) -> float:
+        """See :meth:`Problem.max_abs` (in floats: the gradient test's ``b``, finite here).
+
+        Args:
+            step: A vector in the step layout.
+        """
+        return max(map(abs, step[0].tolist()), default=0.0)
+
+    def state_norm(self) -> float:
+        """See :meth:`Problem.state_norm`."""
+        est = self.stores[self._store].estimates
+        x = est if len(est) == 1 else est[self._slot:self._slot + 1]
+        return math.sqrt(float(np.vdot(x, x)))
+
+    def apply(self, step: Step) -> None:
+        """``x ← x ⊞ Δ`` on the free vertex (``oplus`` gets a copy; see
+        :meth:`Problem.apply`).
+
+        Args:
+            step: ``(Δ (d,), [])``.
+
+        Raises:
+            GraphError: ``oplus`` returned the wrong shape (naming the vertex type).
+        """
+        st = self.stores[self._store]
+        est = st.estimates
+        delta = step[0].reshape(1, -1)
+        if len(est) == 1:
+            st.estimates = checked_oplus(st.vtype, est.copy(), delta)
+            return
+        new = est.copy()
+        k = self._slot
+        new[k:k + 1] = checked_oplus(st.vtype, est[k:k + 1].copy(), delta)
+        st.estimates = new
+
+
+def _shifted_is_definite(data: np.ndarray, diag: np.ndarray, scale: np.ndarray) -> bool:
+    """Whether ``A + τ·S`` (``A``'s column-major data) has a Cholesky factor with positive,
+    finite pivots (the rank rule's step 3)."""
+    d = len(diag)
+    c, info = sla.lapack.dpotrf(shift_diagonal(data, diag, scale).reshape(d, d).T.copy(
+        order="F"), lower=1, overwrite_a=1, clean=0)
+    p = np.diagonal(c)
+    return info == 0 and bool(np.all(np.isfinite(p)) and np.all(p > 0))
+
+
+def make_problem(stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,
+                 solver: LinearSolver, schur: SchurConfig | None = None) -> Problem:
+    """The :class:`SingleVertexProblem` where it applies, else the general :class:`Problem`.
+
+    Args:
+        stores: The vertex stores.
+        groups: The finalised edge groups.
+        positions: Per group, per vertex position: ``(store index, slots (m,))``.
+        solver: The linear solver.
+        schur: How to form the Schur complement.
+    """
+    return (SingleVertexProblem.of(stores, groups, positions, solver, schur)
+            or Problem(stores, groups, positions, solver, schur))

@@ -1,0 +1,155 @@
+"""One free vertex: :class:`SingleVertexProblem` runs the same iterations as the general
+:class:`Problem` (every algorithm, levels, kernels, edits between runs, an idle vertex), gives
+the same marginals, and is chosen only where it applies."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+from test_single_block import CAM, one_free_pose
+
+from graphopt import SparseOptimizer
+from graphopt.problem import Problem
+from graphopt.single_vertex import SingleVertexProblem
+from graphopt.solvers import LinearSolverDense
+from graphopt.solvers.cholmod import LinearSolverCholmod
+from graphopt.stopping import StoppingConfig
+from graphopt.types import EdgeSE3ProjectXYZOnlyPose
+
+
+@pytest.fixture
+def general(monkeypatch: pytest.MonkeyPatch) -> Callable[[], None]:
+    """Call to make the optimizers initialised afterwards use the general problem."""
+    def use() -> None:
+        monkeypatch.setattr(SingleVertexProblem, "of", classmethod(lambda cls, *a, **k: None))
+    return use
+
+
+def _run(opt: SparseOptimizer, rounds: int = 1) -> list[tuple[float, float, int, bool]]:
+    """ORB-SLAM's rounds: optimise, move the projections with the largest chi2 (above its 70th
+    percentile) to level 1, drop their kernels after the first round, start again from the
+    first estimate."""
+    start = opt.vertex(0).estimate.copy()
+    proj = opt.edge_groups()[0]
+    out = []
+    for r in range(rounds):
+        opt.vertex(0).set_estimate(start)
+        opt.initialize_optimization(0)
+        res = opt.optimize(10)
+        out += [(i.chi2, i.lam, i.trials, i.failed) for i in res.info]
+        if rounds > 1:
+            levels = (proj.last_chi2 > np.quantile(proj.last_chi2, 0.7)).astype(int)
+            proj.set_levels(np.arange(proj.size), levels)
+            if r == 0:
+                proj.set_kernel(np.arange(proj.size), None)
+    return out
+
+
+def _compare(fast: SparseOptimizer, slow: SparseOptimizer, a: list, b: list) -> None:
+    assert isinstance(fast.problem, SingleVertexProblem)
+    assert type(slow.problem) is Problem
+    assert len(a) == len(b) > 1
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(x[:2], y[:2], rtol=1e-9)
+        assert x[2:] == y[2:]
+    np.testing.assert_allclose(fast.vertex(0).estimate, slow.vertex(0).estimate, atol=1e-10)
+
+
+@pytest.mark.parametrize("algorithm", ["lm", "gn", "dogleg"])
+@pytest.mark.parametrize("levels", [False, True])
+def test_the_same_iterations_as_the_general_problem(general: Callable[[], None],
+                                                    algorithm: str, levels: bool) -> None:
+    fast = one_free_pose(levels)
+    fast.set_algorithm(algorithm)
+    a = _run(fast)
+    general()
+    slow = one_free_pose(levels)
+    slow.set_algorithm(algorithm)
+    _compare(fast, slow, a, _run(slow))
+
+
+def test_rounds_with_levels_and_kernels_edited_between_them(general: Callable[[], None]
+                                                            ) -> None:
+    fast = one_free_pose(False)
+    a = _run(fast, rounds=3)
+    general()
+    slow = one_free_pose(False)
+    _compare(fast, slow, a, _run(slow, rounds=3))
+    g_fast, g_slow = fast.edge_groups()[0], slow.edge_groups()[0]
+    assert 0 < int(g_fast.levels.sum()) < g_fast.size  # some edges did move
+    np.testing.assert_array_equal(g_fast.levels, g_slow.levels)
+
+
+def test_an_idle_vertex_keeps_its_estimate(general: Callable[[], None]) -> None:
+    """Every edge on the free vertex at level 1: Gauss–Newton, without a gradient test, takes
+    zero steps on both paths (the identity anchors the vertex; without it H is singular)."""
+    results = []
+    for use_general in (False, True):
+        if use_general:
+            general()
+        opt = one_free_pose(False)
+        opt.set_algorithm("gn")
+        opt.stopping = StoppingConfig.iterations_only()
+        before = opt.vertex(0).estimate.copy()
+        for g in opt.edge_groups():
+            g.set_levels(np.arange(g.size), np.ones(g.size, dtype=int))
+        opt.initialize_optimization(0)
+        res = opt.optimize(3)
+        np.testing.assert_array_equal(opt.vertex(0).estimate, before)
+        assert res.info and not any(i.failed or i.not_pd for i in res.info)
+        results.append((res.initial_chi2, res.final_chi2, len(res.info)))
+    assert results[0] == results[1]
+
+
+def test_marginals_are_the_general_problems(general: Callable[[], None]) -> None:
+    fast = one_free_pose(True)
+    fast.optimize(5)
+    cov = fast.compute_marginals([0])[0]
+    general()
+    slow = one_free_pose(True)
+    slow.optimize(5)
+    np.testing.assert_allclose(cov, slow.compute_marginals([0])[0], rtol=1e-7)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+def test_chosen_only_where_it_applies() -> None:
+    opt = one_free_pose(False)
+    opt.initialize_optimization()
+    assert isinstance(opt.problem, SingleVertexProblem)
+    assert opt.linear_system is not None and not opt.linear_system.schur  # built on use
+    opt = one_free_pose(False)
+    opt.vertex(1).set_fixed(False)  # two free vertices
+    opt.initialize_optimization()
+    assert type(opt.problem) is Problem
+    for solver in (LinearSolverCholmod(), type("Mine", (LinearSolverDense,), {})()):
+        opt = one_free_pose(False)  # a solver the user chose (not the dense one by name)
+        opt.set_solver(solver)
+        opt.initialize_optimization()
+        assert type(opt.problem) is Problem
+        assert opt.problem.solver is solver
+
+
+def _with_a_point_at_the_camera_centre() -> tuple[SparseOptimizer, object]:
+    opt = one_free_pose(False)
+    T = opt.vertex(0).estimate
+    centre = -T[:3, :3].T @ T[:3, 3]  # projects to 0/0: a non-finite error and Jacobian
+    bad = opt.add_edges(EdgeSE3ProjectXYZOnlyPose, [[0]], [[320.0, 240.0]], params=CAM,
+                        data={"Xw": centre[None]})
+    bad.set_level(1)
+    return opt, bad
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_an_inactive_edges_non_finite_rows_do_not_reach_the_system(general: Callable[[], None]
+                                                                  ) -> None:
+    """The fast path weighs inactive rows zero instead of zeroing them; where one is not
+    finite it evaluates again with the rows zeroed, as the general path does."""
+    fast, bad = _with_a_point_at_the_camera_centre()
+    fast.initialize_optimization(0)
+    assert not np.isfinite(bad.chi2()).all()
+    a = _run(fast)
+    general()
+    slow, _ = _with_a_point_at_the_camera_centre()
+    _compare(fast, slow, a, _run(slow))
