@@ -315,7 +315,9 @@ class Graph:
             # Check each distinct id once; report the first edge that names a bad one.
             col = vids[:, pos]
             first = col[0]  # one vertex at this position (a pose's unary edges): no sort
-            distinct = [int(first)] if (col == first).all() else np.unique(col).tolist()
+            # A few edges (an online step's): a set of ints beats np.unique's sort.
+            distinct = ([int(first)] if (col == first).all() else set(col.tolist()) if m <= 64
+                        else np.unique(col).tolist())
             bad_ids = [v for v in distinct
                        if v not in self._ids or not issubclass(self._ids[v][0].vtype, vt)]
             if bad_ids:

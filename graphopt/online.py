@@ -20,11 +20,12 @@ rank update with their whitened Jacobians, new vertices take reserved trailing u
   solves.
 * Any other update flushes the waiting edges into the factor and solves with it (one solve,
   every vertex's estimate updated).
-* A batch step — relinearise every edge at the current estimate, reorder (AMD on the vertex
-  graph; new vertices go last), refactorise — runs when the reserve runs out, when a vertex's
-  step from its linearisation point exceeds ``relinearize_threshold``, or when the factor
-  loses positive definiteness. Its result is checked: if chi2 went up, damped steps
-  (Levenberg–Marquardt, ``λ·diag(H)``) take over until it goes down.
+* A batch step — relinearise every edge at the current estimate, reorder (nested dissection
+  on the vertex graph; the newest vertices last while loop closures stay among them),
+  refactorise — runs when the reserve runs out, when the linear model no longer predicts the
+  chi2 after a vertex's step from its linearisation point exceeded ``relinearize_threshold``,
+  or when the factor loses positive definiteness. Its result is checked: if chi2 went up,
+  damped steps (Levenberg–Marquardt, ``λ·diag(H)``) take over until it goes down.
 """
 
 from __future__ import annotations
@@ -36,11 +37,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from graphopt.errors import GraphError, NotPositiveDefiniteError
-from graphopt.incremental.factor import GrowingFactor, block_order
+from graphopt.incremental.factor import GrowingFactor
+from graphopt.incremental.ordering import Ordering
 from graphopt.incremental.state import Batch, State, by_group
 from graphopt.incremental.whitened import (
+    determine,
     gradient_into,
     hessian,
+    largest_diagonal,
     negated,
     robust_cost,
     update_columns,
@@ -60,7 +64,8 @@ class IncrementalConfig:
             are used up.
         reserve_fraction: The reserve as a share of the vertices in use, when larger.
         recent: The newest vertices of each type that a batch step orders last (new edges
-            mostly reach them).
+            mostly reach them; none when the loop closures since the last batch step mostly
+            reach further back).
         relinearize_threshold: Once a vertex's step from its linearisation point exceeds this
             (largest tangent component), the linear model is checked against the true chi2
             (a full evaluation); a batch step relinearises everything if they differ by more
@@ -149,6 +154,7 @@ class IncrementalOptimizer:
         self._g = np.zeros(0)
         self._delta = np.zeros(0)
         self._removals = 0
+        self._ordering = Ordering(self.config.recent)
         self._checked = 0.0
         self._since_check = 0
         self.reports: list[UpdateReport] = []
@@ -169,6 +175,7 @@ class IncrementalOptimizer:
         t0 = time.perf_counter()
         if self._factor is not None and self._state.removals() != self._removals:
             self._state, self._factor = State(self.optimizer.graph), None  # start afresh
+            self._ordering = Ordering(self.config.recent)
         st = self._state
         new = st.new_vertices()
         batches = st.new_batches()
@@ -248,7 +255,8 @@ class IncrementalOptimizer:
         self._state.keep_linear(pending, wb, fresh=False)
         gradient_into(self._g, wb)
         self._factor.update(update_columns(wb, self._factor.size))
-        self._factor.take(self._pending_unknowns)
+        first, count = self._factor.used, self._pending_unknowns
+        self._factor.take(count, check=not determine(wb, first, count))
         self._pending, self._pending_unknowns = [], 0
 
     def _solve(self, report: UpdateReport) -> None:
@@ -272,7 +280,7 @@ class IncrementalOptimizer:
             # longer predicts the chi2 (checked again once the steps grew by half or after
             # check_every solves; with robust kernels at every solve, as their weights go
             # stale with any step).
-            true, model = self._state.model_check(delta)
+            true, model = self._state.model_check(delta, self._g)
             self._checked, self._since_check = worst, 0
             if abs(true - model) > cfg.model_tolerance * max(true, 1.0) and (
                     robust or not self._relinearize_partly(report)):
@@ -313,7 +321,7 @@ class IncrementalOptimizer:
         self._checked = st.apply(self._delta)
         # As a batch step, done once the linear model predicts the chi2 (the vertices left
         # below the threshold may still be off: then the batch step relinearises all).
-        true, model = st.model_check(self._delta)
+        true, model = st.model_check(self._delta, self._g)
         if abs(true - model) > cfg.model_tolerance * max(true, 1.0):
             return False
         report.relinearized = count
@@ -335,7 +343,7 @@ class IncrementalOptimizer:
         for it in range(iterations):
             st.relinearize_all()
             batches = st.all_edges()
-            self._renumber(batches)
+            self._ordering.renumber(st, batches)
             st.flags = [s.flags_version for s in st.stores]
             report.relinearized = sum(int((o >= 0).sum()) for o in st.offsets)
             dims = [s.vtype.dimension for s in st.stores]
@@ -347,7 +355,6 @@ class IncrementalOptimizer:
             self._checked, self._since_check = 0.0, 0
             before = float(sum(robust_cost(w.chi2, b.kernel_index, b.group.kernels).sum()
                                for w, b in zip(wb, batches, strict=True)))
-            H = hessian(wb, n)
             self._g = np.zeros(n + reserve)
             gradient_into(self._g, wb)
             # The model check below needs the chi2 at the new estimate anyway: without
@@ -356,16 +363,20 @@ class IncrementalOptimizer:
             check = it + 1 < iterations
             robust = any(b.group.kernels for b in batches)
             try:
-                self._factor = GrowingFactor(H, reserve, self._large())
+                self._factor = (GrowingFactor(hessian(wb, n), reserve, True) if self._large()
+                                else GrowingFactor.of_columns(update_columns(wb, n + reserve),
+                                                              n, reserve,
+                                                              largest_diagonal(wb, n)))
                 self._delta = -self._factor.solve(self._g)
                 worst = st.apply(self._delta)
-                true, model = st.model_check(self._delta) if check else (0.0, 0.0)
+                true, model = (st.model_check(self._delta, self._g) if check
+                               else (0.0, 0.0))
                 after = true if check and not robust else self.chi2()
                 if after > before:
                     raise NotPositiveDefiniteError("chi2 went up")
             except NotPositiveDefiniteError:
                 report.fallback = True
-                self._damped(H, self._g, before, reserve)
+                self._damped(hessian(wb, n), self._g, before, reserve)
                 return
             if not check or (worst <= cfg.relinearize_threshold
                              and before - after <= cfg.batch_tolerance * after):
@@ -428,50 +439,3 @@ class IncrementalOptimizer:
         """Whether a vertex type has more than 3 unknowns (a supernodal factorisation pays
         off)."""
         return max((s.vtype.dimension for s in self._state.stores), default=1) > 3
-
-    def _renumber(self, batches: list[Batch]) -> None:
-        """Number the free vertices' unknowns in a fill-reducing order of the vertex graph."""
-        st = self._state
-        base, counts = [], []
-        total = 0
-        for store, off in zip(st.stores, st.offsets, strict=True):
-            free = ~store.fixed[: len(off)]  # the flags as they are now
-            block = np.full(len(off), -1, np.int64)
-            block[free] = total + np.arange(int(free.sum()))
-            total += int(free.sum())
-            base.append(block)
-            counts.append(free)
-        rows, cols = [], []
-        for b in batches:
-            blk = [base[si][s] for si, s in zip(b.stores, b.slots, strict=True)]
-            for a in range(len(blk)):
-                for c in range(a + 1, len(blk)):
-                    ok = (blk[a] >= 0) & (blk[c] >= 0)
-                    rows.append(blk[a][ok])
-                    cols.append(blk[c][ok])
-        # The newest vertices of every store go last, in the order they came (new vertices'
-        # edges mostly reach them: an update then touches the tail of the factor, as iSAM2's
-        # constrained ordering keeps them at the root); nested dissection orders the others among
-        # themselves.
-        recent = np.zeros(total, bool)
-        for block in base:
-            mine = block[block >= 0]
-            recent[mine[max(len(mine) - self.config.recent, 0):]] = True
-        old = np.flatnonzero(~recent)
-        where = np.full(total, -1, np.int64)
-        where[old] = np.arange(len(old))
-        r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
-        c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
-        inside = (where[r] >= 0) & (where[c] >= 0)
-        order = np.concatenate([old[block_order(len(old), where[r[inside]], where[c[inside]])],
-                                np.flatnonzero(recent)])
-        dims = np.concatenate([np.full(int(f.sum()), s.vtype.dimension) for s, f in
-                               zip(st.stores, counts, strict=True)] or [np.zeros(0, np.int64)])
-        start = np.zeros(total, np.int64)
-        if total:
-            start[order] = np.concatenate([[0], np.cumsum(dims[order])[:-1]])
-        for si, block in enumerate(base):
-            off = np.full(len(block), -1, np.int64)
-            free = block >= 0
-            off[free] = start[block[free]]
-            st.offsets[si] = off

@@ -74,6 +74,10 @@ def test_the_grown_factor_solves_like_a_fresh_factorisation() -> None:
     fresh = spla.spsolve(H, g)
     assert np.abs(x - fresh).max() <= 1e-9 * np.abs(fresh).max()
     assert np.abs(x[n:]).max(initial=0.0) == 0.0
+    # The model check's short form ‖r‖² + gᵀΔ is the linear model edge by edge at the solve.
+    delta = -f.solve(inc._g)
+    _, model = inc._state.model_check(delta, inc._g)
+    assert model == pytest.approx(inc._state.model_residuals(delta), rel=1e-9, abs=1e-9)
 
 
 def _chain(opt: SparseOptimizer, n: int) -> None:
@@ -100,6 +104,8 @@ def test_a_partial_relinearisation_keeps_the_factor_the_systems(monkeypatch) -> 
             fresh = spla.spsolve(H, g)
             seen.append(np.abs(self.factor.solve(rhs)[:len(g)] - fresh).max()
                         / np.abs(fresh).max())
+            _, model = self._state.model_check(self._delta, self._g)  # rows swapped: r2 too
+            assert model == pytest.approx(self._state.model_residuals(self._delta), rel=1e-9)
         return ran
 
     monkeypatch.setattr(IncrementalOptimizer, "_relinearize_partly", checked)
@@ -304,3 +310,48 @@ def test_removing_every_edge_of_a_group_between_updates_starts_afresh() -> None:
     assert report.factor == "rebuilt"
     assert inc.chi2() == pytest.approx(opt.active_robust_chi2(), abs=1e-12)
     assert inc.chi2() < 1e-12
+
+
+def test_update_columns_come_sorted_and_determine_reads_each_new_vertex_block() -> None:
+    from graphopt.incremental.whitened import Whitened, determine, update_columns
+
+    rng = np.random.default_rng(3)
+    cols = [np.array([6, 0]), np.array([3, 9])]  # edges (6, 3) and (0, 9): the first swapped
+    blocks = [rng.normal(size=(2, 3, 3)), rng.normal(size=(2, 3, 3))]
+    w = Whitened(cols, blocks, rng.normal(size=(2, 3)), np.ones(2), np.ones(2))
+    C = update_columns([w], 12)
+    assert C.has_sorted_indices
+    for j in range(C.shape[1]):
+        rows = C.indices[C.indptr[j]:C.indptr[j + 1]]
+        assert (np.diff(rows) > 0).all()
+    H = np.zeros((12, 12))
+    for e in range(2):
+        J = np.zeros((3, 12))
+        for c, A in zip(cols, blocks, strict=True):
+            J[:, c[e]:c[e] + 3] = A[e]
+        H += J.T @ J
+    assert np.allclose((C @ C.T).toarray(), H, atol=1e-12)
+    # New unknowns 6..11: vertex 6 hangs on 3 (older), vertex 9 on 0 (older).
+    assert determine([w], 6, 6)
+    flat = [b.copy() for b in blocks]
+    flat[1][1, :, 2] = 0.0  # vertex 9's block loses a direction
+    assert not determine([Whitened(cols, flat, w.residual, w.chi2, w.weight)], 6, 6)
+
+
+def test_the_recent_block_stays_only_while_loop_closures_reach_into_it() -> None:
+    from graphopt.incremental.ordering import Ordering
+    from graphopt.incremental.state import Batch
+
+    def batch(group: object, ages: list[int], first: int) -> Batch:
+        j = first + np.arange(len(ages))
+        i = j - np.asarray(ages)
+        m = len(ages)
+        return Batch(group, np.column_stack([i, j]), np.zeros((m, 3)), np.zeros((m, 3, 3)),
+                     np.full(m, -1), {}, [0, 0], [i, j], 0, 0)
+
+    order, group = Ordering(64), object()
+    near = batch(group, [1, 50, 1, 48, 51], 100)  # odometry and closures to the last ring
+    assert order.recent_window([near]) == 64
+    far = batch(group, [1, 50, 1, 48, 51, 900, 1, 700, 321, 1200, 2000], 100)
+    assert order.recent_window([far]) == 0  # the six new edges: closures reach far back
+    assert order.recent_window([far]) == 0  # nothing new: the decision stands

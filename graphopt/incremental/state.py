@@ -74,6 +74,7 @@ class State:
 
     Args:
         graph: The optimizer's graph.
+        r2: ``Σ‖r‖²`` of the kept rows (the weighted chi2 at the linearisation points).
     """
 
     graph: Graph
@@ -86,6 +87,7 @@ class State:
     _free: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, slice | np.ndarray]] = field(
         default_factory=dict)
     flags: list[int] = field(default_factory=list)
+    r2: float = 0.0
 
     def store_index(self, st: VertexStore) -> int:
         """Index of a store (registered on first sight)."""
@@ -156,23 +158,41 @@ class State:
         """Keep the whitened rows the factor holds (``fresh``: they replace all kept ones)."""
         if fresh:
             self.linear = {}
+            self.r2 = 0.0
         for b, w in zip(batches, rows, strict=True):
             self.linear.setdefault(id(b.group), []).append(w)
+            self.r2 += float(np.square(w.residual).sum())
 
-    def model_check(self, delta: np.ndarray) -> tuple[float, float]:
+    def model_check(self, delta: np.ndarray, g: np.ndarray) -> tuple[float, float]:
         """``(chi2, model)``: the weighted chi2 of every edge at the current estimates (robust
         weights ``ρ'`` taken there: weights gone stale count as a model error too) and the
-        linear model's ``Σ‖r + AΔ‖²`` (call when every edge taken in is in the factor)."""
-        true = model = 0.0
-        for key, rows in self.linear.items():
-            joined = join(rows)
-            self.linear[key] = [joined]
+        linear model's ``Σ‖r + AΔ‖²`` (call when every edge taken in is in the factor).
+
+        ``Δ`` solves ``HΔ = −g`` (``H = ΣAᵀA``, ``g = ΣAᵀr``), so the model is
+        ``‖r‖² + 2gᵀΔ + ΔᵀHΔ = ‖r‖² + gᵀΔ``: one dot product instead of every edge's linear
+        residual (w10000: 2.2 ms of each 5 ms check).
+
+        Args:
+            delta: ``(size,)`` the solve's step.
+            g: ``(size,)`` the gradient it solved with.
+        """
+        true = 0.0
+        for key in self.linear:
             b = next(x for x in self.all_edges() if id(x.group) == key)
             s = self.chi2(b)
             w = robust_weights(s, b.kernel_index, b.group.kernels)  # today's weights: a
             true += float(s @ (w * w) if w is not None else s.sum())  # stale one also counts
-            model += float(np.square(linear_residual(joined, delta)).sum())
-        return true, model
+        return true, self.r2 + float(g @ delta)
+
+    def model_residuals(self, delta: np.ndarray) -> float:
+        """``Σ‖r + AΔ‖²`` over the kept rows, edge by edge (what :meth:`model_check`'s short
+        form equals when ``Δ`` solves the system; tests compare the two).
+
+        Args:
+            delta: ``(size,)`` a step.
+        """
+        return float(sum(np.square(linear_residual(join(rows), delta)).sum()
+                         for rows in self.linear.values()))
 
     def moved(self, delta: np.ndarray, threshold: float) -> tuple[list[np.ndarray], int]:
         """Per store, ``(slots,)`` whether the vertex's step exceeds ``threshold`` (largest
@@ -231,6 +251,7 @@ class State:
         for (b, hit), joined in zip(edges, keep, strict=True):
             fresh = self.whiten(subset(b, hit))
             old.append(pick(joined, hit))
+            self.r2 += float(np.square(fresh.residual).sum() - np.square(old[-1].residual).sum())
             put(joined, hit, fresh)
             self.linear[id(b.group)] = [joined]
             new.append(fresh)
@@ -382,10 +403,26 @@ def join_batches(chunks: list[Batch]) -> Batch:
     data = {k: np.concatenate([c.data[k] for c in chunks]) for k in f.data}
     # Consecutive runs of the group (taken in order, never removed: a removal starts afresh).
     return Batch(f.group, *(np.concatenate([getattr(c, a) for c in chunks])
-                            for a in ("vids", "measurements", "info", "kernel_index")),
-                 data, f.stores,
+                            for a in ("vids", "measurements")), shared_info(chunks),
+                 np.concatenate([c.kernel_index for c in chunks]), data, f.stores,
                  [np.concatenate([c.slots[a] for c in chunks]) for a in range(len(f.slots))],
                  f.start, f.group.activity_version[0])
+
+
+def shared_info(chunks: list[Batch]) -> np.ndarray:
+    """The chunks' information matrices joined: one matrix broadcast (a view, no copy) when
+    every edge has the same (most graphs: whitening and the chi2 then multiply by one
+    matrix), else concatenated.
+
+    Args:
+        chunks: Batches of one group.
+    """
+    first = chunks[0].info[0]
+    for c in chunks:
+        if not (len(c.info) == 1 or c.info.strides[0] == 0 or bool((c.info == c.info[0]).all())) \
+                or not np.array_equal(c.info[0], first):
+            return np.concatenate([c.info for c in chunks])
+    return np.broadcast_to(first, (sum(len(c.info) for c in chunks), *first.shape))
 
 
 def by_group(batches: list[Batch]) -> list[Batch]:
