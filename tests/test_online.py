@@ -355,3 +355,35 @@ def test_the_recent_block_stays_only_while_loop_closures_reach_into_it() -> None
     far = batch(group, [1, 50, 1, 48, 51, 900, 1, 700, 321, 1200, 2000], 100)
     assert order.recent_window([far]) == 0  # the six new edges: closures reach far back
     assert order.recent_window([far]) == 0  # nothing new: the decision stands
+
+
+def _closure_graph(kernel: bool) -> tuple[SparseOptimizer, object]:
+    """Six poses, odometry, and a closure that disagrees with it (down-weighted by a Huber
+    kernel of width 2 when ``kernel``)."""
+    from graphopt import RobustKernelHuber
+
+    opt = SparseOptimizer()
+    _chain(opt, 6)
+    closure = opt.add_edges(EdgeSE2, [[0, 5]], [[4.6, 0.4, 0.2]], INFO,
+                            RobustKernelHuber(2.0) if kernel else None)
+    return opt, closure
+
+
+def test_an_edited_kernel_reweighs_the_factor_at_the_next_update() -> None:
+    """The closure's kernel removed after the factor was built with it: the next update is a
+    batch step (without a new edge too) and ends at the kernel-free optimum (its model check
+    stops the batch iterations 5e-6 above it); before, that update did nothing and the estimate
+    stayed at the Huber optimum, 4.3 % above, until new edges came."""
+    ref, _ = _closure_graph(kernel=False)
+    ref.optimize(50)
+    ref.compute_active_errors()
+    optimum = float(ref.chi2())
+    opt, closure = _closure_graph(kernel=True)
+    inc = IncrementalOptimizer(opt)
+    inc.update()
+    closure.set_robust_kernel(None)
+    assert inc.chi2() > optimum * (1 + 1e-3)  # the Huber optimum, kernel-free chi2
+    report = inc.update()
+    assert report.factor == "rebuilt" and report.reason == "weights"
+    assert inc.chi2() == pytest.approx(optimum, rel=1e-5)
+    assert inc.update().factor != "rebuilt"  # nothing edited since: no batch step
