@@ -17,25 +17,32 @@ def row_dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("me,me->m", a, b)
 
 
-def weighted_rows(g: EdgeGroup, J: tuple[np.ndarray, ...], oe: np.ndarray, w: np.ndarray,
-                  live: tuple[bool, ...]) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...],
-                                                   np.ndarray]:
-    """``(J, ρ'ΩJ, ρ'Ωe)`` of one group, ``J`` C-contiguous (see :class:`WeightedLinearization`).
+def weighted_rows(g: EdgeGroup, J: tuple[np.ndarray, ...], oe: np.ndarray,
+                  w: np.ndarray | None, live: tuple[bool, ...], active: np.ndarray | None = None
+                  ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], np.ndarray]:
+    """``(J, ρ'ΩJ, ρ'Ωe)`` of one group, ``J`` C-contiguous (see
+    :class:`~graphopt.linearizer.WeightedLinearization`).
 
     Args:
         g: The group.
-        J: Its Jacobians per position (inactive rows zeroed).
+        J: Its Jacobians per position (inactive rows zeroed, unless ``active`` is given).
         oe: ``Ωe`` ``(m, rows)``.
-        w: The kernel's weights ``ρ'`` ``(m,)``.
+        w: The kernel's weights ``ρ'`` ``(m,)`` (used when the group has kernels), or ``None``
+            for none.
         live: Per position, whether any of its vertices is free (else ``J`` is not weighted).
+        active: ``(m,)`` the active edges, when the inactive ones' rows were not zeroed: they
+            get weight 0 (the same numbers for finite rows, ``1.0 · w`` being ``w``).
     """
-    J = tuple(np.ascontiguousarray(j) for j in J)
-    weighted = bool(g.kernels)
+    if not all(j.flags.c_contiguous for j in J):
+        J = tuple(np.ascontiguousarray(j) for j in J)
+    if active is not None:
+        w = active if w is None else w * active
+    elif not g.kernels:
+        w = None
     if g.info_diagonal is not None and not g.info_is_identity:
         # A row scaling (3x faster than the products), the kernel's weight folded in: one pass
         # over J (the row factors first, (e,) or (m, e), then (m, e, 1)).
-        d = g.info_diagonal * w[:, None] if weighted else g.info_diagonal
-        d = d[..., None]
+        d = (g.info_diagonal if w is None else g.info_diagonal * w[:, None])[..., None]
         wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
     else:
         if g.info_is_identity:
@@ -44,6 +51,6 @@ def weighted_rows(g: EdgeGroup, J: tuple[np.ndarray, ...], oe: np.ndarray, w: np
             assert g.information is not None
             wj = tuple(np.matmul(g.information, j) if a else j
                        for j, a in zip(J, live, strict=True))
-        if weighted:
+        if w is not None:
             wj = tuple(j * w[:, None, None] if a else j for j, a in zip(wj, live, strict=True))
-    return J, wj, oe * w[:, None] if weighted else oe
+    return J, wj, oe if w is None else oe * w[:, None]

@@ -247,25 +247,7 @@ class SingleVertexProblem(Problem):
         totals[2] += g.active_count
         if not lin:
             return (), (), oe
-        weighted = w is not None or act is not None
-        wv = (w if act is None else act if w is None else w * act) if weighted else None
-        J = out.jacobians
-        if not all(j.flags.c_contiguous for j in J):
-            J = tuple(np.ascontiguousarray(j) for j in J)
-        live = lz._live[gi]
-        if g.info_diagonal is not None and not g.info_is_identity:
-            d = (g.info_diagonal * wv[:, None] if wv is not None else g.info_diagonal)[..., None]
-            wj = tuple(j * d if a else j for j, a in zip(J, live, strict=True))
-        else:
-            wj = J
-            if not g.info_is_identity:
-                assert g.information is not None
-                wj = tuple(np.matmul(g.information, j) if a else j
-                           for j, a in zip(J, live, strict=True))
-            if wv is not None:
-                wj = tuple(j * wv[:, None, None] if a else j
-                           for j, a in zip(wj, live, strict=True))
-        return J, wj, oe * wv[:, None] if wv is not None else oe
+        return weighted_rows(g, out.jacobians, oe, w, lz._live[gi], act)
 
     def evaluate(self, linearize: bool = True) -> Evaluation:
         """See :meth:`Problem.evaluate`.
