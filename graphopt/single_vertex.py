@@ -302,9 +302,7 @@ class SingleVertexProblem(Problem):
         ev = lz.last
         _, ht, bu, jac = terms
         if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
-            for g, J in zip(self.groups, jac, strict=True):
-                if J:
-                    raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
+            self._name_non_finite(jac)
         asm = self._assembler.finish(ht, bu)
         if self._idle_vertex():
             asm.h_data[self._diag] += 1.0
@@ -313,12 +311,17 @@ class SingleVertexProblem(Problem):
                 # An inactive edge's non-finite Jacobian: zero the rows, as the general path.
                 self._evaluate(True, every=True, safe=True)
                 return self.linearize(safe=True)
-            for g, J in zip(self.groups, jac, strict=True):
-                if J:
-                    raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
+            self._name_non_finite(jac)
             raise FloatingPointError("the normal equations are not finite (overflow)")
         self.timing.linearize += time.perf_counter() - t0
         return asm, ev.robust_chi2
+
+    def _name_non_finite(self, jac: list[tuple[np.ndarray, ...]]) -> None:
+        """Raise naming the first edge with a non-finite error or Jacobian among the groups
+        that reach ``H`` (their Jacobians ``jac``), if there is one."""
+        for g, J in zip(self.groups, jac, strict=True):
+            if J:
+                raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
 
     # --- the linear algebra ------------------------------------------------------------------
 
