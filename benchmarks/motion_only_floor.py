@@ -55,43 +55,57 @@ from graphopt.types import CameraParameters  # noqa: E402
 CHI2_MONO = 5.991
 
 
+DELTA = float(np.sqrt(CHI2_MONO))  # the Huber width of the procedure
+
+
+def _project(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, f: np.ndarray, c: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(e (m, 2), iz (m,), uv (m, 2))`` of the world points ``Xw`` seen from ``T``."""
+    P = Xw @ T[:3, :3].T + T[:3, 3]
+    iz = 1.0 / P[:, 2]
+    uv = P[:, :2] * iz[:, None]
+    return z - (uv * f + c), iz, uv
+
+
+def _jacobian(uv: np.ndarray, iz: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    """g2o's ``EdgeSE3ProjectXYZOnlyPose`` rows ``(m, 2, 6)``."""
+    u, v = uv[:, 0], uv[:, 1]
+    J = np.zeros((len(iz), 2, 6))
+    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = fx * u * v, -fx * (1 + u * u), fx * v
+    J[:, 0, 3], J[:, 0, 5] = -fx * iz, fx * u * iz
+    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = fy * (1 + v * v), -fy * u * v, -fy * u
+    J[:, 1, 4], J[:, 1, 5] = -fy * iz, fy * v * iz
+    return J
+
+
+def _robust(s: np.ndarray, active: np.ndarray, kernel: bool) -> tuple[float, np.ndarray]:
+    """The active edges' robust chi2 and every edge's weight (0 if inactive)."""
+    if not kernel:
+        return float(s[active].sum()), active.astype(float)
+    r = np.sqrt(s)
+    rho = np.where(s <= CHI2_MONO, s, 2 * DELTA * r - CHI2_MONO)
+    return float(rho[active].sum()), DELTA / np.maximum(r, DELTA) * active
+
+
 def bare(T_init: np.ndarray, Xw: np.ndarray, z: np.ndarray, inv_sigma2: np.ndarray,
          cam: CameraParameters, count: list[int]) -> tuple[np.ndarray, np.ndarray, float]:
     """Mono ``PoseOptimization`` in plain numpy: ``(T, inliers, last round's chi2)``;
     ``count[0]`` is increased by the iterations run."""
     fx, fy = cam.fx, cam.fy
     f, c = np.array([fx, fy]), np.array([cam.cx, cam.cy])
-    delta = np.sqrt(CHI2_MONO)
-    m = len(z)
-    outlier = np.zeros(m, dtype=bool)
+    outlier = np.zeros(len(z), dtype=bool)
     kernel = True
 
     def evaluate(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        P = Xw @ T[:3, :3].T + T[:3, 3]
-        iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]
-        e = z - (uv * f + c)
-        u, v = uv[:, 0], uv[:, 1]
-        J = np.zeros((m, 2, 6))                  # g2o's EdgeSE3ProjectXYZOnlyPose rows
-        J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = fx * u * v, -fx * (1 + u * u), fx * v
-        J[:, 0, 3], J[:, 0, 5] = -fx * iz, fx * u * iz
-        J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = fy * (1 + v * v), -fy * u * v, -fy * u
-        J[:, 1, 4], J[:, 1, 5] = -fy * iz, fy * v * iz
-        return e, inv_sigma2 * np.einsum("mi,mi->m", e, e), J
-
-    def robust(s: np.ndarray, active: np.ndarray) -> tuple[float, np.ndarray]:
-        if not kernel:
-            return float(s[active].sum()), active.astype(float)
-        r = np.sqrt(s)
-        rho = np.where(s <= CHI2_MONO, s, 2 * delta * r - CHI2_MONO)
-        return float(rho[active].sum()), delta / np.maximum(r, delta) * active
+        e, iz, uv = _project(T, Xw, z, f, c)
+        return e, inv_sigma2 * np.einsum("mi,mi->m", e, e), _jacobian(uv, iz, fx, fy)
 
     T = T_init
     for round_ in range(4):
         T = T_init.copy()
         active = ~outlier
         e, s, J = evaluate(T)
-        chi, w = robust(s, active)
+        chi, w = _robust(s, active, kernel)
         lam = -1.0
         for _ in range(10):
             count[0] += 1
@@ -107,7 +121,7 @@ def bare(T_init: np.ndarray, Xw: np.ndarray, z: np.ndarray, inv_sigma2: np.ndarr
                                    check_finite=False)
                 Tn = se3_exp(dx[None])[0] @ T
                 en, sn, Jn = evaluate(Tn)
-                chin, wn = robust(sn, active)
+                chin, wn = _robust(sn, active, kernel)
                 rho = (chi - chin) / (dx @ (lam * dx + b) + 1e-3)
                 if rho > 0:
                     lam *= max(1 / 3, min(2 / 3, 1 - (2 * rho - 1) ** 3))
@@ -135,43 +149,22 @@ def bare_g2o(T_init: np.ndarray, Xw: np.ndarray, z: np.ndarray, inv_sigma2: np.n
     ``count`` gets ``[iterations, trials]`` added."""
     fx, fy = cam.fx, cam.fy
     f, c = np.array([fx, fy]), np.array([cam.cx, cam.cy])
-    delta = np.sqrt(CHI2_MONO)
-    m = len(z)
-    outlier = np.zeros(m, dtype=bool)
+    outlier = np.zeros(len(z), dtype=bool)
     kernel = True
     potrf, potrs = sla.lapack.dpotrf, sla.lapack.dpotrs
 
-    def errors(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        P = Xw @ T[:3, :3].T + T[:3, 3]
-        iz = 1.0 / P[:, 2]
-        uv = P[:, :2] * iz[:, None]
-        e = z - (uv * f + c)
-        return e, inv_sigma2 * np.einsum("mi,mi->m", e, e), np.concatenate([uv, iz[:, None]], 1)
-
-    def jacobian(q: np.ndarray) -> np.ndarray:
-        u, v, iz = q[:, 0], q[:, 1], q[:, 2]
-        J = np.zeros((m, 2, 6))                  # g2o's EdgeSE3ProjectXYZOnlyPose rows
-        J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = fx * u * v, -fx * (1 + u * u), fx * v
-        J[:, 0, 3], J[:, 0, 5] = -fx * iz, fx * u * iz
-        J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = fy * (1 + v * v), -fy * u * v, -fy * u
-        J[:, 1, 4], J[:, 1, 5] = -fy * iz, fy * v * iz
-        return J
-
-    def robust(s: np.ndarray, active: np.ndarray) -> tuple[float, np.ndarray]:
-        if not kernel:
-            return float(s[active].sum()), active.astype(float)
-        r = np.sqrt(s)
-        rho = np.where(s <= CHI2_MONO, s, 2 * delta * r - CHI2_MONO)
-        return float(rho[active].sum()), delta / np.maximum(r, delta) * active
+    def errors(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        e, iz, uv = _project(T, Xw, z, f, c)
+        return e, inv_sigma2 * np.einsum("mi,mi->m", e, e), (uv, iz)
 
     last = 0.0
     for round_ in range(4):
         T = T_init.copy()
         active = ~outlier
         e, s, q = errors(T)
-        chi, w = robust(s, active)
+        chi, w = _robust(s, active, kernel)
         for it in range(10):
-            J = jacobian(q)
+            J = _jacobian(*q, fx, fy)
             count[0] += 1
             wi = w * inv_sigma2
             J2 = J.reshape(-1, 6)
@@ -185,7 +178,7 @@ def bare_g2o(T_init: np.ndarray, Xw: np.ndarray, z: np.ndarray, inv_sigma2: np.n
                 dx = potrs(L, b, lower=1)[0]
                 Tn = se3_exp(dx[None])[0] @ T
                 en, sn, qn = errors(Tn)
-                chin, wn = robust(sn, active)
+                chin, wn = _robust(sn, active, kernel)
                 rho = (chi - chin) / (dx @ (lam * dx + b) + 1e-3)
                 if rho > 0 and np.isfinite(chin):
                     lam *= max(1 / 3, min(2 / 3, 1 - (2 * rho - 1) ** 3))
