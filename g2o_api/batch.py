@@ -229,12 +229,11 @@ class Batch:
         Args:
             i: Index in the batch.
         """
-        state = self._state()
+        self.chi2_of(i)  # the lists at the current state
         lists = self._lists
-        if lists is None or lists[0] != state:
-            lists = self._lists = (state, self.chi2().tolist(), None)
+        assert lists is not None
         if lists[2] is None:
-            lists = self._lists = (state, lists[1], self.depth_positive().tolist())
+            lists = self._lists = (lists[0], lists[1], self.depth_positive().tolist())
         return lists[2][i]
 
     def _evaluate(self) -> tuple[np.ndarray, np.ndarray]:
