@@ -341,9 +341,9 @@ class LevenbergMarquardt(Algorithm):
                                      singular=singular, failed=True,
                                      stop=StopReason.PARAMETER_TOLERANCE)
             # Predicted decrease of chi2 = Δ'(λDΔ + b) (g2o adds 1e-3 against a zero divisor).
-            scale = _predicted_decrease(step, damp, self.lam, b) + 1e-3
-            new_chi = self._trial(p, step, tests.predicts_function(chi, scale - 1e-3))
-            rho = (chi - new_chi) / scale
+            predicted = _predicted_decrease(step, damp, self.lam, b)
+            new_chi = self._trial(p, step, tests.predicts_function(chi, predicted))
+            rho = (chi - new_chi) / (predicted + 1e-3)
             stop = StopReason.FUNCTION_TOLERANCE if tests.function(chi, new_chi) else None
             if rho > 0 and math.isfinite(new_chi):
                 lam_used = self.lam
