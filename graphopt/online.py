@@ -221,9 +221,11 @@ class IncrementalOptimizer:
         next update is then a batch step: the factor's rows carry the old weights, which the
         model check cannot be relied on to notice (a kernel removed left the chi2 5.7e-5
         relative above the optimum, within its tolerance)."""
-        seen = self._weights
-        return any(seen.get(id(g), v) != v for g, v in
-                   ((g, g.activity_version) for g in self.optimizer.graph.groups.values()))
+        for g in self.optimizer.graph.groups.values():
+            v = g.activity_version
+            if self._weights.get(id(g), v) != v:
+                return True
+        return False
 
     def chi2(self, robust: bool = True) -> float:
         """``Σ ρ(e'Ωe)`` over every edge taken in, at the current estimates (what the
