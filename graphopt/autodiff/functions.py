@@ -18,6 +18,7 @@ import numpy as np
 import graphopt.autodiff.tape as tape
 import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, full, parts
+from graphopt.autodiff.replay import forward_rule
 from graphopt.autodiff.ufuncs import write_out
 
 __all__ = ["HANDLED", "apply_function"]
@@ -50,9 +51,10 @@ def apply_function(func: Any, types: Any, args: tuple[Any, ...], kwargs: dict[st
     impl = HANDLED.get(func)
     if impl is None:
         raise JetError(_fname(func))
-    if func in _CREATION:
-        return impl(like, *args, **kwargs)
-    return impl(*args, **kwargs)
+    out = impl(like, *args, **kwargs) if func in _CREATION else impl(*args, **kwargs)
+    if type(out) is Jet and out._tape is None:  # derivatives formed forward
+        forward_rule(_fname(func))
+    return out
 
 
 def _implements(*funcs: Any) -> Callable[[Callable[..., Any]], Callable[..., Any]]:

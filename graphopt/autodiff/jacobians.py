@@ -12,14 +12,14 @@ from __future__ import annotations
 import gc
 import threading
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
 
+import graphopt.autodiff.programs as programs
 import graphopt.autodiff.tape as tape
+from graphopt.autodiff.blocks import Block, inputs_of, split
 from graphopt.autodiff.jet import Jet, JetError
-from graphopt.autodiff.reverse import backward
 from graphopt.autodiff.structure import Structure, detect
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
@@ -249,21 +249,50 @@ class _Position:
 
     def block(self, sl: slice) -> tuple[Jet, Any]:
         """The block's ``x ⊞ δ`` jet and derived values (axis 0: the block's edges)."""
+        return self.build(sl, self.arrays(sl))
+
+    def arrays(self, sl: slice) -> list[Any]:
+        """What a block reads, in a fixed order: ``[x, index, given, jet value, jet tangent,
+        derived value, derived tangent]`` (``None`` where absent; the per-vertex jets' arrays
+        too, so that a traced block (:mod:`graphopt.autodiff.replay`) names every input)."""
         if self.vector:
-            j, d = Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
+            out: list[Any] = [self.x[sl], None, None, None, None]
         else:
-            index = sl if self.inverse is None else self.inverse[sl]
-            j = _gather(self.jet, index, self.x[sl], self.struct)
             g, dv = self.given, getattr(self.derived, "value", None)
             if g is not None and not (dv is not None and g.shape[1:] == dv.shape[1:]
                                       and g.dtype == dv.dtype
                                       and (g.ndim != 2 or g.flags.f_contiguous)):
                 g = self.given = None  # (2-D: Fortran order, as a gather here makes it)
-            d = _gather(self.derived, index, None if g is None else g[sl], self.dstruct)
+            j = self.jet
+            assert j is not None
+            out = [self.x[sl], None if self.inverse is None else self.inverse[sl],
+                   None if g is None else g[sl], j.value, j.tangent]
+        d = self.derived
+        return out + ([d.value, d.tangent] if type(d) is Jet else [None, None])
+
+    def build(self, sl: slice, a: list[Any]) -> tuple[Jet, Any]:
+        """:meth:`block` from the block's :meth:`arrays` (or traced views of them)."""
+        d = self.derived
+        if type(d) is Jet and a[5] is not d.value:  # traced: a copy of the shared jet
+            d = _like(d, a[5], a[6])
+        if self.vector:
+            j, d = Jet.seeded(a[0], self.lo, self.n), _gather(d, sl)
+        else:
+            index = sl if a[1] is None else a[1]
+            vj = self.jet if a[3] is self.jet.value else _like(self.jet, a[3], a[4])
+            j = _gather(vj, index, a[0], self.struct)
+            d = _gather(d, index, a[2], self.dstruct)
         j.rows = (0, sl.stop - sl.start)
         if type(d) is Jet:
             d.rows = j.rows
         return j, d
+
+
+def _like(j: Jet, value: np.ndarray, tangent: np.ndarray) -> Jet:
+    """A copy of per-vertex jet ``j`` with other (traced) arrays: the shared one stays as is."""
+    out = Jet(value, tangent, j.lo, j.n)
+    out.columns, out.seed = j.columns, j.seed
+    return out
 
 
 _SCRATCH = threading.local()
@@ -344,40 +373,43 @@ def _linearize(
     # Blocks of about BLOCK_EDGES, of equal size: no small last block that costs a whole
     # block's Python for a few edges (18,182 edges: 2 blocks of 9,091, not 8,192 + 8,192 + 1,798).
     size = -(-m // max(1, round(m / BLOCK_EDGES))) if m else 1
+    buffer = _scratch(dim * n * min(m, size)) if m else None
+    run = Block(edge_type, pos, measurement, ctx, want, size < m, dim, n)
+    plan: programs.Plan | None = None
     for s in range(0, max(m, 1), size):
         sl = slice(s, min(s + size, m))
-        blocks = [p.block(sl) for p in pos]
-        sub = ctx.subset(sl) if ctx is not None and size < m else ctx
-        if sub is not None and (want or getattr(sub, "derived", None) is not None):
-            derived = tuple(b[1] for b in blocks) if want else None
-            if sub is ctx:  # (the caller's: not changed)
-                sub = replace(sub, derived=derived)
-            else:
-                sub.derived = derived
         mb = sl.stop - sl.start
-        with tape.recording():
-            ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
-        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
-        # (a jet's own shape: np.shape would go through the array-function protocol)
-        shape = eb.value.shape if type(eb) is Jet else np.shape(eb)
-        if tuple(shape) != (mb, dim):
-            raise GraphError(f"{edge_type.__name__}.error returned shape {tuple(shape)}, "
-                             f"expected {(mb, dim)}")
+        arrays = [p.arrays(sl) for p in pos]
+        if s == 0 and m:  # (a program of blocks: graphopt.autodiff.programs)
+            plan = programs.plan(edge_type, pos, arrays, measurement[sl], ctx, want, size,
+                                 m // size)
+        out = None
+        if plan is not None and not plan.dead and mb == plan.length:
+            assert buffer is not None
+            inputs = inputs_of(arrays, measurement[sl], buffer[: dim * n * mb])
+            if plan.checked:
+                ev, ab = plan.run(inputs)
+                out = (ev, ab, inputs[-1].reshape(dim, n, mb))
+            elif plan.program is None:
+                out = plan.trace(inputs, lambda t, sl=sl, a=arrays: run(sl, split(a, t), t[-1], t[-2]))
+            else:  # the tape's block, then the program's on a copy of its inputs: the same?
+                out = run(sl, arrays, buffer[: dim * n * mb])
+                if type(out[0]) is Jet and out[2] is not None:
+                    inputs[-1] = np.empty(dim * n * mb)
+                    plan.check(inputs, out[0].value, out[1], out[2])
+        if out is None:
+            out = run(sl, arrays, None if buffer is None else buffer[: dim * n * mb])
+        eb, ab, J = out
         if ab is not None:
             if active is None:
                 active = np.ones(m, dtype=bool)
             active[sl] = ab
-        if type(eb) is not Jet:  # the error does not depend on the estimates
-            tape.clear()
+        if type(eb) is not Jet and J is None:  # the error does not depend on the estimates
             e[sl] = eb
             for Ji in jac:
                 Ji[sl] = 0.0
             continue
-        e[sl] = eb.value
-        if eb._tape is not None and buffer is None:
-            buffer = _scratch(dim * n * min(m, size))
-        J = backward(eb, n, buffer) if eb._tape is not None else None
-        tape.clear()
+        e[sl] = eb.value if type(eb) is Jet else eb
         if J is not None:  # reverse accumulation: J (rows, n, mb), one copy per position
             for i, d in enumerate(dims):
                 jac[i][sl] = J[:, offsets[i]: offsets[i] + d].transpose(2, 0, 1)
@@ -393,6 +425,8 @@ def _linearize(
         for J in jac:
             J[~active] = 0.0
     return e, tuple(jac), active
+
+
 
 
 def check_independent_edges(

@@ -185,8 +185,9 @@ def _column(full: np.ndarray, col: int) -> np.ndarray:
     """Flat entry ``col`` of every edge's ``V``, contiguous (gathered once per block)."""
     hit = _COLUMNS.get((id(full), col))  # (full itself is kept: its id stays its own)
     if hit is None:
-        hit = _COLUMNS[id(full), col] = (full, np.ascontiguousarray(
-            full.reshape(len(full), -1)[:, col]))
+        c = full.reshape(len(full), -1)[:, col]
+        # (np.copy, not np.ascontiguousarray: it keeps a traced array traced, replay.py)
+        hit = _COLUMNS[id(full), col] = (full, c if c.flags.c_contiguous else np.copy(c))
     return hit[1]
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
+from graphopt.autodiff.replay import forward_rule
 
 __all__ = ["ENABLED", "binary", "clear", "container", "gathered", "recorded", "recording"]
 
@@ -250,6 +251,7 @@ def _ancestors(j: Jet) -> list[Jet]:
 
 def materialise(j: Jet) -> None:
     """Form ``j``'s tangent (and its recorded ancestors') with the forward rules."""
+    forward_rule("forming a recorded tangent forward")
     was = Tape.active
     Tape.active = False
     try:
@@ -291,6 +293,7 @@ def _replay(a: Jet) -> None:
 
 def flush() -> None:
     """Form every recorded tangent and stop recording (a jet is about to be written into)."""
+    forward_rule("writing into a jet")
     for a in list(_State.pending):
         if a._tape is not None and a._tape.root is None:
             materialise(a)
@@ -350,7 +353,7 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
         flush()
         return False
     if type(item) is not Jet:  # a constant: kept as it is now (for a forward replay)
-        item = np.array(item, copy=True)
+        item = np.copy(item)
     j.value[k] = item.value if type(item) is Jet else item
     root._tape.writes.append((j._tape.chain + (k,), item))
     _State.seq += 1
@@ -361,6 +364,7 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
 
 def container(value: np.ndarray, like: Jet) -> Jet:
     """A recorded container: zero derivatives until written."""
+    forward_rule("a container (np.zeros_like, like=)")
     node = _Node((), None, None, True)
     node.writes, node.like = [], like
     _State.reordered = True
@@ -397,7 +401,7 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
             return None
     elif type(a) in _SCALARS:
         va = a
-    elif type(a) is np.ndarray:
+    elif isinstance(a, np.ndarray):  # (a traced array too: graphopt.autodiff.replay)
         va = a
     else:
         return None
@@ -409,16 +413,16 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
             return None
     elif type(b) in _SCALARS:
         vb = b
-    elif type(b) is np.ndarray:
+    elif isinstance(b, np.ndarray):
         vb = b
     else:
         return None
     if fn is _power and (jb or np.ndim(vb) != 0):
         return None
     # The reverse pass reads a plain factor later: a copy, in case the caller reuses the array.
-    if not ja and type(va) is np.ndarray and uf is np.multiply and va.flags.writeable:
+    if not ja and isinstance(va, np.ndarray) and uf is np.multiply and va.flags.writeable:
         va = va.copy()
-    if (not jb and type(vb) is np.ndarray and (uf is np.multiply or uf is np.divide)
+    if (not jb and isinstance(vb, np.ndarray) and (uf is np.multiply or uf is np.divide)
             and vb.flags.writeable):
         vb = vb.copy()
     y = uf(va, vb)
@@ -464,7 +468,7 @@ def _entry(v: Jet, vv: np.ndarray, other: Any) -> bool:
     array of its shape."""
     node = v._tape
     return (node is not None and node.struct is not None and node.source is not None
-            and vv.ndim == 1 and type(other) is np.ndarray and other.shape == vv.shape)
+            and vv.ndim == 1 and isinstance(other, np.ndarray) and other.shape == vv.shape)
 
 
 def _power(g: np.ndarray, va: Any, vb: Any, y: Any, i: int) -> np.ndarray:

@@ -19,8 +19,9 @@ __all__ = ["concatenate", "matmul", "reduce", "ufunc"]
 def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
     """A recorded ``a @ b`` of stacks of matrices (``mm``: the product), or ``None``."""
     a, b = _operand(a), _operand(b)
-    va = a.value if type(a) is Jet else np.array(a, copy=True)  # plain: as it is now
-    vb = b.value if type(b) is Jet else np.array(b, copy=True)
+    # A plain operand as it is now (np.copy keeps a traced array traced: replay.py).
+    va = a.value if type(a) is Jet else np.copy(a)
+    vb = b.value if type(b) is Jet else np.copy(b)
     if not (isinstance(va, np.ndarray) and isinstance(vb, np.ndarray)) or min(
             va.ndim, vb.ndim) < 2 or va.dtype.kind != "f" or vb.dtype.kind != "f":
         return None

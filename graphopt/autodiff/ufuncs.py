@@ -17,6 +17,7 @@ import numpy as np
 
 import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, combine, expand, make, parts
+from graphopt.autodiff.replay import forward_rule
 
 __all__ = ["apply_ufunc", "write_out"]
 
@@ -155,6 +156,8 @@ def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
 
 
 def _forward(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
+    if any(type(a) is Jet for a in inputs):
+        forward_rule(_name(ufunc))
     ps = [parts(a) for a in inputs]
     values = [p[0] for p in ps]
     n = max(a.n for a in inputs if type(a) is Jet)
