@@ -253,34 +253,37 @@ class _Position:
 
     def arrays(self, sl: slice) -> list[Any]:
         """What a block reads, in a fixed order: ``[x, index, given, jet value, jet tangent,
-        derived value, derived tangent]`` (``None`` where absent; the per-vertex jets' arrays
-        too, so that a traced block (:mod:`graphopt.autodiff.replay`) names every input)."""
-        if self.vector:
-            out: list[Any] = [self.x[sl], None, None, None, None]
-        else:
-            g, dv = self.given, getattr(self.derived, "value", None)
-            if g is not None and not (dv is not None and g.shape[1:] == dv.shape[1:]
-                                      and g.dtype == dv.dtype
-                                      and (g.ndim != 2 or g.flags.f_contiguous)):
-                g = self.given = None  # (2-D: Fortran order, as a gather here makes it)
-            j = self.jet
-            assert j is not None
-            out = [self.x[sl], None if self.inverse is None else self.inverse[sl],
-                   None if g is None else g[sl], j.value, j.tangent]
+        derived value, derived tangent]`` (``None`` where absent). The per-vertex jets' arrays
+        are listed too, as the block's rows of them when its edges are the vertices (no
+        index), so that nothing a traced block (:mod:`graphopt.autodiff.replay`) reads
+        depends on where the block starts."""
         d = self.derived
-        return out + ([d.value, d.tangent] if type(d) is Jet else [None, None])
+        whole = self.inverse is None  # (per-vertex rows are the edges': sliced here)
+        rows: Any = sl if whole else slice(None)
+        dj = [d.value[rows], d.tangent[:, rows]] if type(d) is Jet else [None, None]
+        if self.vector:
+            return [self.x[sl], None, None, None, None, *dj]
+        g, dv = self.given, getattr(d, "value", None)
+        if g is not None and not (dv is not None and g.shape[1:] == dv.shape[1:]
+                                  and g.dtype == dv.dtype
+                                  and (g.ndim != 2 or g.flags.f_contiguous)):
+            g = self.given = None  # (2-D: Fortran order, as a gather here makes it)
+        j = self.jet
+        assert j is not None
+        return [self.x[sl], None if whole else self.inverse[sl],  # type: ignore[index]
+                None if g is None else g[sl], j.value[rows], j.tangent[:, rows], *dj]
 
     def build(self, sl: slice, a: list[Any]) -> tuple[Jet, Any]:
         """:meth:`block` from the block's :meth:`arrays` (or traced views of them)."""
         d = self.derived
-        if type(d) is Jet and a[5] is not d.value:  # traced: a copy of the shared jet
+        if type(d) is Jet:  # the block's (or all) rows of the derived values
             d = _like(d, a[5], a[6])
+        index = slice(None) if a[1] is None else a[1]
         if self.vector:
-            j, d = Jet.seeded(a[0], self.lo, self.n), _gather(d, sl)
+            j, d = Jet.seeded(a[0], self.lo, self.n), _gather(d, index)
         else:
-            index = sl if a[1] is None else a[1]
-            vj = self.jet if a[3] is self.jet.value else _like(self.jet, a[3], a[4])
-            j = _gather(vj, index, a[0], self.struct)
+            assert self.jet is not None
+            j = _gather(_like(self.jet, a[3], a[4]), index, a[0], self.struct)
             d = _gather(d, index, a[2], self.dstruct)
         j.rows = (0, sl.stop - sl.start)
         if type(d) is Jet:
@@ -391,7 +394,8 @@ def _linearize(
                 ev, ab = plan.run(inputs)
                 out = (ev, ab, inputs[-1].reshape(dim, n, mb))
             elif plan.program is None:
-                out = plan.trace(inputs, lambda t, sl=sl, a=arrays: run(sl, split(a, t), t[-1], t[-2]))
+                out = plan.trace(inputs, lambda t, sl=sl, a=arrays: run(
+                    sl, split(a, t), t[-1], t[-2]))
             else:  # the tape's block, then the program's on a copy of its inputs: the same?
                 out = run(sl, arrays, buffer[: dim * n * mb])
                 if type(out[0]) is Jet and out[2] is not None:

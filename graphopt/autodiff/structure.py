@@ -142,7 +142,14 @@ def detect(j: Any) -> Structure | None:
         except np.linalg.LinAlgError:
             return None
         G = B @ Ainv if left else Ainv @ B
-        G[np.abs(G) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))] = 0.0
+        # Entries within rounding of an integer are that integer (a rotation's generators are
+        # 0 and ±1; the fit's last bits vary with the estimates): the same generators at every
+        # linearisation, a coefficient 1 costs no product, and a replayed block program
+        # (graphopt.autodiff.programs) keyed by them applies again. The check below decides.
+        near = np.round(G)
+        snap = np.abs(G - near) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))
+        G[snap] = near[snap]
+        G += 0.0  # (−0 is 0)
         fit = np.matmul(G[:, None], V[None]) if left else np.matmul(V[None], G[:, None])
         if float(np.max(np.abs(fit - T))) <= TOLERANCE * scale:
             flat = v.reshape(nv, S)

@@ -156,13 +156,12 @@ def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
 
 
 def _forward(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
-    if any(type(a) is Jet for a in inputs):
-        forward_rule(_name(ufunc))
+    if ufunc in _VALUE_ONLY:  # (values only: a recorded operand's tangent is not formed)
+        return ufunc(*[a.value if type(a) is Jet else a for a in inputs])
+    forward_rule(_name(ufunc))  # (derivatives formed forward: not in a traced block)
     ps = [parts(a) for a in inputs]
     values = [p[0] for p in ps]
     n = max(a.n for a in inputs if type(a) is Jet)
-    if ufunc in _VALUE_ONLY:
-        return ufunc(*values)
     if ufunc is np.matmul:
         return _matmul(ps, n)
     y = ufunc(*values)
