@@ -134,10 +134,12 @@ def _make_like(func: Any, fill: Any) -> Callable[..., Any]:
         v = a.value
         s = v.shape if shape is None else shape
         dt = v.dtype if dtype is None else np.dtype(dtype)
+        # (like=v: a traced block's container is traced too, graphopt.autodiff.replay)
         if func is np.full_like:
-            value = np.full(s, args[0] if args else kw["fill_value"], dtype=dt)
+            value = np.full(s, args[0] if args else kw["fill_value"], dtype=dt, like=v)
         else:
-            value = np.full(s, fill, dtype=dt) if fill is not None else np.empty(s, dtype=dt)
+            value = (np.full(s, fill, dtype=dt, like=v) if fill is not None
+                     else np.empty(s, dtype=dt, like=v))
         return _container(value, a)
     return impl
 
@@ -150,7 +152,9 @@ HANDLED[np.full_like] = _make_like(np.full_like, None)
 
 def _create(func: Any) -> Callable[..., Any]:
     def impl(like: Jet, *args: Any, **kwargs: Any) -> Any:
-        return _container(np.asarray(func(*args, **kwargs)), like)
+        kwargs.pop("like", None)
+        out = func(*args, like=like.value, **kwargs)  # (traced if the jet's value is)
+        return _container(out if isinstance(out, np.ndarray) else np.asarray(out), like)
     return impl
 
 

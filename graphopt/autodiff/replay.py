@@ -60,10 +60,16 @@ def _tracer() -> Tracer:
 class Traced(np.ndarray):
     """An array whose NumPy operations the active :class:`Tracer` records."""
 
+    # Another type's protocol (a jet's) goes first: it computes on the traced values itself.
     def __array_ufunc__(self, ufunc: np.ufunc, method: str, *inputs: Any, **kw: Any) -> Any:
+        for a in inputs + tuple(kw.get("out", ())):
+            if hasattr(a, "__array_ufunc__") and not isinstance(a, np.ndarray):
+                return NotImplemented
         return _tracer().ufunc(ufunc, method, inputs, kw)
 
     def __array_function__(self, func: Any, types: Any, args: Any, kwargs: Any) -> Any:
+        if not all(issubclass(t, np.ndarray) for t in types):
+            return NotImplemented
         return _tracer().function(func, args, kwargs)
 
     def __getitem__(self, key: Any) -> Any:
@@ -94,6 +100,10 @@ for _name in ("reshape", "transpose", "swapaxes", "copy", "ravel", "flatten", "s
               "astype", "sum", "mean", "prod", "max", "min", "any", "all", "dot", "take",
               "clip"):
     setattr(Traced, _name, _method(_name))
+
+#: Functions of the shapes only (their results are not data).
+_METADATA = {np.shape, np.ndim, np.size, np.result_type, np.may_share_memory,
+             np.shares_memory}
 
 # A reference to a step's operand: (0, slot) a traced array, (1, type, [refs]) a list or
 # tuple, (2, {key: ref}) a dict, (3, value) a constant.
@@ -184,9 +194,13 @@ class Tracer:
         if "out" in kwargs:
             raise Poisoned(f"np.{func.__name__}(out=...) on traced data")
         refs = self._ref(args), self._ref(kwargs)
-        t, s = self._result(func(*self._raw(args), **self._raw(kwargs)))
-        if s is not None:
-            self.steps.append(("call", func, refs[0], refs[1], s))
+        r = func(*self._raw(args), **self._raw(kwargs))
+        if func in _METADATA:
+            return r
+        t, s = self._result(r)
+        if s is None:  # (a count, a list of indices: numbers from the data)
+            raise Poisoned(f"np.{func.__name__} returned no array")
+        self.steps.append(("call", func, refs[0], refs[1], s))
         return t
 
     def getitem(self, a: Traced, key: Any) -> Any:

@@ -28,7 +28,7 @@ import numpy as np
 
 import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
-from graphopt.autodiff.replay import forward_rule
+from graphopt.autodiff.replay import Traced, forward_rule
 
 __all__ = ["ENABLED", "binary", "clear", "container", "gathered", "recorded", "recording"]
 
@@ -364,7 +364,8 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
 
 def container(value: np.ndarray, like: Jet) -> Jet:
     """A recorded container: zero derivatives until written."""
-    forward_rule("a container (np.zeros_like, like=)")
+    if type(value) is not Traced:  # (a plain container receiving traced writes: unseen)
+        forward_rule("a container not made like a traced array")
     node = _Node((), None, None, True)
     node.writes, node.like = [], like
     _State.reordered = True

@@ -264,7 +264,8 @@ def _mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     q = b.shape[-1]
     if p > 4 or n * q > 16:
         return a @ b
-    out = np.empty((n, q) + np.broadcast_shapes(a.shape[:-2], b.shape[:-2]))
+    # (like=a: a traced block's product is traced too, graphopt.autodiff.replay)
+    out = np.empty((n, q) + np.broadcast_shapes(a.shape[:-2], b.shape[:-2]), like=a)
     for i in range(n):
         for k in range(q):
             acc = out[i, k]
