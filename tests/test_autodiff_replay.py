@@ -5,8 +5,9 @@ tape, then replays it; every result here is compared, bit for bit, with the tape
 (``programs.ENABLED = False``), across linearisations at changed estimates. The cases: the BAL
 projection (replayed), an error selecting with ``np.where`` by data (replayed: the selection is
 a step), one with a Python branch on data (not replayable: poisoned, through the tape), one
-that copies its measurements outside NumPy's dispatch (caught by the check), and a change of
-block length between calls (a second program).
+that copies its measurements outside NumPy's dispatch or tests the type of its arrays (caught by
+the check; the traced block is computed again), and a change of block length between calls (a
+second program).
 """
 
 from __future__ import annotations
@@ -107,8 +108,14 @@ def _copying(a: Any, b: Any, z: Any) -> Any:
     return a * b - w
 
 
+def _typed(a: Any, b: Any, z: Any) -> Any:
+    # Another formula for another array type: traced, the block computes something else (the
+    # check finds it, and the traced block is computed again by the tape).
+    return a * b - (z if type(z) is np.ndarray else 2.0 * z)
+
+
 @pytest.mark.parametrize(("fn", "replayed"), [(_selected, True), (_branching, False),
-                                              (_copying, False)])
+                                              (_copying, False), (_typed, False)])
 def test_data_dependent_errors(fn: Callable[..., Any], replayed: bool) -> None:
     etype = _edge(fn)
     rng = np.random.default_rng(8)

@@ -379,11 +379,13 @@ def _linearize(
     buffer = _scratch(dim * n * min(m, size)) if m else None
     run = Block(edge_type, pos, measurement, ctx, want, size < m, dim, n)
     plan: programs.Plan | None = None
-    for s in range(0, max(m, 1), size):
+    traced: slice | None = None  # the block a program was traced on, in this call
+    starts = list(range(0, max(m, 1), size))
+    for s in starts:
         sl = slice(s, min(s + size, m))
         mb = sl.stop - sl.start
         arrays = [p.arrays(sl) for p in pos]
-        if s == 0 and m:  # (a program of blocks: graphopt.autodiff.programs)
+        if s == 0 and m and traced is None:  # (a program of blocks: graphopt.autodiff.programs)
             plan = programs.plan(edge_type, pos, arrays, measurement[sl], ctx, want, size,
                                  m // size)
         out = None
@@ -396,11 +398,15 @@ def _linearize(
             elif plan.program is None:
                 out = plan.trace(inputs, lambda t, sl=sl, a=arrays: run(
                     sl, split(a, t), t[-1], t[-2]))
+                traced = sl if out is not None else None
             else:  # the tape's block, then the program's on a copy of its inputs: the same?
                 out = run(sl, arrays, buffer[: dim * n * mb])
                 if type(out[0]) is Jet and out[2] is not None:
                     inputs[-1] = np.empty(dim * n * mb)
                     plan.check(inputs, out[0].value, out[1], out[2])
+                if plan.dead and traced is not None:  # the traced block again, by the tape
+                    starts.append(traced.start)  # (the trace may have behaved otherwise)
+                    plan = None
         if out is None:
             out = run(sl, arrays, None if buffer is None else buffer[: dim * n * mb])
         eb, ab, J = out

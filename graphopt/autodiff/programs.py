@@ -66,8 +66,8 @@ class Plan:
                         active is None or type(active) is Traced):
                     raise Poisoned("the block's error or Jacobian is not traced")
                 outs = [tr.slot(ev)] + ([] if active is None else [tr.slot(active)])
-        except Poisoned:
-            self.dead = True
+        except Exception:  # noqa: BLE001 - poisoned, or code that behaves otherwise on a
+            self.dead = True  # traced array (a `type(x) is np.ndarray` test): the tape's way
             return None
         self.program = Program(tr, outs)
         self.has_active = active is not None
