@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+import graphopt.autodiff.tape as tape
 from graphopt.autodiff.replay import Poisoned, Program, Traced, Tracer, tracing
 
 __all__ = ["ENABLED", "Plan", "clear", "plan"]
@@ -141,7 +142,7 @@ def plan(edge_type: type, positions: list[Any], arrays: list[list[Any]],
         length: Edges per block.
         blocks: Number of blocks of that length.
     """
-    if not ENABLED or blocks < 2:
+    if not ENABLED or not tape.ENABLED or blocks < 2:  # (forward jets: not what is traced)
         return None
     params: Any = None
     if ctx is not None:
