@@ -1,13 +1,13 @@
 """Traced block programs (``graphopt.autodiff.replay`` / ``programs``) give the tape's results.
 
-A linearisation in several blocks traces one block, checks the program on another against the
-tape, then replays it; every result here is compared, bit for bit, with the tape alone
-(``programs.ENABLED = False``), across linearisations at changed estimates. The cases: the BAL
-projection (replayed), an error selecting with ``np.where`` by data (replayed: the selection is
-a step), one with a Python branch on data (not replayable: poisoned, through the tape), one
-that copies its measurements outside NumPy's dispatch or tests the type of its arrays (caught by
-the check; the traced block is computed again), and a change of block length between calls (a
-second program).
+A linearisation in several blocks whose signature was seen before traces one block, checks the
+program on another against the tape, then replays it; every result here is compared, bit for
+bit, with the tape alone (``programs.ENABLED = False``), across linearisations at changed
+estimates. The cases: the BAL projection (replayed), an error selecting with ``np.where`` by
+data (replayed: the selection is a step), one with a Python branch on data (not replayable:
+poisoned, through the tape), one that copies its measurements outside NumPy's dispatch or tests
+the type of its arrays (caught by the check; the traced block is computed again), a change of
+block length between calls (a second program), a signature seen once (not traced).
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def _bal(rng: np.random.Generator, m: int) -> tuple[Any, np.ndarray, EdgeContext
 
 def test_bal_blocks_replayed_equal_the_tape() -> None:
     rng = np.random.default_rng(5)
-    for _ in range(3):  # new estimates each time: the same signature, the program replayed
+    for _ in range(4):  # new estimates each time, one signature: seen, traced, replayed twice
         x, z, ctx = _bal(rng, 200)
         _same(*_both(EdgeBALAuto, x, z, ctx))
     (plan,) = _plans(EdgeBALAuto)
@@ -119,7 +119,7 @@ def _typed(a: Any, b: Any, z: Any) -> Any:
 def test_data_dependent_errors(fn: Callable[..., Any], replayed: bool) -> None:
     etype = _edge(fn)
     rng = np.random.default_rng(8)
-    for shift in (-1.0, 0.0, 1.0):  # blocks whose edges all take one branch, or mixed
+    for shift in (-1.0, 0.0, 1.0, 0.5):  # blocks whose edges all take one branch, or mixed
         a = rng.normal(size=(200, 2)) + shift * (np.arange(200) // 50 % 2)[:, None]
         x, z = (a, rng.normal(size=(200, 2))), rng.normal(size=(200, 2))
         _same(*_both(etype, x, z, None))
@@ -147,8 +147,16 @@ def test_where_values_and_derivatives() -> None:
 
 def test_a_new_block_length_traces_a_new_program() -> None:
     rng = np.random.default_rng(10)
-    for m in (200, 230, 200):  # blocks of 50, then of 46, then of 50 again
+    for m in (200, 230, 200, 230):  # blocks of 50, of 46, of 50 again (traced), of 46 again
         x, z, ctx = _bal(rng, m)
         _same(*_both(EdgeBALAuto, x, z, ctx))
     plans = _plans(EdgeBALAuto)
     assert len(plans) == 2 and all(p.checked for p in plans)
+
+
+def test_a_signature_seen_once_is_not_traced() -> None:
+    rng = np.random.default_rng(12)
+    x, z, ctx = _bal(rng, 200)
+    _same(*_both(EdgeBALAuto, x, z, ctx))
+    (plan,) = _plans(EdgeBALAuto)
+    assert plan.program is None and plan.seen == 1

@@ -395,18 +395,14 @@ def _linearize(
             if plan.checked:
                 ev, ab = plan.run(inputs)
                 out = (ev, ab, inputs[-1].reshape(dim, n, mb))
-            elif plan.program is None:
-                out = plan.trace(inputs, lambda t, sl=sl, a=arrays: run(
-                    sl, split(a, t), t[-1], t[-2]))
-                traced = sl if out is not None else None
-            else:  # the tape's block, then the program's on a copy of its inputs: the same?
-                out = run(sl, arrays, buffer[: dim * n * mb])
-                if type(out[0]) is Jet and out[2] is not None:
-                    inputs[-1] = np.empty(dim * n * mb)
-                    plan.check(inputs, out[0].value, out[1], out[2])
-                if plan.dead and traced is not None:  # the traced block again, by the tape
-                    starts.append(traced.start)  # (the trace may have behaved otherwise)
-                    plan = None
+            elif plan.lock.acquire(blocking=False):  # (else another thread traces: the tape)
+                try:
+                    out, traced = _first_blocks(plan, run, sl, arrays, inputs, traced)
+                finally:
+                    plan.lock.release()
+                if plan.dead and traced is not None and traced != sl:  # the traced block
+                    starts.append(traced.start)  # again, by the tape (the trace may have
+                    plan = None  # behaved otherwise than the tape)
         if out is None:
             out = run(sl, arrays, None if buffer is None else buffer[: dim * n * mb])
         eb, ab, J = out
@@ -437,6 +433,23 @@ def _linearize(
     return e, tuple(jac), active
 
 
+
+
+
+def _first_blocks(plan: programs.Plan, run: Block, sl: slice, arrays: list[list[Any]],
+                  inputs: list[Any], traced: slice | None) -> tuple[Any, slice | None]:
+    """A block of a plan without a checked program: traced (``None`` if that failed: the
+    caller uses the tape), or the tape's block and the program checked against it. Returns
+    ``(the block's results, the block traced in this call)``."""
+    if plan.program is None:
+        out = plan.trace(inputs, lambda t: run(sl, split(arrays, t), t[-1], t[-2]))
+        return out, (sl if out is not None else None)
+    out = run(sl, arrays, inputs[-1])  # the tape's block, then the program's on a copy of
+    if type(out[0]) is Jet and out[2] is not None:  # its inputs: the same, bit for bit?
+        plan.check(inputs[:-1] + [np.empty(inputs[-1].size)], out[0].value, out[1], out[2])
+    else:
+        plan.dead = True
+    return out, traced
 
 
 def check_independent_edges(

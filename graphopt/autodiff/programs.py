@@ -7,17 +7,20 @@ the shared parameters (``ctx.params``, by value), which derived values exist. A 
 with the same signature replays the program; any difference (another block length, a layout,
 a structure that no longer fits) traces a new one.
 
-Life of a program: traced on one block (that block's results are the trace's own, computed
+Life of a program: traced on one block of the second linearisation with its signature (a
+signature seen once is not worth a trace; that block's results are the trace's own, computed
 through the tape as usual); checked once, on another block, against the tape bit for bit
-(both run; a copy of block data that the trace could not see would make them differ); then
-replayed. A trace that is :class:`~graphopt.autodiff.replay.Poisoned` (a data-dependent
-branch, a plain view of block data, an unsupported call) or a failed check marks the
-signature as not replayable: its blocks go through the tape, at no further cost.
+(both run; a copy of block data that the trace could not see would make them differ, and the
+traced block is then computed again by the tape); then replayed. A trace that is
+:class:`~graphopt.autodiff.replay.Poisoned` (a data-dependent branch, a plain view of block
+data, an unsupported call) or a failed check marks the signature as not replayable: its
+blocks go through the tape, at no further cost.
 """
 
 from __future__ import annotations
 
 import pickle
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -50,6 +53,10 @@ class Plan:
         self.checked = False
         self.dead = False  # not replayable (poisoned, or the check failed)
         self.has_active = False
+        self.seen = 0  # linearisations with this signature
+        # One thread traces or checks at a time (the others take the tape meanwhile); a
+        # checked program runs in any number of threads (its constants are only read).
+        self.lock = threading.Lock()
 
     def trace(self, inputs: list[Any], evaluate: Callable[[list[Any]], Any]) -> Any:
         """Run ``evaluate`` on traced views of ``inputs`` and keep its program.
@@ -159,6 +166,9 @@ def plan(edge_type: type, positions: list[Any], arrays: list[list[Any]],
     found = _PLANS.get(key)
     if found is None:
         if len(_PLANS) >= _LIMIT:
-            _PLANS.pop(next(iter(_PLANS)))
+            _PLANS.pop(next(iter(_PLANS)), None)
         found = _PLANS[key] = Plan(key, length)
-    return None if found.dead else found
+    found.seen += 1
+    # Traced the second time a signature is seen: a trace costs ~5 blocks of the tape, which
+    # a signature seen once (edges added at every step of an online problem) never repays.
+    return None if found.dead or found.seen < 2 else found
