@@ -99,7 +99,7 @@ def _columns(j: Jet) -> None:
 
 
 def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None,
-            struct: Structure | None = None) -> Any:
+            struct: Structure | None = None, support: np.ndarray | None = None) -> Any:
     """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values;
     ``struct``: the jet's structure, if any)."""
     if type(j) is not Jet:
@@ -111,7 +111,7 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None,
             # estimates): every operation on a column x[:, c] then reads contiguous memory.
             value = (np.take(v.T, index, axis=1).T if v.ndim == 2 and v.flags.c_contiguous
                      else v[index])
-        return tape.gathered(value, j, index, struct)
+        return tape.gathered(value, j, index, struct, support)
     t = j.tangent[:, index]
     out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
     out.columns = j.columns
@@ -218,6 +218,7 @@ class _Position:
                     self.inverse = rows[inv]
                     (self.jet, self.derived, self.derived_ok, self.struct,
                      self.dstruct) = _VERTEX_JETS[key][1:]
+                    self._supports()
                     return
                 self.jet = seeded(vtype, x[first], lo, n)
             else:
@@ -236,6 +237,17 @@ class _Position:
             where = {r.tobytes(): i for i, r in enumerate(xs)} if len(xs) <= 4096 else {}
             _VERTEX_JETS[key] = (where, self.jet, self.derived, self.derived_ok, self.struct,
                                  self.dstruct)
+        self._supports()
+
+    def _supports(self) -> None:
+        """Each gathered per-vertex jet's non-zero directions per entry, ``(k, *s)``: which
+        directions a piece of it is gathered with (``tape._gathered_item``), decided here
+        on all vertices rather than in a traced block (a program's signature has them)."""
+        self.support = self.dsupport = None
+        if self.inverse is not None:
+            self.support = _support(self.jet)
+            if type(self.derived) is Jet:
+                self.dsupport = _support(self.derived)
 
     def _derived(self, j: Jet) -> Any:
         try:
@@ -283,12 +295,18 @@ class _Position:
             j, d = Jet.seeded(a[0], self.lo, self.n), _gather(d, index)
         else:
             assert self.jet is not None
-            j = _gather(_like(self.jet, a[3], a[4]), index, a[0], self.struct)
-            d = _gather(d, index, a[2], self.dstruct)
+            j = _gather(_like(self.jet, a[3], a[4]), index, a[0], self.struct, self.support)
+            d = _gather(d, index, a[2], self.dstruct, self.dsupport)
         j.rows = (0, sl.stop - sl.start)
         if type(d) is Jet:
             d.rows = j.rows
         return j, d
+
+
+def _support(j: Any) -> np.ndarray:
+    t = j.tangent
+    return np.any(t.reshape(t.shape[:2] + (-1,)) != 0.0, axis=1).reshape(
+        (len(t),) + t.shape[2:])
 
 
 def _like(j: Jet, value: np.ndarray, tangent: np.ndarray) -> Jet:

@@ -29,10 +29,13 @@ import numpy as np
 import graphopt.autodiff.tape as tape
 from graphopt.autodiff.replay import Poisoned, Program, Traced, Tracer, tracing
 
-__all__ = ["ENABLED", "Plan", "clear", "plan"]
+__all__ = ["ENABLED", "TRACE_AFTER", "Plan", "clear", "plan"]
 
 #: Replay traced block programs (``False``: every block through the tape, e.g. to compare).
 ENABLED = True
+
+#: The linearisation with a signature that traces it (the second: see :func:`plan`).
+TRACE_AFTER = 2
 
 #: Signatures seen: a checked or unchecked program, or ``None`` (not replayable).
 _PLANS: dict[tuple[Any, ...], Plan] = {}
@@ -125,6 +128,10 @@ def _struct(s: Any) -> Any:
     return (s.G.tobytes(), s.G.shape, s.lo, s.left, s.zero.tobytes(), s.one.tobytes())
 
 
+def _bits(a: Any) -> Any:
+    return None if a is None else (a.shape, a.tobytes())
+
+
 def _jet(j: Any) -> Any:
     if j is None or not hasattr(j, "columns"):
         return type(j).__name__
@@ -161,7 +168,8 @@ def plan(edge_type: type, positions: list[Any], arrays: list[list[Any]],
             return None
     key = (edge_type, length, want, params, _array(measurement),
            tuple((p.vtype, p.vector, p.lo, p.n, _struct(p.struct), _struct(p.dstruct),
-                  _jet(p.jet), _jet(p.derived), tuple(_array(a) for a in arr))
+                  _jet(p.jet), _jet(p.derived), _bits(p.support), _bits(p.dsupport),
+                  tuple(_array(a) for a in arr))
                  for p, arr in zip(positions, arrays, strict=True)))
     found = _PLANS.get(key)
     if found is None:
@@ -171,4 +179,4 @@ def plan(edge_type: type, positions: list[Any], arrays: list[list[Any]],
     found.seen += 1
     # Traced the second time a signature is seen: a trace costs ~5 blocks of the tape, which
     # a signature seen once (edges added at every step of an online problem) never repays.
-    return None if found.dead or found.seen < 2 else found
+    return None if found.dead or found.seen < TRACE_AFTER else found

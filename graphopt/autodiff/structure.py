@@ -269,6 +269,7 @@ def contract_deferred(J: Any) -> None:
     # The recorded products v ⊙ x by entry (flat column of V) and factor: where the
     # contraction needs the same product (V_jb x_b of another row's entry) it is reused.
     known: dict[tuple[int, int, int], np.ndarray] = {}
+    rank: dict[tuple[int, int, int], int] = {}
     for leaf, plan, g, x, (a, b), y in _DEFERRED:
         lo, one = leaf.struct.lo, leaf.struct.one
         if y is not None and leaf.entries is not None and leaf.entries.size == 1:
@@ -283,12 +284,15 @@ def contract_deferred(J: Any) -> None:
             hit = grp[5].get(name)
             if hit is None:
                 grp[5][name] = [x, leaf.full, col, bool(one[col]), 1]
+                rank.setdefault(name, len(rank))
             else:
                 hit[4] += 1
     products: dict[tuple[int, int, int], np.ndarray] = {}
     sums: dict[tuple[Any, ...], np.ndarray] = {}
     for g, lo, a, b, ks, members in groups.values():
-        names = tuple(sorted(members))
+        # (in the order first met, not by the ids in the names: the same sum in the same
+        # order in every block, as a replayed block program has it, graphopt.autodiff.replay)
+        names = tuple(sorted(members, key=rank.__getitem__))
         counts = tuple(members[n][4] for n in names)
         once = max(counts) == 1
         skey = names if once else (names, counts)

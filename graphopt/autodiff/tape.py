@@ -56,6 +56,10 @@ class _Node:
     struct: Any = None
     full: np.ndarray | None = None
     entries: np.ndarray | None = None
+    # Which of the source's directions are non-zero per entry, over all vertices ((k, *s)
+    # booleans, computed outside a traced block: a decision on per-vertex data that the
+    # block programs' signature includes, graphopt.autodiff.programs).
+    support: np.ndarray | None = None
     # Products with these rows whose contribution the reverse pass adds directly (a
     # structured A in A @ B): (plan, adjoint of the product, the product).
     direct: list[tuple[Any, np.ndarray, np.ndarray]] | None = None
@@ -142,12 +146,15 @@ def _operand(a: Any) -> Any:
 _ALL = slice(None)
 
 
-def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = None) -> Jet:
+def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = None,
+             support: np.ndarray | None = None) -> Jet:
     """Rows ``index`` of a per-vertex jet ``source`` as a per-edge jet whose tangent is gathered
     only when used: ``x[:, j]`` gathers column ``j``'s own directions (none for a column whose
     derivative is one direction with value 1, as ``t`` of ``x + δ``). ``struct``: the
-    source's :class:`~graphopt.autodiff.structure.Structure`, if it has one."""
-    j = _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+    source's :class:`~graphopt.autodiff.structure.Structure`, if it has one; ``support``:
+    ``np.any(source.tangent != 0, axis=1)``, if known."""
+    j = _gathered(value, source.tangent, index, source.lo, source.n, source.columns,
+                  support=support)
     if struct is not None:
         j._tape.struct, j._tape.full = struct, value
     return j
@@ -155,11 +162,11 @@ def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = No
 
 def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: int,
               columns: Any, parent: _Node | None = None, entries: np.ndarray | None = None,
-              rows: slice = _ALL) -> Jet:
+              rows: slice = _ALL, support: np.ndarray | None = None) -> Jet:
     """A gathered jet (``parent``: the gathered rows it is a piece of, ``entries`` of)."""
     j = Jet(value, None, lo, n)
     node = _Node((), None, None, True)
-    node.source, node.index = t, index
+    node.source, node.index, node.support = t, index, support
     node.replay = lambda: Jet(value, np.take(t, index, axis=1), lo, n)
     if parent is not None and parent.struct is not None:
         node.struct, node.entries = parent.struct, entries
@@ -205,9 +212,11 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         if len(j.columns[c]) > 2 and j.columns[c][2]:
             t = unit_row(m)
         elif node.struct is not None:  # a leaf contracted through the structure
+            sup = node.support
             out = _gathered(j.value[:, c], node.source[lo - j._lo: hi - j._lo, :, c],
                             node.index, lo, j.n, None, node,
-                            _piece(node, j.value.shape[1:], (slice(c, c + 1),), c))
+                            _piece(node, j.value.shape[1:], (slice(c, c + 1),), c),
+                            support=None if sup is None else sup[lo - j._lo: hi - j._lo, c])
             out.rows = j.rows
             return out
         else:
@@ -218,13 +227,16 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
     a, b, _ = k[0].indices(len(j.value))
     rest = k[1:]
     src, lo = node.source[(slice(None), slice(None)) + rest], j._lo
+    sup = None if node.support is None else node.support[(slice(None),) + rest]
     if rest:  # only the directions these entries depend on (a rotation block: ω's, not υ's)
-        nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1))
+        nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1) if sup is None
+                            else np.any(sup.reshape(len(sup), -1), axis=1))
         first, last = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
         src, lo = src[first:last], lo + first
+        sup = None if sup is None else sup[first:last]
     out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns,
                     node, _piece(node, j.value.shape[1:], rest) if node.struct is not None
-                    else None, k[0])
+                    else None, k[0], sup)
     out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
     return out
 
