@@ -30,6 +30,7 @@ from graphopt.allocator import tune as tune_allocator
 from graphopt.edge import EdgeContext, Linearization
 from graphopt.edge_output import raise_non_finite_edge
 from graphopt.errors import GraphError
+from graphopt.evaluation_memo import EvaluationMemo
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linear.single_block import SingleBlockAssembler, group_terms
 from graphopt.linearizer import (
@@ -46,6 +47,7 @@ from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
 from graphopt.solvers.dense import cholesky_solve
 from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
 from graphopt.storage import EdgeGroup, VertexStore
+from graphopt.unary_terms import Weighing, unary_terms, weighing
 
 #: Most unknowns of the one vertex (a dense ``d × d`` system; poses, Sim(3), cameras).
 MAX_DIMENSION = 64
@@ -97,6 +99,10 @@ class SingleVertexProblem(Problem):
         # Per group: one position, the free vertex at every edge (a pose's unary edges; more
         # than one edge, as the linearizer's broadcast gather).
         self._unary = [len(o) == 1 and len(o[0]) > 1 and bool(o[0].all()) for o in on]
+        # Per unary group: the type's outputs by the free vertex's estimate.
+        self._memo = [EvaluationMemo() for _ in groups]
+        # Per unary group: its weighing at an activity version (None: the general weighting).
+        self._weighing: list[tuple[tuple[int, int], Weighing | None] | None] = [None] * len(groups)
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
@@ -168,6 +174,23 @@ class SingleVertexProblem(Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             out = self._call(gi, g, "linearize" if lin else "evaluate")
+            wg = (self._weighing_of(gi, g) if self._unary[gi] and not safe
+                  and out.active is None else None)
+            if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
+                J1 = out.jacobians[0] if lin else None
+                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J1)
+                self._keep(gi, g, state, out.error, s, wg.count)
+                totals[0] += chi
+                totals[1] += rchi
+                totals[2] += wg.count
+                if lin:
+                    ht = hg if ht is None else ht + hg
+                    bu = bg if bu is None else bu + bg
+                    jac.append((J1,))
+                else:
+                    complete = complete and not touch
+                    jac.append(())
+                continue
             if safe:
                 out, oe, s = lz._weigh(gi, g, out, state)
                 rho, w = lz._robustify(g, s, weights=lin)
@@ -187,26 +210,55 @@ class SingleVertexProblem(Problem):
         self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
         return ev
 
+    def _weighing_of(self, gi: int, g: EdgeGroup) -> Weighing | None:
+        """Group ``gi``'s :class:`~graphopt.unary_terms.Weighing` at its activity version."""
+        version = g.activity_version
+        kept = self._weighing[gi]
+        if kept is None or kept[0] != version:
+            kept = self._weighing[gi] = (version, weighing(g))
+        return kept[1]
+
+    def _keep(self, gi: int, g: EdgeGroup, state: tuple[int, ...], e: np.ndarray,
+              s: np.ndarray, count: int) -> None:
+        """Keep a group's errors for the edge sets' queries at this state (``raw_eval``), its
+        per-edge chi2 and active count (:meth:`Linearizer._record`)."""
+        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
+                       g.removals), e)
+        g.last_chi2 = s
+        g.active_count = count
+
     def _call(self, gi: int, g: EdgeGroup, method: str) -> Linearization:
         """:meth:`Linearizer._run` without its per-call bookkeeping once a group's output was
-        checked: the context kept (no derived values), the type's method called directly."""
+        checked: the context kept (no derived values), the type's method called directly; a
+        unary group's outputs kept by the estimate (:mod:`~graphopt.evaluation_memo`)."""
         lz = self.linearizer
+        memo = None
+        if self._unary[gi] and lz._one[gi] is not None:
+            est = self.stores[self._store].estimates
+            memo = self._memo[gi]
+            at = est[self._slot].tobytes()
+            out = memo.get(method, at)
+            if out is not None:
+                return out
         ctx = self._ctx[gi]
-        key = (id(g), method, g.size)
-        if ctx is None or key not in lz._trusted:
+        if ctx is None or (id(g), method, g.size) not in lz._trusted:
             if ctx is None and not g.etype.uses_derived:
                 self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
-            return lz._run(gi, method)
-        if self._unary[gi] and lz._one[gi] is not None:  # the free vertex's row, broadcast
-            est = self.stores[self._store].estimates
-            x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
+            out = lz._run(gi, method)
         else:
-            x = lz.gather(gi)
-        try:
-            out = getattr(g.etype, method)(x, g.measurements, ctx)
-        except (GraphError, ValueError):  # named, or a broadcast input written: the full path
-            return lz._run(gi, method)
-        return out if type(out) is Linearization else lz._run(gi, method)
+            if memo is not None:  # the free vertex's row, broadcast
+                x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
+            else:
+                x = lz.gather(gi)
+            try:
+                out = getattr(g.etype, method)(x, g.measurements, ctx)
+            except (GraphError, ValueError):  # named, or a broadcast input written: full path
+                out = lz._run(gi, method)
+            if type(out) is not Linearization:
+                out = lz._run(gi, method)
+        if memo is not None and lz._one[gi] is not None:
+            memo.put(method, at, out)
+        return out
 
     def _lean_terms(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...],
                     lin: bool, totals: list[float]
@@ -216,8 +268,6 @@ class SingleVertexProblem(Problem):
         zero instead of zeroed: ``(J, ρ'ΩJ, ρ'Ωe)`` if ``lin``, else empty."""
         lz = self.linearizer
         e = out.error
-        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
-                       g.removals), e)
         act = g.active_edges
         if out.active is not None:
             own = np.asarray(out.active, dtype=bool)
@@ -238,9 +288,7 @@ class SingleVertexProblem(Problem):
             rho, w = lz._robustify(g, s, weights=lin)
         else:
             rho, w = s, None
-        # Linearizer._record
-        g.last_chi2 = s
-        g.active_count = g.size if act is None else int(np.count_nonzero(act))
+        self._keep(gi, g, state, e, s, g.size if act is None else int(np.count_nonzero(act)))
         chi2 = float(s.sum())
         totals[0] += chi2
         totals[1] += chi2 if rho is s else float(rho.sum())
