@@ -46,10 +46,20 @@ class EvaluationMemo:
         kept = self._kept
         if len(kept) >= MEMO_STATES:
             del kept[next(iter(kept))]
-        arrays = [None if a is None else np.array(a) for a in
-                  (out.error, *out.jacobians, out.reduced_error, out.active)]
-        for a in arrays:
-            if a is not None:
-                a.flags.writeable = False
-        kept[method, at] = Linearization(arrays[0], tuple(arrays[1:-2]),  # type: ignore[arg-type]
-                                         arrays[-2], arrays[-1])
+        e = out.error.copy()
+        e.flags.writeable = False
+        jac = tuple(_frozen(j) for j in out.jacobians)
+        if out.reduced_error is None and out.active is None:
+            kept[method, at] = Linearization(e, jac)
+        else:
+            kept[method, at] = Linearization(e, jac, _frozen(out.reduced_error),
+                                             _frozen(out.active))
+
+
+def _frozen(a: np.ndarray | None) -> np.ndarray | None:
+    """A read-only copy of ``a`` (``None`` stays)."""
+    if a is None:
+        return None
+    a = np.array(a)
+    a.flags.writeable = False
+    return a

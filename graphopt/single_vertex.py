@@ -28,7 +28,7 @@ import scipy.linalg as sla
 
 from graphopt.allocator import tune as tune_allocator
 from graphopt.edge import EdgeContext, Linearization
-from graphopt.edge_output import raise_non_finite_edge
+from graphopt.edge_output import checked_output, raise_non_finite_edge
 from graphopt.errors import GraphError
 from graphopt.evaluation_memo import EvaluationMemo
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
@@ -241,21 +241,25 @@ class SingleVertexProblem(Problem):
             if out is not None:
                 return out
         ctx = self._ctx[gi]
-        if ctx is None or (id(g), method, g.size) not in lz._trusted:
-            if ctx is None and not g.etype.uses_derived:
-                self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
+        if ctx is None:
+            if g.etype.uses_derived:  # derived values change with the estimates
+                return lz._run(gi, method)
+            ctx = self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
+        if memo is not None:  # the free vertex's row, broadcast
+            x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
+        else:
+            x = lz.gather(gi)
+        try:
+            out = getattr(g.etype, method)(x, g.measurements, ctx)
+        except (GraphError, ValueError):  # named, or a broadcast input written: the full path
             out = lz._run(gi, method)
         else:
-            if memo is not None:  # the free vertex's row, broadcast
-                x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
-            else:
-                x = lz.gather(gi)
-            try:
-                out = getattr(g.etype, method)(x, g.measurements, ctx)
-            except (GraphError, ValueError):  # named, or a broadcast input written: full path
-                out = lz._run(gi, method)
-            if type(out) is not Linearization:
-                out = lz._run(gi, method)
+            key = (id(g), method, g.size)
+            if type(out) is not Linearization or key not in lz._trusted:
+                checked = checked_output(g, out, method, g.size)
+                if checked is out:
+                    lz._trusted.add(key)
+                out = checked
         if memo is not None and lz._one[gi] is not None:
             memo.put(method, at, out)
         return out
@@ -316,10 +320,13 @@ class SingleVertexProblem(Problem):
             self._check_finite_estimates()
         return chi
 
-    def _idle_vertex(self) -> bool:
+    def _idle_vertex(self, key: tuple[tuple[int, int], ...]) -> bool:
         """Whether no active edge reaches the free vertex (levels only, as :class:`~graphopt.
-        activity.IdleAnchors`): ``H`` then gets the identity and the step is zero."""
-        key = tuple(g.activity_version for g in self.groups)
+        activity.IdleAnchors`): ``H`` then gets the identity and the step is zero.
+
+        Args:
+            key: Every group's ``activity_version`` now.
+        """
         if key != self._idle_key:
             self._idle_key = key
             self._idle = True
@@ -342,7 +349,8 @@ class SingleVertexProblem(Problem):
         t0 = time.perf_counter()
         lz = self.linearizer
         terms = self._terms
-        if terms is None or terms[0] != lz.state_key():
+        key = lz.state_key()
+        if terms is None or terms[0] != key:
             self._evaluate(True, every=True, safe=safe)
             terms = self._terms
         assert terms is not None and lz.last is not None
@@ -352,9 +360,11 @@ class SingleVertexProblem(Problem):
         if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
             self._name_non_finite(jac)
         asm = self._assembler.finish(ht, bu)
-        if self._idle_vertex():
+        if self._idle_vertex(key[1]):
             asm.h_data[self._diag] += 1.0
-        if not (np.isfinite(asm.h_data).all() and np.isfinite(asm.bu).all()):
+        h, b = asm.h_data, asm.bu
+        if not math.isfinite(h @ h + b @ b) and not (np.isfinite(h).all()  # two dots, not
+                                                     and np.isfinite(b).all()):  # four passes
             if not safe and any(g.active_count < g.size for g in self.groups):
                 # An inactive edge's non-finite Jacobian: zero the rows, as the general path.
                 self._evaluate(True, every=True, safe=True)
@@ -406,17 +416,22 @@ class SingleVertexProblem(Problem):
         if lam:
             data[self._diag] += lam * (self._ones if damping is None else damping[0])
         d = self.d
-        factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
-                                   overwrite_a=1, clean=0)
-        c, info = factor
+        diag = data[self._diag].tolist()
+        # H + λD is symmetric: its column-major data, read as a (d, d) C array and transposed,
+        # is a Fortran-ordered view that LAPACK factors in place (no copy).
+        c, info = sla.lapack.dpotrf(data.reshape(d, d).T, lower=1, overwrite_a=1, clean=0)
         if info == 0:  # the rank rule's first screen in floats (d pivots: 1 µs, not 4)
-            diag = data[self._diag].tolist()
             if all(p * p > PIVOT_SCREEN * abs(q) for p, q in zip(c.diagonal().tolist(), diag,
                                                                   strict=True)):
                 du, info = sla.lapack.dpotrs(c, asm.bu, lower=1)
                 if info == 0 and math.isfinite(sum(du.tolist())):
                     self.timing.solve += time.perf_counter() - t0
                     return du, []
+        data = asm.h_data.copy()  # the rank rule from the matrix again (factored over)
+        if lam:
+            data[self._diag] += lam * (self._ones if damping is None else damping[0])
+        factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
+                                   overwrite_a=1, clean=0)
         du = cholesky_solve("dense", factor, data[self._diag], asm.bu.copy(),
                             lambda s: _shifted_is_definite(data, self._diag, s))
         self.timing.solve += time.perf_counter() - t0
