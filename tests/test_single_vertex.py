@@ -8,6 +8,8 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from custom_types import EdgeCurve, EdgeCurveAutodiff, VertexCurve
+from graphs import curve_data
 from test_single_block import CAM, one_free_pose
 
 from graphopt import RobustKernelHuber, SparseOptimizer
@@ -206,3 +208,51 @@ def test_a_repeated_estimate_reuses_the_types_evaluation(monkeypatch: pytest.Mon
     calls.clear()
     opt.optimize(1)
     assert calls
+
+
+class _EdgeCurveBuffers(EdgeCurve):
+    """:class:`EdgeCurve` returning its own buffers, overwritten by every call (``out=``)."""
+
+    _e = np.zeros(0)
+    _J = np.zeros(0)
+
+    @classmethod
+    def error(cls, x, measurement, ctx):  # noqa: ANN001, ANN206
+        e = EdgeCurve.error(x, measurement, ctx)
+        if cls._e.shape != e.shape:
+            cls._e = np.empty_like(e)
+        np.copyto(cls._e, e)
+        return cls._e
+
+    @classmethod
+    def jacobians(cls, x, measurement, ctx):  # noqa: ANN001, ANN206
+        (J,) = EdgeCurve.jacobians(x, measurement, ctx)
+        if cls._J.shape != J.shape:
+            cls._J = np.empty_like(J)
+        np.copyto(cls._J, J)
+        return (cls._J,)
+
+
+@pytest.mark.parametrize("edge", [_EdgeCurveBuffers, EdgeCurveAutodiff])
+def test_the_memo_keeps_copies_of_a_types_buffers(edge: type) -> None:
+    """A type that returns buffers its next call overwrites (a user's ``out=``, autodiff's
+    kept scratch): rounds restarted from one estimate, the memo answering, run the iterations
+    of the plain type."""
+    meas = curve_data(60)
+    runs = []
+    for etype in (EdgeCurve, edge):
+        opt = SparseOptimizer("lm", "dense")
+        opt.add_vertices(VertexCurve, [0], [[0.5, 1.5, 0.5]])
+        opt.add_edges(etype, np.zeros((len(meas), 1), int), meas)
+        out = []
+        for _ in range(3):
+            opt.vertex(0).set_estimate([0.5, 1.5, 0.5])
+            opt.initialize_optimization()
+            res = opt.optimize(4)  # fewer evaluations than the memo keeps
+            out.append(([i.chi2 for i in res.info], opt.vertex(0).estimate.copy()))
+        assert isinstance(opt.problem, SingleVertexProblem)
+        runs.append(out)
+    for (chi_a, x_a), (chi_b, x_b) in zip(*runs, strict=True):
+        np.testing.assert_allclose(chi_b, chi_a, rtol=1e-9)
+        np.testing.assert_allclose(x_b, x_a, rtol=1e-9)
+    assert runs[1][1][0] == runs[1][0][0]  # the second round retraced the first
