@@ -9,12 +9,13 @@ from typing import Any
 
 import numpy as np
 
+import graphopt.autodiff.programs as programs
 import graphopt.autodiff.tape as tape
 from graphopt.autodiff.jet import Jet
 from graphopt.autodiff.reverse import backward
 from graphopt.errors import GraphError
 
-__all__ = ["Block", "inputs_of", "split"]
+__all__ = ["Block", "first_blocks", "inputs_of", "split"]
 
 
 def inputs_of(arrays: list[list[Any]], z: np.ndarray, rows: np.ndarray) -> list[Any]:
@@ -78,3 +79,19 @@ class Block:
         J = backward(eb, self.n, rows) if eb._tape is not None else None
         tape.clear()
         return (eb.value if traced else eb), ab, J
+
+
+def first_blocks(plan: programs.Plan, run: Block, sl: slice, arrays: list[list[Any]],
+                  inputs: list[Any], traced: slice | None) -> tuple[Any, slice | None]:
+    """A block of a plan without a checked program: traced (``None`` if that failed: the
+    caller uses the tape), or the tape's block and the program checked against it. Returns
+    ``(the block's results, the block traced in this call)``."""
+    if plan.program is None:
+        out = plan.trace(inputs, lambda t: run(sl, split(arrays, t), t[-1], t[-2]))
+        return out, (sl if out is not None else None)
+    out = run(sl, arrays, inputs[-1])  # the tape's block, then the program's on a copy of
+    if type(out[0]) is Jet and out[2] is not None:  # its inputs: the same, bit for bit?
+        plan.check(inputs[:-1] + [np.empty(inputs[-1].size)], out[0].value, out[1], out[2])
+    else:
+        plan.dead = True
+    return out, traced

@@ -18,7 +18,7 @@ import numpy as np
 
 import graphopt.autodiff.programs as programs
 import graphopt.autodiff.tape as tape
-from graphopt.autodiff.blocks import Block, inputs_of, split
+from graphopt.autodiff.blocks import Block, first_blocks, inputs_of
 from graphopt.autodiff.jet import Jet, JetError
 from graphopt.autodiff.structure import Structure, detect
 from graphopt.errors import GraphError
@@ -415,7 +415,7 @@ def _linearize(
                 out = (ev, ab, inputs[-1].reshape(dim, n, mb))
             elif plan.lock.acquire(blocking=False):  # (else another thread traces: the tape)
                 try:
-                    out, traced = _first_blocks(plan, run, sl, arrays, inputs, traced)
+                    out, traced = first_blocks(plan, run, sl, arrays, inputs, traced)
                 finally:
                     plan.lock.release()
                 if plan.dead and traced is not None and traced != sl:  # the traced block
@@ -453,21 +453,6 @@ def _linearize(
 
 
 
-
-def _first_blocks(plan: programs.Plan, run: Block, sl: slice, arrays: list[list[Any]],
-                  inputs: list[Any], traced: slice | None) -> tuple[Any, slice | None]:
-    """A block of a plan without a checked program: traced (``None`` if that failed: the
-    caller uses the tape), or the tape's block and the program checked against it. Returns
-    ``(the block's results, the block traced in this call)``."""
-    if plan.program is None:
-        out = plan.trace(inputs, lambda t: run(sl, split(arrays, t), t[-1], t[-2]))
-        return out, (sl if out is not None else None)
-    out = run(sl, arrays, inputs[-1])  # the tape's block, then the program's on a copy of
-    if type(out[0]) is Jet and out[2] is not None:  # its inputs: the same, bit for bit?
-        plan.check(inputs[:-1] + [np.empty(inputs[-1].size)], out[0].value, out[1], out[2])
-    else:
-        plan.dead = True
-    return out, traced
 
 
 def check_independent_edges(

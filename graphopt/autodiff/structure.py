@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["Plan", "Structure", "clear", "contract", "contract_deferred", "contract_product",
-           "defer", "detect"]
+           "defer", "detect", "piece"]
 
 #: ``(adjoint entry, column of V, [(direction, coefficient)])`` per product.
 Plan = list[tuple[int, int, list[tuple[int, float]]]]
@@ -320,3 +320,21 @@ def contract_deferred(J: Any) -> None:
             J.add(lo + k, lo + k + 1, a, b, prod, c)
     _DEFERRED.clear()
     SUMS.clear()
+
+_PIECES: dict[tuple[Any, ...], np.ndarray] = {}
+
+
+def piece(entries: np.ndarray | None, shape: tuple[int, ...], key: tuple[Any, ...],
+          ck: Any = None) -> np.ndarray:
+    """The flat entries of a structured matrix that ``rows[(:,) + key]`` of gathered rows
+    with trailing ``shape`` are (``entries``: the rows' own entries of the whole matrix, or
+    ``None`` for all of it; ``ck``: a hashable name of ``key``, if it has a cheap one)."""
+    if entries is None:  # the whole matrix: the same few pieces in every block
+        ck = (shape, repr(key) if ck is None else ck)
+        hit = _PIECES.get(ck)
+        if hit is None:
+            if len(_PIECES) > 256:
+                _PIECES.clear()
+            hit = _PIECES[ck] = np.arange(int(np.prod(shape))).reshape(shape)[key]
+        return hit
+    return np.asarray(entries[key])

@@ -56,9 +56,8 @@ class _Node:
     struct: Any = None
     full: np.ndarray | None = None
     entries: np.ndarray | None = None
-    # Which of the source's directions are non-zero per entry, over all vertices ((k, *s)
-    # booleans, computed outside a traced block: a decision on per-vertex data that the
-    # block programs' signature includes, graphopt.autodiff.programs).
+    # The source's non-zero directions per entry, (k, *s), found on all vertices (outside
+    # a traced block: graphopt.autodiff.programs' signature has them).
     support: np.ndarray | None = None
     # Products with these rows whose contribution the reverse pass adds directly (a
     # structured A in A @ B): (plan, adjoint of the product, the product).
@@ -175,25 +174,6 @@ def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: i
     return j
 
 
-_PIECES: dict[tuple[Any, ...], np.ndarray] = {}
-
-
-def _piece(node: _Node, shape: tuple[int, ...], key: tuple[Any, ...],
-           ck: Any = None) -> np.ndarray:
-    """The flat entries of the whole matrix that ``rows[(:,) + key]`` of gathered rows with
-    trailing ``shape`` are (``ck``: a hashable name of ``key``, if it has a cheap one)."""
-    base = node.entries
-    if base is None:  # the whole matrix: the same few pieces in every block
-        ck = (shape, repr(key) if ck is None else ck)
-        hit = _PIECES.get(ck)
-        if hit is None:
-            if len(_PIECES) > 256:
-                _PIECES.clear()
-            hit = _PIECES[ck] = np.arange(int(np.prod(shape))).reshape(shape)[key]
-        return hit
-    return np.asarray(base[key])
-
-
 def _gathered_item(j: Jet, key: Any) -> Jet | None:
     """``j[key]`` of gathered rows, gathered as narrowly as the index allows."""
     node = j._tape
@@ -214,8 +194,8 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         elif node.struct is not None:  # a leaf contracted through the structure
             sup = node.support
             out = _gathered(j.value[:, c], node.source[lo - j._lo: hi - j._lo, :, c],
-                            node.index, lo, j.n, None, node,
-                            _piece(node, j.value.shape[1:], (slice(c, c + 1),), c),
+                            node.index, lo, j.n, None, node, structure.piece(
+                                node.entries, j.value.shape[1:], (slice(c, c + 1),), c),
                             support=None if sup is None else sup[lo - j._lo: hi - j._lo, c])
             out.rows = j.rows
             return out
@@ -235,8 +215,8 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         src, lo = src[first:last], lo + first
         sup = None if sup is None else sup[first:last]
     out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns,
-                    node, _piece(node, j.value.shape[1:], rest) if node.struct is not None
-                    else None, k[0], sup)
+                    node, structure.piece(node.entries, j.value.shape[1:], rest)
+                    if node.struct is not None else None, k[0], sup)
     out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
     return out
 
