@@ -97,6 +97,14 @@ class Batch:
         self._lists: tuple[Any, list[float], list[bool] | None] | None = None
         self._bank1 = banks[0] if len(banks) == 1 else None
         self._bank2 = (banks[0], banks[1]) if len(banks) == 2 else None
+        # The per-edge getters' fast path (one or two vertex types, a core built): the stores
+        # (the one twice for one type), chi2 and depth tests as Python lists, and the stores'
+        # estimate versions they are valid for. Set by add_to.
+        self._st0: Any = None
+        self._st1: Any = None
+        self._fchi2: list[float] | None = None
+        self._fdepth: list[bool] | None = None
+        self._fv0 = self._fv1 = -1
         # Every record's batch and index, in C loops (setattr over the records).
         deque(map(setattr, records, repeat("_batch"), repeat(self, m)), maxlen=0)
         deque(map(setattr, records, repeat("_idx"), range(m)), maxlen=0)
@@ -182,6 +190,9 @@ class Batch:
         Args:
             core: A :class:`graphopt.SparseOptimizer` holding the banks' stores.
         """
+        self._fchi2 = self._fdepth = None  # the stores are new
+        if len(self.banks) <= 2:
+            self._st0, self._st1 = self.banks[0].store, self.banks[-1].store
         if not self.m:
             return
         es = core.add_edges(self.gtype, self.vids, self.meas, self.info, None, self.params,
@@ -217,6 +228,13 @@ class Batch:
         Args:
             i: Index in the batch.
         """
+        st0 = self._st0
+        if st0 is not None:  # one or two stores: their versions
+            st1 = self._st1
+            if self._fchi2 is None or st0.version != self._fv0 or st1.version != self._fv1:
+                self._fchi2, self._fdepth = self.chi2().tolist(), None
+                self._fv0, self._fv1 = st0.version, st1.version
+            return self._fchi2[i]
         state = self._state()
         lists = self._lists
         if lists is None or lists[0] != state:
@@ -230,6 +248,10 @@ class Batch:
             i: Index in the batch.
         """
         self.chi2_of(i)  # the lists at the current state
+        if self._st0 is not None:
+            if self._fdepth is None:
+                self._fdepth = self.depth_positive().tolist()
+            return self._fdepth[i]
         lists = self._lists
         assert lists is not None
         if lists[2] is None:

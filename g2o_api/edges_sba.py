@@ -32,7 +32,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
     _param_type = "CameraParameters"
 
     def __init__(self) -> None:
-        super().__init__()
+        BaseEdge.__init__(self)  # not super(): one object less per edge made
         self.fx = self.fy = self.cx = self.cy = 0.0
 
     def _params_key(self) -> tuple[Any, ...]:
@@ -67,7 +67,8 @@ class EdgeSE3ProjectXYZOnlyPose(EdgeSE3ProjectXYZ):
     _perm = (0,)
 
     def __init__(self) -> None:
-        super().__init__()
+        BaseEdge.__init__(self)
+        self.fx = self.fy = self.cx = self.cy = 0.0
         self.Xw = _ORIGIN  # g2o's default; programs assign their point
 
     @classmethod
@@ -87,8 +88,8 @@ class EdgeStereoSE3ProjectXYZ(EdgeSE3ProjectXYZ):
     _param_type = "StereoCameraParameters"
 
     def __init__(self) -> None:
-        super().__init__()
-        self.bf = 0.0
+        BaseEdge.__init__(self)
+        self.fx = self.fy = self.cx = self.cy = self.bf = 0.0
 
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy, self.bf)
@@ -105,7 +106,8 @@ class EdgeStereoSE3ProjectXYZOnlyPose(EdgeStereoSE3ProjectXYZ):
     _perm = (0,)
 
     def __init__(self) -> None:
-        super().__init__()
+        BaseEdge.__init__(self)
+        self.fx = self.fy = self.cx = self.cy = self.bf = 0.0
         self.Xw = _ORIGIN  # g2o's default; programs assign their point
 
     _data = EdgeSE3ProjectXYZOnlyPose._data
