@@ -17,7 +17,7 @@ import numpy as np
 
 from graphopt.errors import GraphError
 
-from .vertices import BaseVertex
+from .vertices import BaseVertex, joined, unbytes
 
 __all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
 
@@ -355,13 +355,10 @@ class BaseEdge:
 
     @classmethod
     def _measurements(cls, raws: list[Any]) -> np.ndarray:
-        m = len(raws)
-        if type(raws[0]) is bytes:  # set_measurement's bytes (_raw_vector): one join
-            size = 8 * int(np.prod(cls._mshape))
-            if set(map(type, raws)) == {bytes} and set(map(len, raws)) == {size}:  # C loops
-                return np.frombuffer(b"".join(raws)).reshape(m, *cls._mshape).copy()
-        arr = np.array([np.frombuffer(r) if type(r) is bytes else r for r in raws], dtype=float)
-        return arr.reshape(m, *cls._mshape)
+        arr = joined(raws, cls._mshape)  # set_measurement's bytes (_raw_vector): one join
+        if arr is not None:
+            return arr
+        return np.array(unbytes(raws), dtype=float).reshape(len(raws), *cls._mshape)
 
     @classmethod
     def _from_measurement(cls, row: np.ndarray) -> Any:

@@ -11,7 +11,10 @@ vertex's id.
 from __future__ import annotations
 
 import copy as _copy
+from collections import deque
 from importlib import import_module
+from itertools import repeat
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -22,9 +25,39 @@ from graphopt.storage import VertexStore
 from .geometry import SE2, Isometry3d, SE3Quat, _RigidBase
 from .sim3 import Sim3
 
-__all__ = ["BaseVertex", "VERTEX_CLASSES"]
+__all__ = ["BaseVertex", "VERTEX_CLASSES", "joined"]
 
 _F8 = np.dtype(np.float64)
+_VID, _FIXED, _MARG = attrgetter("_id"), attrgetter("_fixed"), attrgetter("_marg")
+
+
+def joined(raws: list[Any], shape: tuple[int, ...]) -> np.ndarray | None:
+    """``(n, *shape)`` float vectors from their bytes (what ``set_estimate`` and
+    ``set_measurement`` keep of a float array) in one join, or ``None`` unless every raw value
+    is bytes of the right length.
+
+    Args:
+        raws: The records' raw values.
+        shape: One value's shape.
+    """
+    if not raws or type(raws[0]) is not bytes:
+        return None
+    try:  # C loops; len() of None or join of a list raise TypeError
+        if set(map(len, raws)) != {8 * int(np.prod(shape))}:
+            return None
+        buf = b"".join(raws)
+    except TypeError:
+        return None
+    return np.frombuffer(buf).reshape(len(raws), *shape).copy()
+
+
+def unbytes(raws: list[Any]) -> list[Any]:
+    """The raw values with bytes (see :func:`joined`) back as float arrays.
+
+    Args:
+        raws: The records' raw values.
+    """
+    return [np.frombuffer(r) if type(r) is bytes else r for r in raws]
 
 
 class Bank:
@@ -37,13 +70,14 @@ class Bank:
     def __init__(self, gtype: type, records: list[BaseVertex], initial: np.ndarray) -> None:
         self.gtype = gtype
         self.store: VertexStore | None = None
-        self.ids = np.array([r._id for r in records], dtype=np.int64)
-        self.user_fixed = np.array([r._fixed for r in records], dtype=bool)
-        self.marg = np.array([r._marg for r in records], dtype=bool)
+        n = len(records)
+        self.ids = np.fromiter(map(_VID, records), np.int64, count=n)  # C loops
+        self.user_fixed = np.fromiter(map(_FIXED, records), bool, count=n)
+        self.marg = np.fromiter(map(_MARG, records), bool, count=n)
         #: Estimates until the first core store exists.
         self.initial = initial
-        for slot, r in enumerate(records):
-            r._bank, r._slot = self, slot
+        deque(map(setattr, records, repeat("_bank"), repeat(self, n)), maxlen=0)
+        deque(map(setattr, records, repeat("_slot"), range(n)), maxlen=0)
 
     def slots_of(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Slots of ``ids`` and whether each is in this bank.
@@ -76,8 +110,7 @@ class BaseVertex:
     """A g2o vertex record (``set_id``, ``set_estimate``, ``estimate``, ``set_fixed``,
     ``set_marginalized``)."""
 
-    __slots__ = ("_id", "_est", "_fixed", "_marg", "_opt", "_bank", "_slot", "_as",
-                 "__weakref__")
+    __slots__ = ("_id", "_est", "_fixed", "_marg", "_opt", "_bank", "_slot", "__weakref__")
     #: graphopt's vertex type (name in graphopt.types) and its estimate shape.
     _gname = ""
     _shape: tuple[int, ...] = ()
@@ -91,13 +124,11 @@ class BaseVertex:
                        and cls._finish.__func__ is BaseVertex._finish.__func__)  # type: ignore
 
     def __init__(self) -> None:
-        self._id = -1
+        self._id = self._slot = -1
         self._est: Any = None
         self._fixed = self._marg = False
         self._opt: Any = None
         self._bank: Bank | None = None
-        self._slot = -1
-        self._as: str | None = None
 
     # --- g2o's API ---------------------------------------------------------------------------
 
@@ -123,8 +154,12 @@ class BaseVertex:
         """
         bank = self._bank
         if bank is None:
-            self._est = estimate.copy() if type(estimate) is np.ndarray else (
-                list(estimate) if isinstance(estimate, list | tuple) else self._clone(estimate))
+            if type(estimate) is np.ndarray:  # a float vector: its bytes (a third of a copy)
+                self._est = (estimate.tobytes() if self._vector and estimate.dtype is _F8
+                             else estimate.copy())
+            else:
+                self._est = (list(estimate) if isinstance(estimate, list | tuple)
+                             else self._clone(estimate))
             return
         row = self._to_array([estimate], [self._id])
         self._finish(row, [self])
@@ -144,6 +179,10 @@ class BaseVertex:
             est = self._est
             if est is None:
                 return None
+            if type(est) is bytes:  # set_estimate's bytes of a float vector
+                est = np.frombuffer(est).copy()
+                if est.size == int(np.prod(self._shape)):
+                    return est.reshape(self._shape)
             if (self._vector and type(est) is np.ndarray and est.shape == self._shape
                     and est.dtype is _F8):  # a vector type given an array: its copy
                 return est.copy()
@@ -212,6 +251,10 @@ class BaseVertex:
     def _to_array(cls, raws: list[Any], ids: list[int]) -> np.ndarray:
         """``(n, *shape)`` estimates from the raw values (vectors by default)."""
         n, shape = len(raws), cls._shape
+        arr = joined(raws, shape)
+        if arr is not None:
+            return arr
+        raws = unbytes(raws)
         try:
             arr = np.array(raws, dtype=float)
             if arr.size == n * int(np.prod(shape)):
