@@ -31,9 +31,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
     _perm = (1, 0)
     _param_type = "CameraParameters"
 
-    def __init__(self) -> None:
-        BaseEdge.__init__(self)  # not super(): one object less per edge made
-        self.fx = self.fy = self.cx = self.cy = 0.0
+    _defaults = {"fx": 0.0, "fy": 0.0, "cx": 0.0, "cy": 0.0}
 
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy)
@@ -66,10 +64,7 @@ class EdgeSE3ProjectXYZOnlyPose(EdgeSE3ProjectXYZ):
     _gname = "EdgeSE3ProjectXYZOnlyPose"
     _perm = (0,)
 
-    def __init__(self) -> None:
-        BaseEdge.__init__(self)
-        self.fx = self.fy = self.cx = self.cy = 0.0
-        self.Xw = _ORIGIN  # g2o's default; programs assign their point
+    _defaults = {"Xw": _ORIGIN}  # g2o's default; programs assign their point
 
     @classmethod
     def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
@@ -87,9 +82,7 @@ class EdgeStereoSE3ProjectXYZ(EdgeSE3ProjectXYZ):
     _gname = "EdgeStereoSE3ProjectXYZ"
     _param_type = "StereoCameraParameters"
 
-    def __init__(self) -> None:
-        BaseEdge.__init__(self)
-        self.fx = self.fy = self.cx = self.cy = self.bf = 0.0
+    _defaults = {"bf": 0.0}
 
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy, self.bf)
@@ -105,10 +98,7 @@ class EdgeStereoSE3ProjectXYZOnlyPose(EdgeStereoSE3ProjectXYZ):
     _gname = "EdgeStereoSE3ProjectXYZOnlyPose"
     _perm = (0,)
 
-    def __init__(self) -> None:
-        BaseEdge.__init__(self)
-        self.fx = self.fy = self.cx = self.cy = self.bf = 0.0
-        self.Xw = _ORIGIN  # g2o's default; programs assign their point
+    _defaults = {"Xw": _ORIGIN}  # g2o's default; programs assign their point
 
     _data = EdgeSE3ProjectXYZOnlyPose._data
     _depth = staticmethod(_depth_pose_only)
