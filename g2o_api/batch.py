@@ -77,7 +77,9 @@ class Batch:
                 raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
                                  f"{int(vids[i, p])} is not a {b.gtype.__name__} like the "
                                  "other edges' vertices at its position")
-        self.levels = np.fromiter(map(_LEVEL, records), dtype=np.int64, count=m)
+        levels = list(map(_LEVEL, records))
+        self.levels = (np.zeros(m, dtype=np.int64) if levels.count(0) == m  # the usual case
+                       else np.array(levels, dtype=np.int64))
         self.kernels: list[Any] = []  # graphopt kernels by code
         self._codes: dict[Any, int] = {}
         kernels = list(map(_KERNEL, records))

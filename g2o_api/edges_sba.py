@@ -4,6 +4,7 @@ and stereo variants and the anchored inverse-depth edge, mapped onto graphopt's 
 
 from __future__ import annotations
 
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ __all__ = ["SBA_EDGES"]
 
 _ORIGIN = np.zeros(3)
 _ORIGIN.flags.writeable = False
+_XW = attrgetter("Xw")
 
 
 def _depth_pose_point(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any
@@ -68,7 +70,10 @@ class EdgeSE3ProjectXYZOnlyPose(EdgeSE3ProjectXYZ):
 
     @classmethod
     def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
-        return {"Xw": np.array([r.Xw for r in recs], dtype=float).reshape(len(recs), 3)}
+        xw = list(map(_XW, recs))  # C loops: one pass, one join of 3-element rows
+        if set(map(len, xw)) == {3}:
+            return {"Xw": np.asarray(np.concatenate(xw, axis=None), dtype=float).reshape(-1, 3)}
+        return {"Xw": np.array(xw, dtype=float).reshape(len(recs), 3)}
 
     _depth = staticmethod(_depth_pose_only)
 
