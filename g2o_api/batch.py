@@ -19,8 +19,9 @@ from graphopt.edge_set import group_errors
 from graphopt.errors import GraphError
 
 from .edges import BaseEdge
+from .raw import joined
 from .solvers import RobustKernelBase, graphopt_kernel
-from .vertices import Bank, joined
+from .vertices import Bank
 
 __all__ = ["Batch", "stack_information", "stack_measurements"]
 

@@ -17,7 +17,8 @@ import numpy as np
 
 from graphopt.errors import GraphError
 
-from .vertices import BaseVertex, joined, unbytes
+from .raw import joined, unbytes
+from .vertices import BaseVertex
 
 __all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
 

@@ -23,41 +23,13 @@ from graphopt.errors import GraphError
 from graphopt.storage import VertexStore
 
 from .geometry import SE2, Isometry3d, SE3Quat, _RigidBase
+from .raw import joined, unbytes
 from .sim3 import Sim3
 
-__all__ = ["BaseVertex", "VERTEX_CLASSES", "joined"]
+__all__ = ["BaseVertex", "VERTEX_CLASSES"]
 
 _F8 = np.dtype(np.float64)
 _VID, _FIXED, _MARG = attrgetter("_id"), attrgetter("_fixed"), attrgetter("_marg")
-
-
-def joined(raws: list[Any], shape: tuple[int, ...]) -> np.ndarray | None:
-    """``(n, *shape)`` float vectors from their bytes (what ``set_estimate`` and
-    ``set_measurement`` keep of a float array) in one join, or ``None`` unless every raw value
-    is bytes of the right length.
-
-    Args:
-        raws: The records' raw values.
-        shape: One value's shape.
-    """
-    if not raws or type(raws[0]) is not bytes:
-        return None
-    try:  # C loops; len() of None or join of a list raise TypeError
-        if set(map(len, raws)) != {8 * int(np.prod(shape))}:
-            return None
-        buf = b"".join(raws)
-    except TypeError:
-        return None
-    return np.frombuffer(buf).reshape(len(raws), *shape).copy()
-
-
-def unbytes(raws: list[Any]) -> list[Any]:
-    """The raw values with bytes (see :func:`joined`) back as float arrays.
-
-    Args:
-        raws: The records' raw values.
-    """
-    return [np.frombuffer(r) if type(r) is bytes else r for r in raws]
 
 
 class Bank:
@@ -74,8 +46,7 @@ class Bank:
         self.ids = np.fromiter(map(_VID, records), np.int64, count=n)  # C loops
         self.user_fixed = np.fromiter(map(_FIXED, records), bool, count=n)
         self.marg = np.fromiter(map(_MARG, records), bool, count=n)
-        #: Estimates until the first core store exists.
-        self.initial = initial
+        self.initial = initial  # the estimates until the first core store exists
         deque(map(setattr, records, repeat("_bank"), repeat(self, n)), maxlen=0)
         deque(map(setattr, records, repeat("_slot"), range(n)), maxlen=0)
 
