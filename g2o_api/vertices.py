@@ -1,12 +1,8 @@
-"""g2o's vertex classes as thin records.
-
-A vertex is an id, an estimate as the program gave it, and two flags until
-``initialize_optimization``; then it is a slot in a graphopt vertex store (a *bank*, one per
-graphopt vertex type), and ``estimate()`` reads the store's row. ``add_vertex`` only files the
-record: the conversion of every estimate to graphopt's arrays is one stacking operation per
-type, and the checks (shapes, finite values, rotations) run once, in bulk, naming the offending
-vertex's id.
-"""
+"""g2o's vertex classes as thin records: an id, an estimate as the program gave it (a float
+vector as its bytes) and two flags until ``initialize_optimization``; then a slot in a graphopt
+vertex store (a *bank*, one per graphopt type), whose row ``estimate()`` reads. ``add_vertex``
+only files the record: each type's estimates become graphopt's array in one step, checked
+(shapes, finite values, rotations) once, in bulk, naming the offending vertex's id."""
 
 from __future__ import annotations
 
@@ -67,14 +63,19 @@ class Bank:
         return self.store.estimates if self.store is not None else self.initial
 
 
+_CORE_TYPES: dict[str, type] = {}
+
+
 def core_type(name: str) -> type:
     """``graphopt.types.<name>``, or ``NotImplementedError`` naming it while it is missing."""
-    types = import_module("graphopt.types")
-    try:
-        return getattr(types, name)
-    except AttributeError:
-        raise NotImplementedError(f"graphopt.g2o: graphopt.types has no {name} yet; the g2o "
-                                  "type that needs it is not supported") from None
+    t = _CORE_TYPES.get(name)
+    if t is None:  # (the import machinery costs microseconds a call: once per name)
+        try:
+            t = _CORE_TYPES[name] = getattr(import_module("graphopt.types"), name)
+        except AttributeError:
+            raise NotImplementedError(f"graphopt.g2o: graphopt.types has no {name} yet; the "
+                                      "g2o type that needs it is not supported") from None
+    return t
 
 
 class BaseVertex:
@@ -154,9 +155,6 @@ class BaseVertex:
                 est = np.frombuffer(est).copy()
                 if est.size == int(np.prod(self._shape)):
                     return est.reshape(self._shape)
-            if (self._vector and type(est) is np.ndarray and est.shape == self._shape
-                    and est.dtype is _F8):  # a vector type given an array: its copy
-                return est.copy()
             return self._from_row(self._to_array([est], [self._id])[0])
         return self._from_row(bank.estimates()[self._slot])
 
