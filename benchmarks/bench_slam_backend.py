@@ -32,6 +32,10 @@ costs it a masked sum).
 Usage::
 
     .venv/bin/python -P benchmarks/bench_slam_backend.py [--runs 5] [--cpu] [--only motion,...]
+        [--floor]
+
+``--floor`` adds, under each mono motion-only row, ``motion_only_floor.py``'s framework-free
+numpy loop timed in the same turns (build + optimise in one figure; its ratio to g2opy).
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ import numpy as np  # noqa: E402
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+import motion_only_floor as floor_side  # noqa: E402
 import slam_backend_g2o as g2o_side  # noqa: E402
 import slam_backend_scenes as scenes  # noqa: E402
 
@@ -208,6 +213,8 @@ def main() -> None:
     ap.add_argument("--only", default="motion,local,sim3,essential")
     ap.add_argument("--g2o-only", action="store_true", help="time g2opy alone")
     ap.add_argument("--cpu", action="store_true", help="CPU time instead of wall time")
+    ap.add_argument("--floor", action="store_true",
+                    help="also time motion_only_floor.py's bare numpy loop (mono motion-only)")
     args = ap.parse_args()
     clock = Clock(cpu=args.cpu)
     ns = None if args.g2o_only else graphopt_procedures(clock.stamp)
@@ -221,14 +228,24 @@ def main() -> None:
         s = make()
         times: dict[str, list[tuple[float, float]]] = {"g2o": [], "go": []}
         res: dict[str, dict[str, Any]] = {}
+        floor = args.floor and kind == "motion" and s.z.shape[1] == 2
         for _ in range(args.runs):
             t, res["g2o"] = _run_g2o(kind, s, clock)
             times["g2o"].append(t)
+            if floor:  # the framework-free numpy loop, timed the same way, same turn
+                clock.start()
+                clock.stamp()
+                floor_side.bare(s.T_init, s.Xw, s.z, s.inv_sigma2, scenes.CAM, [0])
+                times.setdefault("bare", []).append(clock.stop())
             if ns is not None:
                 clock.start()
                 res["go"] = _run_graphopt(kind, s, ns)
                 times["go"].append(clock.stop())
         print(_row(name, s, times, res))
+        if floor:
+            bare, g2o = _ms(times["bare"])[2], _ms(times["g2o"])[2]
+            print(f"|   bare numpy (motion_only_floor.py), the floor | | {bare:.2f} | "
+                  f"{bare / g2o:.2f} | | | |")
         sys.stdout.flush()
 
 

@@ -21,6 +21,7 @@ from graphopt.edge import BaseEdge
 from graphopt.errors import GraphError
 from graphopt.removal import remove_edges
 from graphopt.robust_kernel import RobustKernel
+from graphopt.row_weights import row_dots
 from graphopt.storage import EdgeGroup
 
 if TYPE_CHECKING:
@@ -70,7 +71,7 @@ def _errors(g: EdgeGroup, x: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.nda
 def _chi2(g: EdgeGroup, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(e, e'Ωe)`` of a group's errors, both made read-only."""
     if g.info_is_identity:
-        s = np.einsum("me,me->m", e, e)
+        s = row_dots(e, e)
     else:
         assert g.information is not None
         if g.information.ndim == 2:
@@ -79,7 +80,7 @@ def _chi2(g: EdgeGroup, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             oe = e * g.info_diagonal
         else:
             oe = np.einsum("mij,mj->mi", g.information, e)
-        s = np.einsum("me,me->m", e, oe)
+        s = row_dots(e, oe)
     e.flags.writeable = False
     s.flags.writeable = False
     return e, s

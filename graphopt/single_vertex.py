@@ -28,8 +28,9 @@ import scipy.linalg as sla
 
 from graphopt.allocator import tune as tune_allocator
 from graphopt.edge import EdgeContext, Linearization
-from graphopt.edge_output import raise_non_finite_edge
+from graphopt.edge_output import checked_output, raise_non_finite_edge
 from graphopt.errors import GraphError
+from graphopt.evaluation_memo import EvaluationMemo
 from graphopt.linear import Assembly, LinearSystem, SchurConfig
 from graphopt.linear.single_block import SingleBlockAssembler, group_terms
 from graphopt.linearizer import (
@@ -46,6 +47,7 @@ from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
 from graphopt.solvers.dense import cholesky_solve
 from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
 from graphopt.storage import EdgeGroup, VertexStore
+from graphopt.unary_terms import Weighing, unary_terms, weighing
 
 #: Most unknowns of the one vertex (a dense ``d × d`` system; poses, Sim(3), cameras).
 MAX_DIMENSION = 64
@@ -97,6 +99,10 @@ class SingleVertexProblem(Problem):
         # Per group: one position, the free vertex at every edge (a pose's unary edges; more
         # than one edge, as the linearizer's broadcast gather).
         self._unary = [len(o) == 1 and len(o[0]) > 1 and bool(o[0].all()) for o in on]
+        # Per unary group: the type's outputs by the free vertex's estimate.
+        self._memo = [EvaluationMemo() for _ in groups]
+        # Per unary group: its weighing at an activity version (None: the general weighting).
+        self._weighing: list[tuple[tuple[int, int], Weighing | None] | None] = [None] * len(groups)
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
@@ -168,6 +174,23 @@ class SingleVertexProblem(Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             out = self._call(gi, g, "linearize" if lin else "evaluate")
+            wg = (self._weighing_of(gi, g) if self._unary[gi] and not safe
+                  and out.active is None else None)
+            if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
+                J1 = out.jacobians[0] if lin else None
+                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J1)
+                self._keep(gi, g, state, out.error, s, wg.count)
+                totals[0] += chi
+                totals[1] += rchi
+                totals[2] += wg.count
+                if lin:
+                    ht = hg if ht is None else ht + hg
+                    bu = bg if bu is None else bu + bg
+                    jac.append((J1,))
+                else:
+                    complete = complete and not touch
+                    jac.append(())
+                continue
             if safe:
                 out, oe, s = lz._weigh(gi, g, out, state)
                 rho, w = lz._robustify(g, s, weights=lin)
@@ -187,26 +210,59 @@ class SingleVertexProblem(Problem):
         self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
         return ev
 
+    def _weighing_of(self, gi: int, g: EdgeGroup) -> Weighing | None:
+        """Group ``gi``'s :class:`~graphopt.unary_terms.Weighing` at its activity version."""
+        version = g.activity_version
+        kept = self._weighing[gi]
+        if kept is None or kept[0] != version:
+            kept = self._weighing[gi] = (version, weighing(g))
+        return kept[1]
+
+    def _keep(self, gi: int, g: EdgeGroup, state: tuple[int, ...], e: np.ndarray,
+              s: np.ndarray, count: int) -> None:
+        """Keep a group's errors for the edge sets' queries at this state (``raw_eval``), its
+        per-edge chi2 and active count (:meth:`Linearizer._record`)."""
+        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
+                       g.removals), e)
+        g.last_chi2 = s
+        g.active_count = count
+
     def _call(self, gi: int, g: EdgeGroup, method: str) -> Linearization:
         """:meth:`Linearizer._run` without its per-call bookkeeping once a group's output was
-        checked: the context kept (no derived values), the type's method called directly."""
+        checked: the context kept (no derived values), the type's method called directly; a
+        unary group's outputs kept by the estimate (:mod:`~graphopt.evaluation_memo`)."""
         lz = self.linearizer
-        ctx = self._ctx[gi]
-        key = (id(g), method, g.size)
-        if ctx is None or key not in lz._trusted:
-            if ctx is None and not g.etype.uses_derived:
-                self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
-            return lz._run(gi, method)
-        if self._unary[gi] and lz._one[gi] is not None:  # the free vertex's row, broadcast
+        memo = None
+        if self._unary[gi] and lz._one[gi] is not None:
             est = self.stores[self._store].estimates
+            memo = self._memo[gi]
+            at = est[self._slot].tobytes()
+            out = memo.get(method, at)
+            if out is not None:
+                return out
+        ctx = self._ctx[gi]
+        if ctx is None:
+            if g.etype.uses_derived:  # derived values change with the estimates
+                return lz._run(gi, method)
+            ctx = self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
+        if memo is not None:  # the free vertex's row, broadcast
             x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
         else:
             x = lz.gather(gi)
         try:
             out = getattr(g.etype, method)(x, g.measurements, ctx)
         except (GraphError, ValueError):  # named, or a broadcast input written: the full path
-            return lz._run(gi, method)
-        return out if type(out) is Linearization else lz._run(gi, method)
+            out = lz._run(gi, method)
+        else:
+            key = (id(g), method, g.size)
+            if type(out) is not Linearization or key not in lz._trusted:
+                checked = checked_output(g, out, method, g.size)
+                if checked is out:
+                    lz._trusted.add(key)
+                out = checked
+        if memo is not None and lz._one[gi] is not None:
+            memo.put(method, at, out)
+        return out
 
     def _lean_terms(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...],
                     lin: bool, totals: list[float]
@@ -216,8 +272,6 @@ class SingleVertexProblem(Problem):
         zero instead of zeroed: ``(J, ρ'ΩJ, ρ'Ωe)`` if ``lin``, else empty."""
         lz = self.linearizer
         e = out.error
-        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
-                       g.removals), e)
         act = g.active_edges
         if out.active is not None:
             own = np.asarray(out.active, dtype=bool)
@@ -238,9 +292,7 @@ class SingleVertexProblem(Problem):
             rho, w = lz._robustify(g, s, weights=lin)
         else:
             rho, w = s, None
-        # Linearizer._record
-        g.last_chi2 = s
-        g.active_count = g.size if act is None else int(np.count_nonzero(act))
+        self._keep(gi, g, state, e, s, g.size if act is None else int(np.count_nonzero(act)))
         chi2 = float(s.sum())
         totals[0] += chi2
         totals[1] += chi2 if rho is s else float(rho.sum())
@@ -268,10 +320,13 @@ class SingleVertexProblem(Problem):
             self._check_finite_estimates()
         return chi
 
-    def _idle_vertex(self) -> bool:
+    def _idle_vertex(self, key: tuple[tuple[int, int], ...]) -> bool:
         """Whether no active edge reaches the free vertex (levels only, as :class:`~graphopt.
-        activity.IdleAnchors`): ``H`` then gets the identity and the step is zero."""
-        key = tuple(g.activity_version for g in self.groups)
+        activity.IdleAnchors`): ``H`` then gets the identity and the step is zero.
+
+        Args:
+            key: Every group's ``activity_version`` now.
+        """
         if key != self._idle_key:
             self._idle_key = key
             self._idle = True
@@ -294,7 +349,8 @@ class SingleVertexProblem(Problem):
         t0 = time.perf_counter()
         lz = self.linearizer
         terms = self._terms
-        if terms is None or terms[0] != lz.state_key():
+        key = lz.state_key()
+        if terms is None or terms[0] != key:
             self._evaluate(True, every=True, safe=safe)
             terms = self._terms
         assert terms is not None and lz.last is not None
@@ -304,9 +360,11 @@ class SingleVertexProblem(Problem):
         if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
             self._name_non_finite(jac)
         asm = self._assembler.finish(ht, bu)
-        if self._idle_vertex():
+        if self._idle_vertex(key[1]):
             asm.h_data[self._diag] += 1.0
-        if not (np.isfinite(asm.h_data).all() and np.isfinite(asm.bu).all()):
+        h, b = asm.h_data, asm.bu
+        if not math.isfinite(h @ h + b @ b) and not (np.isfinite(h).all()  # two dots, not
+                                                     and np.isfinite(b).all()):  # four passes
             if not safe and any(g.active_count < g.size for g in self.groups):
                 # An inactive edge's non-finite Jacobian: zero the rows, as the general path.
                 self._evaluate(True, every=True, safe=True)
@@ -358,17 +416,22 @@ class SingleVertexProblem(Problem):
         if lam:
             data[self._diag] += lam * (self._ones if damping is None else damping[0])
         d = self.d
-        factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
-                                   overwrite_a=1, clean=0)
-        c, info = factor
+        diag = data[self._diag].tolist()
+        # H + λD is symmetric: its column-major data, read as a (d, d) C array and transposed,
+        # is a Fortran-ordered view that LAPACK factors in place (no copy).
+        c, info = sla.lapack.dpotrf(data.reshape(d, d).T, lower=1, overwrite_a=1, clean=0)
         if info == 0:  # the rank rule's first screen in floats (d pivots: 1 µs, not 4)
-            diag = data[self._diag].tolist()
             if all(p * p > PIVOT_SCREEN * abs(q) for p, q in zip(c.diagonal().tolist(), diag,
                                                                   strict=True)):
                 du, info = sla.lapack.dpotrs(c, asm.bu, lower=1)
                 if info == 0 and math.isfinite(sum(du.tolist())):
                     self.timing.solve += time.perf_counter() - t0
                     return du, []
+        data = asm.h_data.copy()  # the rank rule from the matrix again (factored over)
+        if lam:
+            data[self._diag] += lam * (self._ones if damping is None else damping[0])
+        factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
+                                   overwrite_a=1, clean=0)
         du = cholesky_solve("dense", factor, data[self._diag], asm.bu.copy(),
                             lambda s: _shifted_is_definite(data, self._diag, s))
         self.timing.solve += time.perf_counter() - t0

@@ -8,9 +8,11 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from custom_types import EdgeCurve, EdgeCurveAutodiff, VertexCurve
+from graphs import curve_data
 from test_single_block import CAM, one_free_pose
 
-from graphopt import SparseOptimizer
+from graphopt import RobustKernelHuber, SparseOptimizer
 from graphopt.problem import Problem
 from graphopt.single_vertex import SingleVertexProblem
 from graphopt.solvers import LinearSolverDense
@@ -153,3 +155,104 @@ def test_an_inactive_edges_non_finite_rows_do_not_reach_the_system(general: Call
     general()
     slow, _ = _with_a_point_at_the_camera_centre()
     _compare(fast, slow, a, _run(slow))
+
+
+def _one_kernel_for_all() -> SparseOptimizer:
+    """One free pose, 40 projections sharing one Huber kernel, a fifth of them at level 1."""
+    opt = one_free_pose(False)
+    proj = opt.edge_groups()[0]
+    proj.set_kernel(np.arange(proj.size), RobustKernelHuber(2.0))
+    proj.set_levels(np.arange(proj.size), (np.arange(proj.size) % 5 == 0).astype(int))
+    return opt
+
+
+def test_one_kernel_for_all_takes_the_fused_weighing(general: Callable[[], None]) -> None:
+    """A unary group with one kernel (then none) and levels: the fused terms
+    (:mod:`graphopt.unary_terms`) give the general path's iterations."""
+    fast = _one_kernel_for_all()
+    a = _run(fast, rounds=3)
+    assert fast.problem._weighing[0][1] is not None  # the projections' group was fused
+    general()
+    slow = _one_kernel_for_all()
+    _compare(fast, slow, a, _run(slow, rounds=3))
+
+
+def test_a_repeated_estimate_reuses_the_types_evaluation(monkeypatch: pytest.MonkeyPatch
+                                                         ) -> None:
+    """ORB-SLAM's rounds restart from the same pose: a round with the levels of the last one
+    retraces it without calling the edge type again, and ends where it did."""
+    calls = []
+    linearize = EdgeSE3ProjectXYZOnlyPose.linearize.__func__  # type: ignore[attr-defined]
+
+    def counted(cls: type, *args: object) -> object:
+        calls.append(1)
+        return linearize(cls, *args)
+
+    monkeypatch.setattr(EdgeSE3ProjectXYZOnlyPose, "linearize", classmethod(counted))
+    opt = _one_kernel_for_all()
+    start = opt.vertex(0).estimate.copy()
+    ends = []
+    for _ in range(2):
+        opt.vertex(0).set_estimate(start)
+        opt.initialize_optimization(0)
+        calls.clear()
+        res = opt.optimize(10)
+        ends.append((res.final_chi2, opt.vertex(0).estimate.copy(), len(calls)))
+    assert ends[0][2] > 1 and ends[1][2] == 0
+    assert ends[0][0] == ends[1][0]
+    np.testing.assert_array_equal(ends[0][1], ends[1][1])
+    # Another estimate is evaluated afresh.
+    moved = start.copy()
+    moved[:3, 3] += 0.01
+    opt.vertex(0).set_estimate(moved)
+    calls.clear()
+    opt.optimize(1)
+    assert calls
+
+
+class _EdgeCurveBuffers(EdgeCurve):
+    """:class:`EdgeCurve` returning its own buffers, overwritten by every call (``out=``)."""
+
+    _e = np.zeros(0)
+    _J = np.zeros(0)
+
+    @classmethod
+    def error(cls, x, measurement, ctx):  # noqa: ANN001, ANN206
+        e = EdgeCurve.error(x, measurement, ctx)
+        if cls._e.shape != e.shape:
+            cls._e = np.empty_like(e)
+        np.copyto(cls._e, e)
+        return cls._e
+
+    @classmethod
+    def jacobians(cls, x, measurement, ctx):  # noqa: ANN001, ANN206
+        (J,) = EdgeCurve.jacobians(x, measurement, ctx)
+        if cls._J.shape != J.shape:
+            cls._J = np.empty_like(J)
+        np.copyto(cls._J, J)
+        return (cls._J,)
+
+
+@pytest.mark.parametrize("edge", [_EdgeCurveBuffers, EdgeCurveAutodiff])
+def test_the_memo_keeps_copies_of_a_types_buffers(edge: type) -> None:
+    """A type that returns buffers its next call overwrites (a user's ``out=``, autodiff's
+    kept scratch): rounds restarted from one estimate, the memo answering, run the iterations
+    of the plain type."""
+    meas = curve_data(60)
+    runs = []
+    for etype in (EdgeCurve, edge):
+        opt = SparseOptimizer("lm", "dense")
+        opt.add_vertices(VertexCurve, [0], [[0.5, 1.5, 0.5]])
+        opt.add_edges(etype, np.zeros((len(meas), 1), int), meas)
+        out = []
+        for _ in range(3):
+            opt.vertex(0).set_estimate([0.5, 1.5, 0.5])
+            opt.initialize_optimization()
+            res = opt.optimize(4)  # fewer evaluations than the memo keeps
+            out.append(([i.chi2 for i in res.info], opt.vertex(0).estimate.copy()))
+        assert isinstance(opt.problem, SingleVertexProblem)
+        runs.append(out)
+    for (chi_a, x_a), (chi_b, x_b) in zip(*runs, strict=True):
+        np.testing.assert_allclose(chi_b, chi_a, rtol=1e-9)
+        np.testing.assert_allclose(x_b, x_a, rtol=1e-9)
+    assert runs[1][1][0] == runs[1][0][0]  # the second round retraced the first

@@ -1,0 +1,65 @@
+"""A unary group's evaluations kept by the estimate of its one vertex.
+
+ORB-SLAM's ``PoseOptimization`` restarts every round of a frame from the same predicted pose,
+and a round whose outliers did not change retraces the last one: the edge type's call — a pure
+function of the estimates, the measurements and the data, which are fixed while the structure
+stands — need not be repeated. :class:`~graphopt.single_vertex.SingleVertexProblem` keeps one
+memo per unary group for as long as its structure (the problem) lives.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from graphopt.edge import Linearization
+
+#: Evaluations kept per group (the oldest goes first).
+MEMO_STATES = 16
+
+
+class EvaluationMemo:
+    """The last :data:`MEMO_STATES` outputs of one group's ``evaluate`` or ``linearize``, by
+    the estimate's bytes; the errors of a linearisation serve an ``evaluate`` too."""
+
+    def __init__(self) -> None:
+        self._kept: dict[tuple[str, bytes], Linearization] = {}
+
+    def get(self, method: str, at: bytes) -> Linearization | None:
+        """The kept output of ``method`` (or of ``linearize``) at the estimate ``at``.
+
+        Args:
+            method: ``"evaluate"`` or ``"linearize"``.
+            at: The estimate's bytes.
+        """
+        kept = self._kept
+        return kept.get(("linearize", at)) or kept.get((method, at))
+
+    def put(self, method: str, at: bytes, out: Linearization) -> None:
+        """Keep a read-only copy of ``out`` (a type may return its own buffers, ``out=``,
+        which its next call overwrites).
+
+        Args:
+            method: ``"evaluate"`` or ``"linearize"``.
+            at: The estimate's bytes.
+            out: The type's (checked) output.
+        """
+        kept = self._kept
+        if len(kept) >= MEMO_STATES:
+            del kept[next(iter(kept))]
+        e = out.error.copy()
+        e.flags.writeable = False
+        jac = tuple(_frozen(j) for j in out.jacobians)
+        if out.reduced_error is None and out.active is None:
+            kept[method, at] = Linearization(e, jac)
+        else:
+            kept[method, at] = Linearization(e, jac, _frozen(out.reduced_error),
+                                             _frozen(out.active))
+
+
+def _frozen(a: np.ndarray | None) -> np.ndarray | None:
+    """A read-only copy of ``a`` (``None`` stays)."""
+    if a is None:
+        return None
+    a = np.array(a)
+    a.flags.writeable = False
+    return a
