@@ -140,9 +140,7 @@ class BaseVertex:
         if st is None:
             bank.initial[self._slot] = row
             return
-        st.check_estimates(row[None], np.array([self._id]))
-        st.estimates[self._slot] = row
-        st.version += 1
+        st.set_estimate(self._slot, row, self._id)  # (a value it validated last is not again)
 
     def estimate(self) -> Any:
         """The estimate (read from the store after ``initialize_optimization``)."""
