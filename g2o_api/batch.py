@@ -19,10 +19,11 @@ from graphopt.edge_set import group_errors
 from graphopt.errors import GraphError
 
 from .edges import BaseEdge
+from .raw import joined
 from .solvers import RobustKernelBase, graphopt_kernel
 from .vertices import Bank
 
-__all__ = ["Batch", "bucket_edges", "stack_information", "stack_measurements"]
+__all__ = ["Batch", "stack_information", "stack_measurements"]
 
 _LEVEL = attrgetter("_level")
 _KERNEL = attrgetter("_kernel")
@@ -77,7 +78,9 @@ class Batch:
                 raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
                                  f"{int(vids[i, p])} is not a {b.gtype.__name__} like the "
                                  "other edges' vertices at its position")
-        self.levels = np.fromiter(map(_LEVEL, records), dtype=np.int64, count=m)
+        levels = list(map(_LEVEL, records))
+        self.levels = (np.zeros(m, dtype=np.int64) if levels.count(0) == m  # the usual case
+                       else np.array(levels, dtype=np.int64))
         self.kernels: list[Any] = []  # graphopt kernels by code
         self._codes: dict[Any, int] = {}
         kernels = list(map(_KERNEL, records))
@@ -97,6 +100,14 @@ class Batch:
         self._lists: tuple[Any, list[float], list[bool] | None] | None = None
         self._bank1 = banks[0] if len(banks) == 1 else None
         self._bank2 = (banks[0], banks[1]) if len(banks) == 2 else None
+        # The per-edge getters' fast path (one or two vertex types, a core built): the stores
+        # (the one twice for one type), chi2 and depth tests as Python lists, and the stores'
+        # estimate versions they are valid for. Set by add_to.
+        self._st0: Any = None
+        self._st1: Any = None
+        self._fchi2: list[float] | None = None
+        self._fdepth: list[bool] | None = None
+        self._fv0 = self._fv1 = -1
         # Every record's batch and index, in C loops (setattr over the records).
         deque(map(setattr, records, repeat("_batch"), repeat(self, m)), maxlen=0)
         deque(map(setattr, records, repeat("_idx"), range(m)), maxlen=0)
@@ -182,6 +193,9 @@ class Batch:
         Args:
             core: A :class:`graphopt.SparseOptimizer` holding the banks' stores.
         """
+        self._fchi2 = self._fdepth = None  # the stores are new
+        if len(self.banks) <= 2:
+            self._st0, self._st1 = self.banks[0].store, self.banks[-1].store
         if not self.m:
             return
         es = core.add_edges(self.gtype, self.vids, self.meas, self.info, None, self.params,
@@ -217,6 +231,13 @@ class Batch:
         Args:
             i: Index in the batch.
         """
+        st0 = self._st0
+        if st0 is not None:  # one or two stores: their versions
+            st1 = self._st1
+            if self._fchi2 is None or st0.version != self._fv0 or st1.version != self._fv1:
+                self._fchi2, self._fdepth = self.chi2().tolist(), None
+                self._fv0, self._fv1 = st0.version, st1.version
+            return self._fchi2[i]
         state = self._state()
         lists = self._lists
         if lists is None or lists[0] != state:
@@ -230,6 +251,10 @@ class Batch:
             i: Index in the batch.
         """
         self.chi2_of(i)  # the lists at the current state
+        if self._st0 is not None:
+            if self._fdepth is None:
+                self._fdepth = self.depth_positive().tolist()
+            return self._fdepth[i]
         lists = self._lists
         assert lists is not None
         if lists[2] is None:
@@ -300,37 +325,6 @@ class Batch:
         return (self.info if self.info.ndim == 2 else self.info[i]).copy()
 
 
-def bucket_edges(edges: Any) -> dict[tuple[Any, ...], list[Any]]:
-    """The edges by class and parameter key, in the order added (one batch each).
-
-    Args:
-        edges: The edge records (an iterable, in the order added).
-    """
-    edges = list(edges)
-    classes = set(map(type, edges))
-    by_class: dict[type, list[Any]] = {}
-    if len(classes) == 1:
-        by_class[classes.pop()] = edges
-    else:
-        for e in edges:
-            b = by_class.get(type(e))
-            if b is None:
-                by_class[type(e)] = b = []
-            b.append(e)
-    buckets: dict[tuple[Any, ...], list[Any]] = {}
-    for cls, recs in by_class.items():
-        keys = list(map(cls._key_of(), recs))
-        if keys.count(keys[0]) == len(keys):  # the usual case: one key for the class
-            buckets[(cls, keys[0])] = recs
-            continue
-        for e, key in zip(recs, keys, strict=True):
-            b = buckets.get((cls, key))
-            if b is None:
-                buckets[(cls, key)] = b = []
-            b.append(e)
-    return buckets
-
-
 def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
     """``(m, *measurement_shape)`` measurements of a batch's records; a bad one is named.
 
@@ -339,6 +333,10 @@ def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
         recs: Its records.
     """
     raws = list(map(_MEAS, recs))
+    if cls._raw_vector:  # set_measurement kept float arrays as bytes: one join
+        arr = joined(raws, cls._mshape)
+        if arr is not None:
+            return arr
     try:
         if any(map(is_, raws, repeat(None))):  # C loops (5,000 edges: 0.3 ms less)
             raise ValueError

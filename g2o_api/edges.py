@@ -17,6 +17,7 @@ import numpy as np
 
 from graphopt.errors import GraphError
 
+from .raw import joined, unbytes
 from .vertices import BaseVertex
 
 __all__ = ["UNSUPPORTED", "BaseEdge", "unsupported"]
@@ -28,7 +29,7 @@ _F8 = np.dtype(np.float64)
 #: scan: g2o programs give every edge ``set_parameter_id(0, 0)``).
 _PIDS1: tuple[tuple[int], ...] = tuple((i,) for i in range(64))
 #: The last information matrix set (its bytes and the shared read-only copy).
-_LAST_INFO: list[tuple[bytes, np.ndarray] | None] = [None]
+_LAST_INFO: list[tuple[bytes, np.ndarray, int] | None] = [None]
 
 
 class BaseEdge:
@@ -49,21 +50,32 @@ class BaseEdge:
     _nparams = 0
     #: graphopt.types parameter class built from ``_params_key()`` (intrinsics on the edge).
     _param_type = ""
+    #: The parameter ids of a new edge (``_ZEROS[_nparams]``, set per class).
+    _zero_pids: tuple[int, ...] = ()
+    #: Whether the measurement is a plain float vector (the base class's conversion): an array
+    #: given to ``set_measurement`` is then kept as its bytes (a third of a copy's cost), which
+    #: ``initialize_optimization`` joins into the batch's array in one step.
+    _raw_vector = True
+    #: Attributes a class adds to its records, with their defaults (fx, ..., Xw): a class
+    #: without an ``__init__`` of its own gets one that stores these and the base's (see
+    #: :func:`_flat_init`).
+    _defaults: dict[str, Any] = {}
 
     def __init__(self) -> None:
+        # The base's fields, for classes with an __init__ of their own (they call this
+        # directly, not through super(): one object less per record); the others have one flat
+        # body from _flat_init. A program makes one record per edge: each step here is paid
+        # thousands of times.
         self._v0: BaseVertex | None = None
         self._v1: BaseVertex | None = None
         # Vertices 2, 3, ... (see _v): a list only for types of more than two.
-        self._vn: list[BaseVertex | None] | None = None if self._k < 3 else [None] * (self._k - 2)
-        self._meas: Any = None
-        self._info: Any = None
-        self._kernel: Any = None
+        self._vn: list[BaseVertex | None] | None = None
+        self._meas = self._info = self._kernel = self._opt = self._batch = None
         self._level = 0
-        self._pids = _ZEROS[self._nparams]  # a shared tuple: no container per edge
-        self._id = -1
-        self._opt: Any = None
-        self._batch: Any = None
-        self._idx = -1
+        self._pids = self._zero_pids  # a shared tuple: no container per edge
+        self._id = self._idx = -1
+        if self._k > 2:
+            self._vn = [None] * (self._k - 2)
 
     # --- building ----------------------------------------------------------------------------
 
@@ -132,7 +144,11 @@ class BaseEdge:
         Args:
             measurement: A vector (list, tuple, array) or the type's geometry object.
         """
-        self._meas = measurement.copy() if type(measurement) is np.ndarray else measurement
+        if type(measurement) is np.ndarray:
+            self._meas = (measurement.tobytes() if self._raw_vector and measurement.dtype is _F8
+                          else measurement.copy())
+        else:
+            self._meas = measurement
         if self._batch is not None:
             self._structure_changed()
 
@@ -140,7 +156,11 @@ class BaseEdge:
         """The measurement."""
         if self._batch is not None:
             return self._from_measurement(self._batch.meas[self._idx])
-        return self._meas
+        m = self._meas
+        if type(m) is bytes:  # a float vector kept as its bytes (see _raw_vector)
+            a = np.frombuffer(m).copy()
+            return a.reshape(self._mshape) if a.size == int(np.prod(self._mshape)) else a
+        return m
 
     def set_information(self, information: Any) -> None:
         """Set the information matrix (copied).
@@ -148,17 +168,18 @@ class BaseEdge:
         Args:
             information: ``(d, d)`` (nested lists accepted).
         """
-        if type(information) is np.ndarray and information.dtype is _F8:
+        if type(information) is np.ndarray and information.dtype is _F8 and information.ndim == 2:
             # Programs give every edge the same matrix: consecutive equal values share one
-            # read-only copy, which initialize_optimization recognises by identity.
+            # read-only copy, which initialize_optimization recognises by identity (equal
+            # bytes and row counts of two matrices: equal shapes).
             raw = information.tobytes()
             last = _LAST_INFO[0]
-            if last is not None and last[0] == raw and last[1].shape == information.shape:
+            if last is not None and last[0] == raw and len(information) == last[2]:
                 self._info = last[1]
             else:
                 info = information.copy()
                 info.flags.writeable = False
-                _LAST_INFO[0] = (raw, info)
+                _LAST_INFO[0] = (raw, info, len(info))
                 self._info = info
         else:
             self._info = np.array(information, dtype=float)
@@ -179,8 +200,12 @@ class BaseEdge:
             kernel: A ``RobustKernel*`` object or ``None``.
         """
         self._kernel = kernel
-        if self._batch is not None:
-            self._batch.set_kernel(self._idx, kernel)
+        b = self._batch
+        if b is not None:  # Batch.set_kernel inlined (outlier passes call this per edge)
+            b.kcodes[self._idx] = -1 if kernel is None else b.code(kernel)
+            if not b.kernels_dirty and b.group is not None:
+                b.kernels_dirty = True
+                b._notify()
 
     def robust_kernel(self) -> Any:
         """The robust kernel or ``None``."""
@@ -194,9 +219,16 @@ class BaseEdge:
         """
         if level == self._level and type(level) is int:  # unchanged (outlier loops): nothing
             return
-        self._level = int(level)
-        if self._batch is not None:
-            self._batch.set_level(self._idx, self._level)
+        self._level = level = int(level)
+        b = self._batch
+        if b is not None:
+            if level < 0:
+                b.set_level(self._idx, level)  # its error
+            else:  # Batch.set_level inlined (outlier passes call this per edge)
+                b.levels[self._idx] = level
+                if not b.levels_dirty and b.group is not None:
+                    b.levels_dirty = True
+                    b._notify()
 
     def level(self) -> int:
         """The level."""
@@ -252,15 +284,16 @@ class BaseEdge:
 
     def compute_error(self) -> None:
         """Compute the error at the current estimates (evaluated lazily, for the whole batch)."""
-        self._need_batch()
+        if self._batch is None:
+            self._need_batch()
 
     def chi2(self) -> float:
         """``eᵀΩe`` at the current estimates, without the kernel (g2o's ``chi2()``)."""
         b = self._batch
         if b is not None:
-            lists = b._lists  # the batch's chi2s while the estimates are unchanged
-            if lists is not None and lists[0] == b._state():
-                return lists[1][self._idx]
+            c = b._fchi2  # the batch's chi2s while both stores' estimates are unchanged
+            if c is not None and b._st0.version == b._fv0 and b._st1.version == b._fv1:
+                return c[self._idx]
             return b.chi2_of(self._idx)
         return self._need_batch().chi2_of(self._idx)
 
@@ -271,7 +304,13 @@ class BaseEdge:
     def is_depth_positive(self) -> bool:
         """Whether the observed point is in front of the camera(s)."""
         b = self._batch
-        return (b if b is not None else self._need_batch()).depth_positive_of(self._idx)
+        if b is None:
+            b = self._need_batch()
+        else:
+            d = b._fdepth  # as chi2()
+            if d is not None and b._st0.version == b._fv0 and b._st1.version == b._fv1:
+                return d[self._idx]
+        return b.depth_positive_of(self._idx)
 
     def _need_batch(self) -> Any:
         if self._batch is None:
@@ -299,6 +338,12 @@ class BaseEdge:
         super().__init_subclass__(**kwargs)
         if "_params_key" in cls.__dict__ and "_key_attrs" not in cls.__dict__:
             cls._key_attrs = None
+        cls._zero_pids = _ZEROS[cls._nparams]
+        # Plain vectors (the base class's conversions) are kept as their bytes until filing.
+        cls._raw_vector = (cls._measurements.__func__ is BaseEdge._measurements.__func__  # type: ignore
+                           and cls.set_measurement is BaseEdge.set_measurement)
+        if getattr(cls.__init__, "_flat", False) or cls.__init__ is BaseEdge.__init__:
+            cls.__init__ = _flat_init(cls)  # type: ignore[method-assign]
 
     @classmethod
     def _key_of(cls) -> Any:
@@ -320,9 +365,10 @@ class BaseEdge:
 
     @classmethod
     def _measurements(cls, raws: list[Any]) -> np.ndarray:
-        m = len(raws)
-        arr = np.array(raws, dtype=float)
-        return arr.reshape(m, *cls._mshape)
+        arr = joined(raws, cls._mshape)  # set_measurement's bytes (_raw_vector): one join
+        if arr is not None:
+            return arr
+        return np.array(unbytes(raws), dtype=float).reshape(len(raws), *cls._mshape)
 
     @classmethod
     def _from_measurement(cls, row: np.ndarray) -> Any:
@@ -337,6 +383,41 @@ class BaseEdge:
     def _depth(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any) -> np.ndarray:
         """``(m,)`` depth tests of a batch (this default defers to graphopt's type)."""
         raise NotImplementedError
+
+
+def _flat_init(cls: type[BaseEdge]) -> Any:
+    """An ``__init__`` for ``cls`` that stores every field of a new record in one body: the
+    base's fields and the ``_defaults`` of each class along the MRO (``fx``, ``Xw``, ...).
+
+    Written as source and compiled (as :mod:`dataclasses` writes ``__init__``): a chain of
+    ``__init__`` calls costs 40–50 ns a record more, about 5 % of a record's making.
+
+    Args:
+        cls: A class that does not define ``__init__`` by hand (nor do its bases below
+            :class:`BaseEdge`).
+    """
+    fields: dict[str, Any] = {"_v0": None, "_v1": None, "_vn": None, "_meas": None,
+                              "_info": None, "_kernel": None, "_opt": None, "_batch": None,
+                              "_level": 0, "_pids": cls._zero_pids, "_id": -1, "_idx": -1}
+    for c in reversed(cls.__mro__):
+        fields.update(c.__dict__.get("_defaults", {}))
+    # One chained store per distinct value (``self.fx = self.fy = ... = _d1``: cheaper than a
+    # load per field).
+    groups: dict[int, list[str]] = {}
+    values: dict[int, Any] = {}
+    for name, value in fields.items():
+        groups.setdefault(id(value), []).append(name)
+        values[id(value)] = value
+    ns: dict[str, Any] = {f"_d{i}": values[k] for i, k in enumerate(groups)}
+    body = ["    " + " = ".join(f"self.{n}" for n in names) + f" = _d{i}"
+            for i, names in enumerate(groups.values())]
+    if cls._k > 2:  # vertices 2, 3, ...: a list of the record's own
+        body.append(f"    self._vn = [None] * {cls._k - 2}")
+    exec("def __init__(self):\n" + "\n".join(body), ns)  # noqa: S102 - fixed source, no input
+    init = ns["__init__"]
+    init._flat = True
+    init.__qualname__ = f"{cls.__name__}.__init__"
+    return init
 
 
 #: Names of the official wheel that graphopt.g2o does not provide (its machinery, simulators,

@@ -4,6 +4,7 @@ and stereo variants and the anchored inverse-depth edge, mapped onto graphopt's 
 
 from __future__ import annotations
 
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ __all__ = ["SBA_EDGES"]
 
 _ORIGIN = np.zeros(3)
 _ORIGIN.flags.writeable = False
+_XW = attrgetter("Xw")
 
 
 def _depth_pose_point(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any
@@ -31,9 +33,7 @@ class EdgeSE3ProjectXYZ(BaseEdge):
     _perm = (1, 0)
     _param_type = "CameraParameters"
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.fx = self.fy = self.cx = self.cy = 0.0
+    _defaults = {"fx": 0.0, "fy": 0.0, "cx": 0.0, "cy": 0.0}
 
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy)
@@ -66,13 +66,14 @@ class EdgeSE3ProjectXYZOnlyPose(EdgeSE3ProjectXYZ):
     _gname = "EdgeSE3ProjectXYZOnlyPose"
     _perm = (0,)
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.Xw = _ORIGIN  # g2o's default; programs assign their point
+    _defaults = {"Xw": _ORIGIN}  # g2o's default; programs assign their point
 
     @classmethod
     def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
-        return {"Xw": np.array([r.Xw for r in recs], dtype=float).reshape(len(recs), 3)}
+        xw = list(map(_XW, recs))  # C loops: one pass, one join of 3-element rows
+        if set(map(len, xw)) == {3}:
+            return {"Xw": np.asarray(np.concatenate(xw, axis=None), dtype=float).reshape(-1, 3)}
+        return {"Xw": np.array(xw, dtype=float).reshape(len(recs), 3)}
 
     _depth = staticmethod(_depth_pose_only)
 
@@ -86,9 +87,7 @@ class EdgeStereoSE3ProjectXYZ(EdgeSE3ProjectXYZ):
     _gname = "EdgeStereoSE3ProjectXYZ"
     _param_type = "StereoCameraParameters"
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.bf = 0.0
+    _defaults = {"bf": 0.0}
 
     def _params_key(self) -> tuple[Any, ...]:
         return (self.fx, self.fy, self.cx, self.cy, self.bf)
@@ -104,9 +103,7 @@ class EdgeStereoSE3ProjectXYZOnlyPose(EdgeStereoSE3ProjectXYZ):
     _gname = "EdgeStereoSE3ProjectXYZOnlyPose"
     _perm = (0,)
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.Xw = _ORIGIN  # g2o's default; programs assign their point
+    _defaults = {"Xw": _ORIGIN}  # g2o's default; programs assign their point
 
     _data = EdgeSE3ProjectXYZOnlyPose._data
     _depth = staticmethod(_depth_pose_only)

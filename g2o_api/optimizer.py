@@ -20,7 +20,6 @@ import gc
 import os
 import sys
 import weakref
-from operator import attrgetter, itemgetter
 from typing import Any
 
 import numpy as np
@@ -29,17 +28,15 @@ from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
 from graphopt.stopping import StoppingConfig
 
-from .batch import Batch, bucket_edges, stack_information, stack_measurements
+from .batch import Batch
 from .edges import BaseEdge
+from .filing import bucket_edges, file_edges, file_vertices
 from .params import Parameter
 from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg, iteration_line
 from .vertices import Bank, BaseVertex, core_type
 
 __all__ = ["SparseOptimizer"]
 
-_ID = attrgetter("_id")
-#: An edge's vertex ids at positions 0 and 1, its further vertices.
-_ID0, _ID1, _MORE = attrgetter("_v0._id"), attrgetter("_v1._id"), attrgetter("_vn")
 
 
 class SparseOptimizer:
@@ -269,62 +266,6 @@ class SparseOptimizer:
             self._core_params[full] = value
         return self._core_params[full]
 
-    def _file_vertices(self) -> None:
-        if any(c._vertex_as for c in set(map(type, self._edges))):
-            for e in self._edges:  # vertices an edge type reads differently (inverse depth)
-                for pos, name in type(e)._vertex_as.items():
-                    e._v[pos]._as = name
-        buckets: dict[str, list[BaseVertex]] = {}
-        for v in self._vertices.values():
-            buckets.setdefault(v._as or v._gname, []).append(v)
-        banks = {}
-        for name, recs in buckets.items():
-            gtype = core_type(name)
-            cls = type(recs[0])
-            est = np.empty((len(recs), *gtype.estimate_shape))
-            raws, where = [], []
-            for i, v in enumerate(recs):
-                b = v._bank
-                if b is not None:
-                    est[i] = b.estimates()[v._slot]
-                else:
-                    raws.append(v._est if v._est is not None else v._default())
-                    where.append(i)
-            if raws:
-                conv = cls._to_array(raws, [recs[i]._id for i in where])
-                cls._finish(conv, [recs[i] for i in where])
-                est[where] = conv
-            banks[gtype] = Bank(gtype, recs, est)
-        self._banks = banks
-
-    def _file_edges(self) -> None:
-        batches: dict[Batch, list[BaseEdge]] = {}
-        known = np.fromiter(self._vertices, dtype=np.int64, count=len(self._vertices))
-        for (cls, pkey), recs in bucket_edges(self._edges).items():
-            gtype = cls._core_type(pkey)
-            m, k = len(recs), len(recs[0]._v)  # the class's count, or the edges' own (LotsOf)
-            perm = cls._perm if len(cls._perm) == k else tuple(range(k))
-            more = list(map(_MORE, recs)) if k > 2 else []
-            vids = np.empty((m, k), dtype=np.int64)
-            for g in range(k):  # vertex ids column by column, in C loops
-                ids = (map(_ID0, recs) if g == 0 else map(_ID1, recs) if g == 1
-                       else map(_ID, map(itemgetter(g - 2), more)))
-                vids[:, g] = np.fromiter(ids, np.int64, count=m)
-            missing = ~np.isin(vids, known)
-            if missing.any():
-                i, g = (int(a[0]) for a in np.nonzero(missing))
-                raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
-                                 f"{int(vids[i, g])} (position {g}) was not added to the "
-                                 "optimizer")
-            vids = vids[:, list(perm)]
-            banks = [self._vertices[int(vids[0, p])]._bank for p in range(k)]
-            meas = stack_measurements(cls, recs)
-            info = stack_information(cls, recs, gtype.dimension)
-            batch = Batch(self, cls, gtype, self._core_param(cls, pkey), recs, vids, banks, meas,
-                          info, cls._data(recs))
-            batches[batch] = recs
-        self._batches = batches
-
     def _build_core(self) -> None:
         alg = self._algorithm
         core = CoreOptimizer(alg.config, alg.solver, verbose=self._verbose,
@@ -351,10 +292,10 @@ class SparseOptimizer:
             try:
                 if self._records_dirty:
                     self._core_params = {}  # parameters may have changed since
-                    for v in self._vertices.values():
-                        v._as = None
-                    self._file_vertices()
-                    self._file_edges()
+                    buckets = bucket_edges(self._edges)
+                    self._banks = file_vertices(list(self._vertices.values()), buckets)
+                    self._batches = file_edges(self, buckets, self._vertices,
+                                               self._core_param)
                     self._records_dirty = False
                 self._build_core()
             finally:

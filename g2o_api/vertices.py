@@ -1,17 +1,16 @@
-"""g2o's vertex classes as thin records.
-
-A vertex is an id, an estimate as the program gave it, and two flags until
-``initialize_optimization``; then it is a slot in a graphopt vertex store (a *bank*, one per
-graphopt vertex type), and ``estimate()`` reads the store's row. ``add_vertex`` only files the
-record: the conversion of every estimate to graphopt's arrays is one stacking operation per
-type, and the checks (shapes, finite values, rotations) run once, in bulk, naming the offending
-vertex's id.
-"""
+"""g2o's vertex classes as thin records: an id, an estimate as the program gave it (a float
+vector as its bytes) and two flags until ``initialize_optimization``; then a slot in a graphopt
+vertex store (a *bank*, one per graphopt type), whose row ``estimate()`` reads. ``add_vertex``
+only files the record: each type's estimates become graphopt's array in one step, checked
+(shapes, finite values, rotations) once, in bulk, naming the offending vertex's id."""
 
 from __future__ import annotations
 
 import copy as _copy
+from collections import deque
 from importlib import import_module
+from itertools import repeat
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -20,11 +19,13 @@ from graphopt.errors import GraphError
 from graphopt.storage import VertexStore
 
 from .geometry import SE2, Isometry3d, SE3Quat, _RigidBase
+from .raw import joined, unbytes
 from .sim3 import Sim3
 
 __all__ = ["BaseVertex", "VERTEX_CLASSES"]
 
 _F8 = np.dtype(np.float64)
+_VID, _FIXED, _MARG = attrgetter("_id"), attrgetter("_fixed"), attrgetter("_marg")
 
 
 class Bank:
@@ -37,13 +38,13 @@ class Bank:
     def __init__(self, gtype: type, records: list[BaseVertex], initial: np.ndarray) -> None:
         self.gtype = gtype
         self.store: VertexStore | None = None
-        self.ids = np.array([r._id for r in records], dtype=np.int64)
-        self.user_fixed = np.array([r._fixed for r in records], dtype=bool)
-        self.marg = np.array([r._marg for r in records], dtype=bool)
-        #: Estimates until the first core store exists.
-        self.initial = initial
-        for slot, r in enumerate(records):
-            r._bank, r._slot = self, slot
+        n = len(records)
+        self.ids = np.fromiter(map(_VID, records), np.int64, count=n)  # C loops
+        self.user_fixed = np.fromiter(map(_FIXED, records), bool, count=n)
+        self.marg = np.fromiter(map(_MARG, records), bool, count=n)
+        self.initial = initial  # the estimates until the first core store exists
+        deque(map(setattr, records, repeat("_bank"), repeat(self, n)), maxlen=0)
+        deque(map(setattr, records, repeat("_slot"), range(n)), maxlen=0)
 
     def slots_of(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Slots of ``ids`` and whether each is in this bank.
@@ -62,22 +63,26 @@ class Bank:
         return self.store.estimates if self.store is not None else self.initial
 
 
+_CORE_TYPES: dict[str, type] = {}
+
+
 def core_type(name: str) -> type:
     """``graphopt.types.<name>``, or ``NotImplementedError`` naming it while it is missing."""
-    types = import_module("graphopt.types")
-    try:
-        return getattr(types, name)
-    except AttributeError:
-        raise NotImplementedError(f"graphopt.g2o: graphopt.types has no {name} yet; the g2o "
-                                  "type that needs it is not supported") from None
+    t = _CORE_TYPES.get(name)
+    if t is None:  # (the import machinery costs microseconds a call: once per name)
+        try:
+            t = _CORE_TYPES[name] = getattr(import_module("graphopt.types"), name)
+        except AttributeError:
+            raise NotImplementedError(f"graphopt.g2o: graphopt.types has no {name} yet; the "
+                                      "g2o type that needs it is not supported") from None
+    return t
 
 
 class BaseVertex:
     """A g2o vertex record (``set_id``, ``set_estimate``, ``estimate``, ``set_fixed``,
     ``set_marginalized``)."""
 
-    __slots__ = ("_id", "_est", "_fixed", "_marg", "_opt", "_bank", "_slot", "_as",
-                 "__weakref__")
+    __slots__ = ("_id", "_est", "_fixed", "_marg", "_opt", "_bank", "_slot", "__weakref__")
     #: graphopt's vertex type (name in graphopt.types) and its estimate shape.
     _gname = ""
     _shape: tuple[int, ...] = ()
@@ -91,13 +96,11 @@ class BaseVertex:
                        and cls._finish.__func__ is BaseVertex._finish.__func__)  # type: ignore
 
     def __init__(self) -> None:
-        self._id = -1
+        self._id = self._slot = -1
         self._est: Any = None
         self._fixed = self._marg = False
         self._opt: Any = None
         self._bank: Bank | None = None
-        self._slot = -1
-        self._as: str | None = None
 
     # --- g2o's API ---------------------------------------------------------------------------
 
@@ -123,8 +126,12 @@ class BaseVertex:
         """
         bank = self._bank
         if bank is None:
-            self._est = estimate.copy() if type(estimate) is np.ndarray else (
-                list(estimate) if isinstance(estimate, list | tuple) else self._clone(estimate))
+            if type(estimate) is np.ndarray:  # a float vector: its bytes (a third of a copy)
+                self._est = (estimate.tobytes() if self._vector and estimate.dtype is _F8
+                             else estimate.copy())
+            else:
+                self._est = (list(estimate) if isinstance(estimate, list | tuple)
+                             else self._clone(estimate))
             return
         row = self._to_array([estimate], [self._id])
         self._finish(row, [self])
@@ -133,9 +140,7 @@ class BaseVertex:
         if st is None:
             bank.initial[self._slot] = row
             return
-        st.check_estimates(row[None], np.array([self._id]))
-        st.estimates[self._slot] = row
-        st.version += 1
+        st.set_estimate(self._slot, row, self._id)  # (a value it validated last is not again)
 
     def estimate(self) -> Any:
         """The estimate (read from the store after ``initialize_optimization``)."""
@@ -144,9 +149,10 @@ class BaseVertex:
             est = self._est
             if est is None:
                 return None
-            if (self._vector and type(est) is np.ndarray and est.shape == self._shape
-                    and est.dtype is _F8):  # a vector type given an array: its copy
-                return est.copy()
+            if type(est) is bytes:  # set_estimate's bytes of a float vector
+                est = np.frombuffer(est).copy()
+                if est.size == int(np.prod(self._shape)):
+                    return est.reshape(self._shape)
             return self._from_row(self._to_array([est], [self._id])[0])
         return self._from_row(bank.estimates()[self._slot])
 
@@ -212,6 +218,10 @@ class BaseVertex:
     def _to_array(cls, raws: list[Any], ids: list[int]) -> np.ndarray:
         """``(n, *shape)`` estimates from the raw values (vectors by default)."""
         n, shape = len(raws), cls._shape
+        arr = joined(raws, shape)
+        if arr is not None:
+            return arr
+        raws = unbytes(raws)
         try:
             arr = np.array(raws, dtype=float)
             if arr.size == n * int(np.prod(shape)):

@@ -24,7 +24,6 @@ import math
 import time
 
 import numpy as np
-import scipy.linalg as sla
 
 from graphopt.allocator import tune as tune_allocator
 from graphopt.edge import EdgeContext, Linearization
@@ -44,8 +43,7 @@ from graphopt.numeric import checked_oplus
 from graphopt.problem import Problem, Step, Timing
 from graphopt.row_weights import weighted_rows
 from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
-from graphopt.solvers.dense import cholesky_solve
-from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
+from graphopt.solvers.small_dense import damped_solve
 from graphopt.storage import EdgeGroup, VertexStore
 from graphopt.unary_terms import Weighing, unary_terms, weighing
 
@@ -404,7 +402,8 @@ class SingleVertexProblem(Problem):
 
     def solve(self, asm: Assembly, lam: float, damping: Step | None = None) -> Step:
         """See :meth:`Problem.solve`: LAPACK's Cholesky of ``H + λD`` (``D``: ``damping``, the
-        identity if ``None``), held to the dense solver's rank rule.
+        identity if ``None``), held to the dense solver's rank rule
+        (:func:`~graphopt.solvers.small_dense.damped_solve`).
 
         Args:
             asm: The assembly.
@@ -412,28 +411,8 @@ class SingleVertexProblem(Problem):
             damping: ``D`` from :meth:`damping`.
         """
         t0 = time.perf_counter()
-        data = asm.h_data.copy()
-        if lam:
-            data[self._diag] += lam * (self._ones if damping is None else damping[0])
-        d = self.d
-        diag = data[self._diag].tolist()
-        # H + λD is symmetric: its column-major data, read as a (d, d) C array and transposed,
-        # is a Fortran-ordered view that LAPACK factors in place (no copy).
-        c, info = sla.lapack.dpotrf(data.reshape(d, d).T, lower=1, overwrite_a=1, clean=0)
-        if info == 0:  # the rank rule's first screen in floats (d pivots: 1 µs, not 4)
-            if all(p * p > PIVOT_SCREEN * abs(q) for p, q in zip(c.diagonal().tolist(), diag,
-                                                                  strict=True)):
-                du, info = sla.lapack.dpotrs(c, asm.bu, lower=1)
-                if info == 0 and math.isfinite(sum(du.tolist())):
-                    self.timing.solve += time.perf_counter() - t0
-                    return du, []
-        data = asm.h_data.copy()  # the rank rule from the matrix again (factored over)
-        if lam:
-            data[self._diag] += lam * (self._ones if damping is None else damping[0])
-        factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1,
-                                   overwrite_a=1, clean=0)
-        du = cholesky_solve("dense", factor, data[self._diag], asm.bu.copy(),
-                            lambda s: _shifted_is_definite(data, self._diag, s))
+        du = damped_solve(asm.h_data, asm.bu, self._diag, lam,
+                          self._ones if damping is None else damping[0])
         self.timing.solve += time.perf_counter() - t0
         return du, []
 
@@ -484,16 +463,6 @@ class SingleVertexProblem(Problem):
         k = self._slot
         new[k:k + 1] = checked_oplus(st.vtype, est[k:k + 1].copy(), delta)
         st.estimates = new
-
-
-def _shifted_is_definite(data: np.ndarray, diag: np.ndarray, scale: np.ndarray) -> bool:
-    """Whether ``A + τ·S`` (``A``'s column-major data) has a Cholesky factor with positive,
-    finite pivots (the rank rule's step 3)."""
-    d = len(diag)
-    c, info = sla.lapack.dpotrf(shift_diagonal(data, diag, scale).reshape(d, d).T.copy(
-        order="F"), lower=1, overwrite_a=1, clean=0)
-    p = np.diagonal(c)
-    return info == 0 and bool(np.all(np.isfinite(p)) and np.all(p > 0))
 
 
 def make_problem(stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,

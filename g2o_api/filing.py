@@ -1,0 +1,157 @@
+"""Filing: the records of a g2o optimizer become arrays at ``initialize_optimization`` — one
+:class:`~graphopt.g2o.vertices.Bank` per graphopt vertex type, one
+:class:`~graphopt.g2o.batch.Batch` per g2o edge class and parameters.
+
+Every step is a pass over the records in C (``map`` with ``attrgetter``, ``set``, ``count``,
+``bytes.join``), about 15 ns a record and pass; a Python loop per record only where a graph
+needs one (vertices an edge type reads as another graphopt type, vertices of two classes
+sharing a graphopt type, records filed before, whose estimates come from their store).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from itertools import compress, repeat
+from operator import attrgetter, is_, itemgetter
+from typing import Any
+
+import numpy as np
+
+from graphopt.errors import GraphError
+
+from .batch import Batch, stack_information, stack_measurements
+from .edges import BaseEdge
+from .vertices import Bank, BaseVertex, core_type
+
+__all__ = ["bucket_edges", "by_class", "file_edges", "file_vertices"]
+
+_ID, _BANK, _EST = attrgetter("_id"), attrgetter("_bank"), attrgetter("_est")
+#: An edge's vertex ids at positions 0 and 1, its further vertices.
+_ID0, _ID1, _MORE = attrgetter("_v0._id"), attrgetter("_v1._id"), attrgetter("_vn")
+
+
+def by_class(records: list[Any]) -> dict[type, list[Any]]:
+    """The records by class, each list in the order given."""
+    types = list(map(type, records))
+    classes = dict.fromkeys(types)  # in order of first appearance
+    if len(classes) == 1:
+        return {types[0]: records}
+    # One C pass per class (programs have a few classes; a Python loop costs 4x a pass).
+    return {c: list(compress(records, map(is_, types, repeat(c)))) for c in classes}
+
+
+def bucket_edges(edges: Any) -> dict[tuple[Any, ...], list[Any]]:
+    """The edges by class and parameter key, in the order added (one batch each).
+
+    Args:
+        edges: The edge records (an iterable, in the order added).
+    """
+    buckets: dict[tuple[Any, ...], list[Any]] = {}
+    for cls, recs in by_class(list(edges)).items():
+        keys = list(map(cls._key_of(), recs))
+        if keys.count(keys[0]) == len(keys):  # the usual case: one key for the class
+            buckets[(cls, keys[0])] = recs
+            continue
+        for e, key in zip(recs, keys, strict=True):
+            b = buckets.get((cls, key))
+            if b is None:
+                buckets[(cls, key)] = b = []
+            b.append(e)
+    return buckets
+
+
+def _read_as(edge_buckets: dict[tuple[Any, ...], list[BaseEdge]]) -> dict[int, str]:
+    """``{id(vertex): graphopt type name}`` of the vertices an edge type reads as another
+    graphopt type than their class's (``EdgeProjectPSI2UV``'s inverse-depth point)."""
+    names: dict[int, str] = {}
+    for (cls, _), recs in edge_buckets.items():
+        for pos, name in cls._vertex_as.items():
+            for e in recs:
+                v = e.vertex(pos)
+                if v is not None:
+                    names[id(v)] = name
+    return names
+
+
+def file_vertices(vertices: list[BaseVertex],
+                  edge_buckets: dict[tuple[Any, ...], list[BaseEdge]]) -> dict[type, Bank]:
+    """One bank per graphopt vertex type, its records in the order added.
+
+    Args:
+        vertices: The optimizer's vertex records, in the order added.
+        edge_buckets: Its edges by class and parameter key (:func:`bucket_edges`).
+    """
+    names = _read_as(edge_buckets)
+    classes = by_class(vertices)
+    buckets: dict[str, list[BaseVertex]] = {}
+    if names or len({c._gname for c in classes}) < len(classes):
+        for v in vertices:  # a record at a time: the order added within each type
+            buckets.setdefault(names.get(id(v)) or v._gname, []).append(v)
+    else:
+        buckets = {c._gname: recs for c, recs in classes.items()}
+    banks = {}
+    for name, recs in buckets.items():
+        gtype = core_type(name)
+        cls, n = type(recs[0]), len(recs)
+        est = np.empty((n, *gtype.estimate_shape))
+        if list(map(_BANK, recs)).count(None) == n:  # none filed before: one conversion
+            raws = list(map(_EST, recs))
+            if any(map(is_, raws, repeat(None))):
+                raws = [r if r is not None else cls._default() for r in raws]
+            conv = cls._to_array(raws, list(map(_ID, recs)))
+            cls._finish(conv, recs)
+            est[:] = conv
+        else:
+            raws, where = [], []
+            for i, v in enumerate(recs):
+                b = v._bank
+                if b is not None:
+                    est[i] = b.estimates()[v._slot]
+                else:
+                    raws.append(v._est if v._est is not None else v._default())
+                    where.append(i)
+            if raws:
+                conv = cls._to_array(raws, [recs[i]._id for i in where])
+                cls._finish(conv, [recs[i] for i in where])
+                est[where] = conv
+        banks[gtype] = Bank(gtype, recs, est)
+    return banks
+
+
+def file_edges(owner: Any, edge_buckets: dict[tuple[Any, ...], list[BaseEdge]],
+               vertices: dict[int, BaseVertex], core_param: Callable[[type, Any], Any]
+               ) -> dict[Batch, list[BaseEdge]]:
+    """One batch per g2o edge class and parameter key, with the edge records of each.
+
+    Args:
+        owner: The g2o optimizer (the batches' owner).
+        edge_buckets: The edges by class and parameter key (:func:`bucket_edges`).
+        vertices: ``{id: vertex}``, filed (each has its bank).
+        core_param: graphopt's parameter object of a class and key.
+    """
+    batches: dict[Batch, list[BaseEdge]] = {}
+    known = np.fromiter(vertices, dtype=np.int64, count=len(vertices))
+    for (cls, pkey), recs in edge_buckets.items():
+        gtype = cls._core_type(pkey)
+        m, k = len(recs), len(recs[0]._v)  # the class's count, or the edges' own (LotsOf)
+        perm = cls._perm if len(cls._perm) == k else tuple(range(k))
+        more = list(map(_MORE, recs)) if k > 2 else []
+        vids = np.empty((m, k), dtype=np.int64)
+        for g in range(k):  # vertex ids column by column, in C loops
+            ids = (map(_ID0, recs) if g == 0 else map(_ID1, recs) if g == 1
+                   else map(_ID, map(itemgetter(g - 2), more)))
+            vids[:, g] = np.fromiter(ids, np.int64, count=m)
+        missing = ~np.isin(vids, known)
+        if missing.any():
+            i, g = (int(a[0]) for a in np.nonzero(missing))
+            raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
+                             f"{int(vids[i, g])} (position {g}) was not added to the "
+                             "optimizer")
+        vids = vids[:, list(perm)]
+        banks = [vertices[int(vids[0, p])]._bank for p in range(k)]
+        meas = stack_measurements(cls, recs)
+        info = stack_information(cls, recs, gtype.dimension)
+        batch = Batch(owner, cls, gtype, core_param(cls, pkey), recs, vids, banks, meas, info,
+                      cls._data(recs))
+        batches[batch] = recs
+    return batches
