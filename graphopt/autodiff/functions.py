@@ -18,6 +18,7 @@ import numpy as np
 import graphopt.autodiff.tape as tape
 import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, full, parts
+from graphopt.autodiff.replay import forward_rule
 from graphopt.autodiff.ufuncs import write_out
 
 __all__ = ["HANDLED", "apply_function"]
@@ -50,9 +51,10 @@ def apply_function(func: Any, types: Any, args: tuple[Any, ...], kwargs: dict[st
     impl = HANDLED.get(func)
     if impl is None:
         raise JetError(_fname(func))
-    if func in _CREATION:
-        return impl(like, *args, **kwargs)
-    return impl(*args, **kwargs)
+    out = impl(like, *args, **kwargs) if func in _CREATION else impl(*args, **kwargs)
+    if type(out) is Jet and out._tape is None:  # derivatives formed forward
+        forward_rule(_fname(func))
+    return out
 
 
 def _implements(*funcs: Any) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -132,10 +134,12 @@ def _make_like(func: Any, fill: Any) -> Callable[..., Any]:
         v = a.value
         s = v.shape if shape is None else shape
         dt = v.dtype if dtype is None else np.dtype(dtype)
+        # (like=v: a traced block's container is traced too, graphopt.autodiff.replay)
         if func is np.full_like:
-            value = np.full(s, args[0] if args else kw["fill_value"], dtype=dt)
+            value = np.full(s, args[0] if args else kw["fill_value"], dtype=dt, like=v)
         else:
-            value = np.full(s, fill, dtype=dt) if fill is not None else np.empty(s, dtype=dt)
+            value = (np.full(s, fill, dtype=dt, like=v) if fill is not None
+                     else np.empty(s, dtype=dt, like=v))
         return _container(value, a)
     return impl
 
@@ -148,7 +152,9 @@ HANDLED[np.full_like] = _make_like(np.full_like, None)
 
 def _create(func: Any) -> Callable[..., Any]:
     def impl(like: Jet, *args: Any, **kwargs: Any) -> Any:
-        return _container(np.asarray(func(*args, **kwargs)), like)
+        kwargs.pop("like", None)
+        out = func(*args, like=like.value, **kwargs)  # (traced if the jet's value is)
+        return _container(out if isinstance(out, np.ndarray) else np.asarray(out), like)
     return impl
 
 

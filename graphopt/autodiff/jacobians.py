@@ -12,14 +12,14 @@ from __future__ import annotations
 import gc
 import threading
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
 
+import graphopt.autodiff.programs as programs
 import graphopt.autodiff.tape as tape
+from graphopt.autodiff.blocks import Block, first_blocks, inputs_of
 from graphopt.autodiff.jet import Jet, JetError
-from graphopt.autodiff.reverse import backward
 from graphopt.autodiff.structure import Structure, detect
 from graphopt.errors import GraphError
 from graphopt.vertex import VertexVector
@@ -99,7 +99,7 @@ def _columns(j: Jet) -> None:
 
 
 def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None,
-            struct: Structure | None = None) -> Any:
+            struct: Structure | None = None, support: np.ndarray | None = None) -> Any:
     """Rows ``index`` of a per-vertex jet, as a per-edge jet (``value``: the exact values;
     ``struct``: the jet's structure, if any)."""
     if type(j) is not Jet:
@@ -111,7 +111,7 @@ def _gather(j: Any, index: np.ndarray | slice, value: np.ndarray | None = None,
             # estimates): every operation on a column x[:, c] then reads contiguous memory.
             value = (np.take(v.T, index, axis=1).T if v.ndim == 2 and v.flags.c_contiguous
                      else v[index])
-        return tape.gathered(value, j, index, struct)
+        return tape.gathered(value, j, index, struct, support)
     t = j.tangent[:, index]
     out = Jet(j.value[index] if value is None else value, t, j.lo, j.n)
     out.columns = j.columns
@@ -218,6 +218,7 @@ class _Position:
                     self.inverse = rows[inv]
                     (self.jet, self.derived, self.derived_ok, self.struct,
                      self.dstruct) = _VERTEX_JETS[key][1:]
+                    self._supports()
                     return
                 self.jet = seeded(vtype, x[first], lo, n)
             else:
@@ -236,6 +237,17 @@ class _Position:
             where = {r.tobytes(): i for i, r in enumerate(xs)} if len(xs) <= 4096 else {}
             _VERTEX_JETS[key] = (where, self.jet, self.derived, self.derived_ok, self.struct,
                                  self.dstruct)
+        self._supports()
+
+    def _supports(self) -> None:
+        """Each gathered per-vertex jet's non-zero directions per entry, ``(k, *s)``: which
+        directions a piece of it is gathered with (``tape._gathered_item``), decided here
+        on all vertices rather than in a traced block (a program's signature has them)."""
+        self.support = self.dsupport = None
+        if self.inverse is not None:
+            self.support = _support(self.jet)
+            if type(self.derived) is Jet:
+                self.dsupport = _support(self.derived)
 
     def _derived(self, j: Jet) -> Any:
         try:
@@ -249,21 +261,59 @@ class _Position:
 
     def block(self, sl: slice) -> tuple[Jet, Any]:
         """The block's ``x ⊞ δ`` jet and derived values (axis 0: the block's edges)."""
+        return self.build(sl, self.arrays(sl))
+
+    def arrays(self, sl: slice) -> list[Any]:
+        """What a block reads, in a fixed order: ``[x, index, given, jet value, jet tangent,
+        derived value, derived tangent]`` (``None`` where absent). The per-vertex jets' arrays
+        are listed too, as the block's rows of them when its edges are the vertices (no
+        index), so that nothing a traced block (:mod:`graphopt.autodiff.replay`) reads
+        depends on where the block starts."""
+        d = self.derived
+        whole = self.inverse is None  # (per-vertex rows are the edges': sliced here)
+        rows: Any = sl if whole else slice(None)
+        dj = [d.value[rows], d.tangent[:, rows]] if type(d) is Jet else [None, None]
         if self.vector:
-            j, d = Jet.seeded(self.x[sl], self.lo, self.n), _gather(self.derived, sl)
+            return [self.x[sl], None, None, None, None, *dj]
+        g, dv = self.given, getattr(d, "value", None)
+        if g is not None and not (dv is not None and g.shape[1:] == dv.shape[1:]
+                                  and g.dtype == dv.dtype
+                                  and (g.ndim != 2 or g.flags.f_contiguous)):
+            g = self.given = None  # (2-D: Fortran order, as a gather here makes it)
+        j = self.jet
+        assert j is not None
+        return [self.x[sl], None if whole else self.inverse[sl],  # type: ignore[index]
+                None if g is None else g[sl], j.value[rows], j.tangent[:, rows], *dj]
+
+    def build(self, sl: slice, a: list[Any]) -> tuple[Jet, Any]:
+        """:meth:`block` from the block's :meth:`arrays` (or traced views of them)."""
+        d = self.derived
+        if type(d) is Jet:  # the block's (or all) rows of the derived values
+            d = _like(d, a[5], a[6])
+        index = slice(None) if a[1] is None else a[1]
+        if self.vector:
+            j, d = Jet.seeded(a[0], self.lo, self.n), _gather(d, index)
         else:
-            index = sl if self.inverse is None else self.inverse[sl]
-            j = _gather(self.jet, index, self.x[sl], self.struct)
-            g, dv = self.given, getattr(self.derived, "value", None)
-            if g is not None and not (dv is not None and g.shape[1:] == dv.shape[1:]
-                                      and g.dtype == dv.dtype
-                                      and (g.ndim != 2 or g.flags.f_contiguous)):
-                g = self.given = None  # (2-D: Fortran order, as a gather here makes it)
-            d = _gather(self.derived, index, None if g is None else g[sl], self.dstruct)
+            assert self.jet is not None
+            j = _gather(_like(self.jet, a[3], a[4]), index, a[0], self.struct, self.support)
+            d = _gather(d, index, a[2], self.dstruct, self.dsupport)
         j.rows = (0, sl.stop - sl.start)
         if type(d) is Jet:
             d.rows = j.rows
         return j, d
+
+
+def _support(j: Any) -> np.ndarray:
+    t = j.tangent
+    return np.any(t.reshape(t.shape[:2] + (-1,)) != 0.0, axis=1).reshape(
+        (len(t),) + t.shape[2:])
+
+
+def _like(j: Jet, value: np.ndarray, tangent: np.ndarray) -> Jet:
+    """A copy of per-vertex jet ``j`` with other (traced) arrays: the shared one stays as is."""
+    out = Jet(value, tangent, j.lo, j.n)
+    out.columns, out.seed = j.columns, j.seed
+    return out
 
 
 _SCRATCH = threading.local()
@@ -344,40 +394,46 @@ def _linearize(
     # Blocks of about BLOCK_EDGES, of equal size: no small last block that costs a whole
     # block's Python for a few edges (18,182 edges: 2 blocks of 9,091, not 8,192 + 8,192 + 1,798).
     size = -(-m // max(1, round(m / BLOCK_EDGES))) if m else 1
-    for s in range(0, max(m, 1), size):
+    buffer = _scratch(dim * n * min(m, size)) if m else None
+    run = Block(edge_type, pos, measurement, ctx, want, size < m, dim, n)
+    plan: programs.Plan | None = None
+    traced: slice | None = None  # the block a program was traced on, in this call
+    starts = list(range(0, max(m, 1), size))
+    for s in starts:
         sl = slice(s, min(s + size, m))
-        blocks = [p.block(sl) for p in pos]
-        sub = ctx.subset(sl) if ctx is not None and size < m else ctx
-        if sub is not None and (want or getattr(sub, "derived", None) is not None):
-            derived = tuple(b[1] for b in blocks) if want else None
-            if sub is ctx:  # (the caller's: not changed)
-                sub = replace(sub, derived=derived)
-            else:
-                sub.derived = derived
         mb = sl.stop - sl.start
-        with tape.recording():
-            ev = edge_type.evaluate([b[0] for b in blocks], measurement[sl], sub)
-        eb, ab = (ev.error, ev.active) if hasattr(ev, "error") else (ev, None)
-        # (a jet's own shape: np.shape would go through the array-function protocol)
-        shape = eb.value.shape if type(eb) is Jet else np.shape(eb)
-        if tuple(shape) != (mb, dim):
-            raise GraphError(f"{edge_type.__name__}.error returned shape {tuple(shape)}, "
-                             f"expected {(mb, dim)}")
+        arrays = [p.arrays(sl) for p in pos]
+        if s == 0 and m and traced is None:  # (a program of blocks: graphopt.autodiff.programs)
+            plan = programs.plan(edge_type, pos, arrays, measurement[sl], ctx, want, size,
+                                 m // size)
+        out = None
+        if plan is not None and not plan.dead and mb == plan.length:
+            assert buffer is not None
+            inputs = inputs_of(arrays, measurement[sl], buffer[: dim * n * mb])
+            if plan.checked:
+                ev, ab = plan.run(inputs)
+                out = (ev, ab, inputs[-1].reshape(dim, n, mb))
+            elif plan.lock.acquire(blocking=False):  # (else another thread traces: the tape)
+                try:
+                    out, traced = first_blocks(plan, run, sl, arrays, inputs, traced)
+                finally:
+                    plan.lock.release()
+                if plan.dead and traced is not None and traced != sl:  # the traced block
+                    starts.append(traced.start)  # again, by the tape (the trace may have
+                    plan = None  # behaved otherwise than the tape)
+        if out is None:
+            out = run(sl, arrays, None if buffer is None else buffer[: dim * n * mb])
+        eb, ab, J = out
         if ab is not None:
             if active is None:
                 active = np.ones(m, dtype=bool)
             active[sl] = ab
-        if type(eb) is not Jet:  # the error does not depend on the estimates
-            tape.clear()
+        if type(eb) is not Jet and J is None:  # the error does not depend on the estimates
             e[sl] = eb
             for Ji in jac:
                 Ji[sl] = 0.0
             continue
-        e[sl] = eb.value
-        if eb._tape is not None and buffer is None:
-            buffer = _scratch(dim * n * min(m, size))
-        J = backward(eb, n, buffer) if eb._tape is not None else None
-        tape.clear()
+        e[sl] = eb.value if type(eb) is Jet else eb
         if J is not None:  # reverse accumulation: J (rows, n, mb), one copy per position
             for i, d in enumerate(dims):
                 jac[i][sl] = J[:, offsets[i]: offsets[i] + d].transpose(2, 0, 1)
@@ -393,6 +449,10 @@ def _linearize(
         for J in jac:
             J[~active] = 0.0
     return e, tuple(jac), active
+
+
+
+
 
 
 def check_independent_edges(

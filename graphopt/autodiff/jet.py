@@ -28,6 +28,7 @@ from numpy.lib.mixins import NDArrayOperatorsMixin
 
 from graphopt.autodiff.errors import JetError
 from graphopt.autodiff.methods import ArrayMethods
+from graphopt.autodiff.replay import forward_rule
 
 __all__ = ["HOOKS", "Jet", "JetError", "is_jet", "parts"]
 
@@ -426,6 +427,7 @@ class Jet(ArrayMethods, NDArrayOperatorsMixin):
     def __setitem__(self, key: Any, item: Any) -> None:
         if Tape.active and HOOKS["setitem"](self, key, item):
             return
+        forward_rule("writing into a jet")
         v, t, lo = parts(item)
         tkey, first = self.tangent_key(key)
         if t is not None:

@@ -171,7 +171,8 @@ def _accumulate(adj: dict[int, list[Any]], p: Jet, c: np.ndarray, key: Any, r: i
             ent[1], ent[2] = ent[1] + c, True
         return
     if ent is None:
-        z = np.zeros((r,) + p.value.shape)
+        # (zeros_like: a traced c makes traced zeros, whose writes a trace sees: replay.py)
+        z = np.zeros_like(c, shape=(r,) + p.value.shape)
         z[key] = c
         adj[id(p)] = [p, z, True]
         return

@@ -7,8 +7,9 @@ from typing import Any
 
 import numpy as np
 
+import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.functions import _implements, _n, _pos
-from graphopt.autodiff.jet import Jet, JetError, combine, expand, make, parts
+from graphopt.autodiff.jet import Jet, JetError, Tape, combine, expand, make, parts
 from graphopt.autodiff.ufuncs import write_out
 
 __all__: list[str] = []
@@ -20,6 +21,10 @@ __all__: list[str] = []
 def _where(condition: Any, x: Any = None, y: Any = None) -> Any:
     if x is None and y is None:
         return np.where(parts(condition)[0])
+    if Tape.active and (type(x) is Jet or type(y) is Jet):
+        rec = tape_ops.where(condition, x, y, lambda: _where(condition, x, y))
+        if rec is not None:
+            return rec
     cond = parts(condition)[0]
     (va, ta, la), (vb, tb, lb) = parts(x), parts(y)
     val = np.where(cond, va, vb)

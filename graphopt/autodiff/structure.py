@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["Plan", "Structure", "clear", "contract", "contract_deferred", "contract_product",
-           "defer", "detect"]
+           "defer", "detect", "piece"]
 
 #: ``(adjoint entry, column of V, [(direction, coefficient)])`` per product.
 Plan = list[tuple[int, int, list[tuple[int, float]]]]
@@ -142,7 +142,14 @@ def detect(j: Any) -> Structure | None:
         except np.linalg.LinAlgError:
             return None
         G = B @ Ainv if left else Ainv @ B
-        G[np.abs(G) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))] = 0.0
+        # Entries within rounding of an integer are that integer (a rotation's generators are
+        # 0 and ±1; the fit's last bits vary with the estimates): the same generators at every
+        # linearisation, a coefficient 1 costs no product, and a replayed block program
+        # (graphopt.autodiff.programs) keyed by them applies again. The check below decides.
+        near = np.round(G)
+        snap = np.abs(G - near) < TOLERANCE * max(1.0, float(np.max(np.abs(G))))
+        G[snap] = near[snap]
+        G += 0.0  # (−0 is 0)
         fit = np.matmul(G[:, None], V[None]) if left else np.matmul(V[None], G[:, None])
         if float(np.max(np.abs(fit - T))) <= TOLERANCE * scale:
             flat = v.reshape(nv, S)
@@ -185,8 +192,9 @@ def _column(full: np.ndarray, col: int) -> np.ndarray:
     """Flat entry ``col`` of every edge's ``V``, contiguous (gathered once per block)."""
     hit = _COLUMNS.get((id(full), col))  # (full itself is kept: its id stays its own)
     if hit is None:
-        hit = _COLUMNS[id(full), col] = (full, np.ascontiguousarray(
-            full.reshape(len(full), -1)[:, col]))
+        c = full.reshape(len(full), -1)[:, col]
+        # (np.copy, not np.ascontiguousarray: it keeps a traced array traced, replay.py)
+        hit = _COLUMNS[id(full), col] = (full, c if c.flags.c_contiguous else np.copy(c))
     return hit[1]
 
 
@@ -261,6 +269,7 @@ def contract_deferred(J: Any) -> None:
     # The recorded products v ⊙ x by entry (flat column of V) and factor: where the
     # contraction needs the same product (V_jb x_b of another row's entry) it is reused.
     known: dict[tuple[int, int, int], np.ndarray] = {}
+    rank: dict[tuple[int, int, int], int] = {}
     for leaf, plan, g, x, (a, b), y in _DEFERRED:
         lo, one = leaf.struct.lo, leaf.struct.one
         if y is not None and leaf.entries is not None and leaf.entries.size == 1:
@@ -275,12 +284,15 @@ def contract_deferred(J: Any) -> None:
             hit = grp[5].get(name)
             if hit is None:
                 grp[5][name] = [x, leaf.full, col, bool(one[col]), 1]
+                rank.setdefault(name, len(rank))
             else:
                 hit[4] += 1
     products: dict[tuple[int, int, int], np.ndarray] = {}
     sums: dict[tuple[Any, ...], np.ndarray] = {}
     for g, lo, a, b, ks, members in groups.values():
-        names = tuple(sorted(members))
+        # (in the order first met, not by the ids in the names: the same sum in the same
+        # order in every block, as a replayed block program has it, graphopt.autodiff.replay)
+        names = tuple(sorted(members, key=rank.__getitem__))
         counts = tuple(members[n][4] for n in names)
         once = max(counts) == 1
         skey = names if once else (names, counts)
@@ -308,3 +320,21 @@ def contract_deferred(J: Any) -> None:
             J.add(lo + k, lo + k + 1, a, b, prod, c)
     _DEFERRED.clear()
     SUMS.clear()
+
+_PIECES: dict[tuple[Any, ...], np.ndarray] = {}
+
+
+def piece(entries: np.ndarray | None, shape: tuple[int, ...], key: tuple[Any, ...],
+          ck: Any = None) -> np.ndarray:
+    """The flat entries of a structured matrix that ``rows[(:,) + key]`` of gathered rows
+    with trailing ``shape`` are (``entries``: the rows' own entries of the whole matrix, or
+    ``None`` for all of it; ``ck``: a hashable name of ``key``, if it has a cheap one)."""
+    if entries is None:  # the whole matrix: the same few pieces in every block
+        ck = (shape, repr(key) if ck is None else ck)
+        hit = _PIECES.get(ck)
+        if hit is None:
+            if len(_PIECES) > 256:
+                _PIECES.clear()
+            hit = _PIECES[ck] = np.arange(int(np.prod(shape))).reshape(shape)[key]
+        return hit
+    return np.asarray(entries[key])

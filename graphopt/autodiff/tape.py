@@ -28,6 +28,7 @@ import numpy as np
 
 import graphopt.autodiff.structure as structure
 from graphopt.autodiff.jet import HOOKS, Jet, Tape, _expand_key, _is_basic, unit_row
+from graphopt.autodiff.replay import Traced, forward_rule
 
 __all__ = ["ENABLED", "binary", "clear", "container", "gathered", "recorded", "recording"]
 
@@ -55,6 +56,9 @@ class _Node:
     struct: Any = None
     full: np.ndarray | None = None
     entries: np.ndarray | None = None
+    # The source's non-zero directions per entry, (k, *s), found on all vertices (outside
+    # a traced block: graphopt.autodiff.programs' signature has them).
+    support: np.ndarray | None = None
     # Products with these rows whose contribution the reverse pass adds directly (a
     # structured A in A @ B): (plan, adjoint of the product, the product).
     direct: list[tuple[Any, np.ndarray, np.ndarray]] | None = None
@@ -141,12 +145,15 @@ def _operand(a: Any) -> Any:
 _ALL = slice(None)
 
 
-def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = None) -> Jet:
+def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = None,
+             support: np.ndarray | None = None) -> Jet:
     """Rows ``index`` of a per-vertex jet ``source`` as a per-edge jet whose tangent is gathered
     only when used: ``x[:, j]`` gathers column ``j``'s own directions (none for a column whose
     derivative is one direction with value 1, as ``t`` of ``x + δ``). ``struct``: the
-    source's :class:`~graphopt.autodiff.structure.Structure`, if it has one."""
-    j = _gathered(value, source.tangent, index, source.lo, source.n, source.columns)
+    source's :class:`~graphopt.autodiff.structure.Structure`, if it has one; ``support``:
+    ``np.any(source.tangent != 0, axis=1)``, if known."""
+    j = _gathered(value, source.tangent, index, source.lo, source.n, source.columns,
+                  support=support)
     if struct is not None:
         j._tape.struct, j._tape.full = struct, value
     return j
@@ -154,36 +161,17 @@ def gathered(value: np.ndarray, source: Jet, index: np.ndarray, struct: Any = No
 
 def _gathered(value: np.ndarray, t: np.ndarray, index: np.ndarray, lo: int, n: int,
               columns: Any, parent: _Node | None = None, entries: np.ndarray | None = None,
-              rows: slice = _ALL) -> Jet:
+              rows: slice = _ALL, support: np.ndarray | None = None) -> Jet:
     """A gathered jet (``parent``: the gathered rows it is a piece of, ``entries`` of)."""
     j = Jet(value, None, lo, n)
     node = _Node((), None, None, True)
-    node.source, node.index = t, index
+    node.source, node.index, node.support = t, index, support
     node.replay = lambda: Jet(value, np.take(t, index, axis=1), lo, n)
     if parent is not None and parent.struct is not None:
         node.struct, node.entries = parent.struct, entries
         node.full = parent.full if rows == _ALL else parent.full[rows]  # type: ignore[index]
     j._tape, j.columns = node, columns
     return j
-
-
-_PIECES: dict[tuple[Any, ...], np.ndarray] = {}
-
-
-def _piece(node: _Node, shape: tuple[int, ...], key: tuple[Any, ...],
-           ck: Any = None) -> np.ndarray:
-    """The flat entries of the whole matrix that ``rows[(:,) + key]`` of gathered rows with
-    trailing ``shape`` are (``ck``: a hashable name of ``key``, if it has a cheap one)."""
-    base = node.entries
-    if base is None:  # the whole matrix: the same few pieces in every block
-        ck = (shape, repr(key) if ck is None else ck)
-        hit = _PIECES.get(ck)
-        if hit is None:
-            if len(_PIECES) > 256:
-                _PIECES.clear()
-            hit = _PIECES[ck] = np.arange(int(np.prod(shape))).reshape(shape)[key]
-        return hit
-    return np.asarray(base[key])
 
 
 def _gathered_item(j: Jet, key: Any) -> Jet | None:
@@ -204,9 +192,11 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
         if len(j.columns[c]) > 2 and j.columns[c][2]:
             t = unit_row(m)
         elif node.struct is not None:  # a leaf contracted through the structure
+            sup = node.support
             out = _gathered(j.value[:, c], node.source[lo - j._lo: hi - j._lo, :, c],
-                            node.index, lo, j.n, None, node,
-                            _piece(node, j.value.shape[1:], (slice(c, c + 1),), c))
+                            node.index, lo, j.n, None, node, structure.piece(
+                                node.entries, j.value.shape[1:], (slice(c, c + 1),), c),
+                            support=None if sup is None else sup[lo - j._lo: hi - j._lo, c])
             out.rows = j.rows
             return out
         else:
@@ -217,13 +207,16 @@ def _gathered_item(j: Jet, key: Any) -> Jet | None:
     a, b, _ = k[0].indices(len(j.value))
     rest = k[1:]
     src, lo = node.source[(slice(None), slice(None)) + rest], j._lo
+    sup = None if node.support is None else node.support[(slice(None),) + rest]
     if rest:  # only the directions these entries depend on (a rotation block: ω's, not υ's)
-        nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1))
+        nz = np.flatnonzero(np.any(src.reshape(len(src), -1) != 0.0, axis=1) if sup is None
+                            else np.any(sup.reshape(len(sup), -1), axis=1))
         first, last = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
         src, lo = src[first:last], lo + first
+        sup = None if sup is None else sup[first:last]
     out = _gathered(j.value[k], src, node.index[a:b], lo, j.n, None if rest else j.columns,
-                    node, _piece(node, j.value.shape[1:], rest) if node.struct is not None
-                    else None, k[0])
+                    node, structure.piece(node.entries, j.value.shape[1:], rest)
+                    if node.struct is not None else None, k[0], sup)
     out.rows = None if j.rows is None else (j.rows[0] + a, j.rows[0] + b)
     return out
 
@@ -250,6 +243,7 @@ def _ancestors(j: Jet) -> list[Jet]:
 
 def materialise(j: Jet) -> None:
     """Form ``j``'s tangent (and its recorded ancestors') with the forward rules."""
+    forward_rule("forming a recorded tangent forward")
     was = Tape.active
     Tape.active = False
     try:
@@ -291,6 +285,7 @@ def _replay(a: Jet) -> None:
 
 def flush() -> None:
     """Form every recorded tangent and stop recording (a jet is about to be written into)."""
+    forward_rule("writing into a jet")
     for a in list(_State.pending):
         if a._tape is not None and a._tape.root is None:
             materialise(a)
@@ -350,7 +345,7 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
         flush()
         return False
     if type(item) is not Jet:  # a constant: kept as it is now (for a forward replay)
-        item = np.array(item, copy=True)
+        item = np.copy(item)
     j.value[k] = item.value if type(item) is Jet else item
     root._tape.writes.append((j._tape.chain + (k,), item))
     _State.seq += 1
@@ -361,6 +356,8 @@ def setitem(j: Jet, key: Any, item: Any) -> bool:
 
 def container(value: np.ndarray, like: Jet) -> Jet:
     """A recorded container: zero derivatives until written."""
+    if type(value) is not Traced:  # (a plain container receiving traced writes: unseen)
+        forward_rule("a container not made like a traced array")
     node = _Node((), None, None, True)
     node.writes, node.like = [], like
     _State.reordered = True
@@ -397,7 +394,7 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
             return None
     elif type(a) in _SCALARS:
         va = a
-    elif type(a) is np.ndarray:
+    elif isinstance(a, np.ndarray):  # (a traced array too: graphopt.autodiff.replay)
         va = a
     else:
         return None
@@ -409,16 +406,16 @@ def binary(uf: Any, a: Any, b: Any, replay: Callable[[], Any] | None = None) -> 
             return None
     elif type(b) in _SCALARS:
         vb = b
-    elif type(b) is np.ndarray:
+    elif isinstance(b, np.ndarray):
         vb = b
     else:
         return None
     if fn is _power and (jb or np.ndim(vb) != 0):
         return None
     # The reverse pass reads a plain factor later: a copy, in case the caller reuses the array.
-    if not ja and type(va) is np.ndarray and uf is np.multiply and va.flags.writeable:
+    if not ja and isinstance(va, np.ndarray) and uf is np.multiply and va.flags.writeable:
         va = va.copy()
-    if (not jb and type(vb) is np.ndarray and (uf is np.multiply or uf is np.divide)
+    if (not jb and isinstance(vb, np.ndarray) and (uf is np.multiply or uf is np.divide)
             and vb.flags.writeable):
         vb = vb.copy()
     y = uf(va, vb)
@@ -464,7 +461,7 @@ def _entry(v: Jet, vv: np.ndarray, other: Any) -> bool:
     array of its shape."""
     node = v._tape
     return (node is not None and node.struct is not None and node.source is not None
-            and vv.ndim == 1 and type(other) is np.ndarray and other.shape == vv.shape)
+            and vv.ndim == 1 and isinstance(other, np.ndarray) and other.shape == vv.shape)
 
 
 def _power(g: np.ndarray, va: Any, vb: Any, y: Any, i: int) -> np.ndarray:

@@ -13,14 +13,15 @@ import numpy as np
 from graphopt.autodiff.jet import Jet
 from graphopt.autodiff.tape import _Node, _operand, _record, _unbroadcast, binary
 
-__all__ = ["concatenate", "matmul", "reduce", "ufunc"]
+__all__ = ["concatenate", "matmul", "reduce", "ufunc", "where"]
 
 
 def matmul(a: Any, b: Any, mm: Callable[..., np.ndarray], replay: Callable[[], Any]) -> Any:
     """A recorded ``a @ b`` of stacks of matrices (``mm``: the product), or ``None``."""
     a, b = _operand(a), _operand(b)
-    va = a.value if type(a) is Jet else np.array(a, copy=True)  # plain: as it is now
-    vb = b.value if type(b) is Jet else np.array(b, copy=True)
+    # A plain operand as it is now (np.copy keeps a traced array traced: replay.py).
+    va = a.value if type(a) is Jet else np.copy(a)
+    vb = b.value if type(b) is Jet else np.copy(b)
     if not (isinstance(va, np.ndarray) and isinstance(vb, np.ndarray)) or min(
             va.ndim, vb.ndim) < 2 or va.dtype.kind != "f" or vb.dtype.kind != "f":
         return None
@@ -115,3 +116,29 @@ def ufunc(uf: np.ufunc, inputs: tuple[Any, ...], rules: dict[Any, Any],
         return None
     y = uf(v)
     return _record(y, a.n, _Node((a,), lambda g: [(a, g * rule(v, y), None)], replay))
+
+
+def where(cond: Any, x: Any, y: Any, replay: Callable[[], Any]) -> Jet | None:
+    """A recorded ``np.where(cond, x, y)`` (a plain condition: comparisons of jets are values
+    only): each element's adjoint goes to the operand it was taken from."""
+    if type(cond) is Jet or not isinstance(cond, np.ndarray | bool | np.bool_):
+        return None
+    x, y = _operand(x), _operand(y)
+    vx = x.value if type(x) is Jet else x
+    vy = y.value if type(y) is Jet else y
+    val = np.where(cond, vx, vy)
+    if val.dtype.kind != "f" or any(type(a) is Jet and a.value.dtype.kind != "f"
+                                    for a in (x, y)):
+        return None
+    c = np.copy(cond)  # (read again in the reverse pass: as it is now)
+
+    def back(g: np.ndarray) -> list[Any]:
+        out = []
+        if type(x) is Jet:
+            out.append((x, _unbroadcast(np.where(c, g, 0.0), vx.shape), None))
+        if type(y) is Jet:
+            out.append((y, _unbroadcast(np.where(c, 0.0, g), vy.shape), None))
+        return out
+
+    jets = tuple(a for a in (x, y) if type(a) is Jet)
+    return _record(val, jets[0].n, _Node(jets, back, replay))

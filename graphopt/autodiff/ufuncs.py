@@ -17,6 +17,7 @@ import numpy as np
 
 import graphopt.autodiff.tape_ops as tape_ops
 from graphopt.autodiff.jet import HOOKS, Jet, JetError, Tape, combine, expand, make, parts
+from graphopt.autodiff.replay import forward_rule
 
 __all__ = ["apply_ufunc", "write_out"]
 
@@ -155,11 +156,12 @@ def _call(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
 
 
 def _forward(ufunc: np.ufunc, inputs: tuple[Any, ...]) -> Any:
+    if ufunc in _VALUE_ONLY:  # (values only: a recorded operand's tangent is not formed)
+        return ufunc(*[a.value if type(a) is Jet else a for a in inputs])
+    forward_rule(_name(ufunc))  # (derivatives formed forward: not in a traced block)
     ps = [parts(a) for a in inputs]
     values = [p[0] for p in ps]
     n = max(a.n for a in inputs if type(a) is Jet)
-    if ufunc in _VALUE_ONLY:
-        return ufunc(*values)
     if ufunc is np.matmul:
         return _matmul(ps, n)
     y = ufunc(*values)
@@ -262,7 +264,8 @@ def _mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     q = b.shape[-1]
     if p > 4 or n * q > 16:
         return a @ b
-    out = np.empty((n, q) + np.broadcast_shapes(a.shape[:-2], b.shape[:-2]))
+    # (like=a: a traced block's product is traced too, graphopt.autodiff.replay)
+    out = np.empty((n, q) + np.broadcast_shapes(a.shape[:-2], b.shape[:-2]), like=a)
     for i in range(n):
         for k in range(q):
             acc = out[i, k]
