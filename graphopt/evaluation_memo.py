@@ -13,16 +13,23 @@ import numpy as np
 
 from graphopt.edge import Linearization
 
-#: Evaluations kept per group (the oldest goes first).
+#: Evaluations kept per group at most (the oldest goes first).
 MEMO_STATES = 16
+
+#: Bytes kept per group at most: a 100-match group's evaluation is 11 KB, a 30,000-edge one's
+#: 3.4 MB (four of them kept).
+MEMO_BYTES = 16 << 20
 
 
 class EvaluationMemo:
-    """The last :data:`MEMO_STATES` outputs of one group's ``evaluate`` or ``linearize``, by
-    the estimate's bytes; the errors of a linearisation serve an ``evaluate`` too."""
+    """The last :data:`MEMO_STATES` outputs (:data:`MEMO_BYTES` at most) of one group's
+    ``evaluate`` or ``linearize``, by the estimate's bytes; the errors of a linearisation serve
+    an ``evaluate`` too."""
 
     def __init__(self) -> None:
         self._kept: dict[tuple[str, bytes], Linearization] = {}
+        self._sizes: dict[tuple[str, bytes], int] = {}
+        self._bytes = 0
 
     def get(self, method: str, at: bytes) -> Linearization | None:
         """The kept output of ``method`` (or of ``linearize``) at the estimate ``at``.
@@ -43,17 +50,24 @@ class EvaluationMemo:
             at: The estimate's bytes.
             out: The type's (checked) output.
         """
-        kept = self._kept
-        if len(kept) >= MEMO_STATES:
-            del kept[next(iter(kept))]
+        kept, sizes = self._kept, self._sizes
         e = out.error.copy()
         e.flags.writeable = False
         jac = tuple(_frozen(j) for j in out.jacobians)
         if out.reduced_error is None and out.active is None:
-            kept[method, at] = Linearization(e, jac)
+            new = Linearization(e, jac)
         else:
-            kept[method, at] = Linearization(e, jac, _frozen(out.reduced_error),
-                                             _frozen(out.active))
+            new = Linearization(e, jac, _frozen(out.reduced_error), _frozen(out.active))
+        size = sum(a.nbytes for a in (e, *jac))
+        if size > MEMO_BYTES:
+            return
+        key = (method, at)
+        self._bytes += size - sizes.get(key, 0)
+        kept[key], sizes[key] = new, size
+        while len(kept) > MEMO_STATES or self._bytes > MEMO_BYTES:
+            old = next(iter(kept))
+            del kept[old]
+            self._bytes -= sizes.pop(old)
 
 
 def _frozen(a: np.ndarray | None) -> np.ndarray | None:
