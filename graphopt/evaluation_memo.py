@@ -51,13 +51,11 @@ class EvaluationMemo:
             out: The type's (checked) output.
         """
         kept, sizes = self._kept, self._sizes
-        e = out.error.copy()
-        e.flags.writeable = False
+        e = _frozen(out.error)
         jac = tuple(_frozen(j) for j in out.jacobians)
-        if out.reduced_error is None and out.active is None:
-            new = Linearization(e, jac)
-        else:
-            new = Linearization(e, jac, _frozen(out.reduced_error), _frozen(out.active))
+        red, act = out.reduced_error, out.active
+        new = Linearization(e, jac, None if red is None else _frozen(red),
+                            None if act is None else _frozen(act))
         size = sum(a.nbytes for a in (e, *jac))
         if size > MEMO_BYTES:
             return
@@ -70,10 +68,8 @@ class EvaluationMemo:
             self._bytes -= sizes.pop(old)
 
 
-def _frozen(a: np.ndarray | None) -> np.ndarray | None:
-    """A read-only copy of ``a`` (``None`` stays)."""
-    if a is None:
-        return None
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """A read-only copy of ``a``."""
     a = np.array(a)
     a.flags.writeable = False
     return a
