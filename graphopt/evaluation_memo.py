@@ -50,15 +50,14 @@ class EvaluationMemo:
             at: The estimate's bytes.
             out: The type's (checked) output.
         """
-        kept, sizes = self._kept, self._sizes
-        e = _frozen(out.error)
-        jac = tuple(_frozen(j) for j in out.jacobians)
-        red, act = out.reduced_error, out.active
-        new = Linearization(e, jac, None if red is None else _frozen(red),
-                            None if act is None else _frozen(act))
-        size = sum(a.nbytes for a in (e, *jac))
+        size = sum(a.nbytes for a in (out.error, *out.jacobians))
         if size > MEMO_BYTES:
             return
+        kept, sizes = self._kept, self._sizes
+        red, act = out.reduced_error, out.active
+        new = Linearization(_frozen(out.error), tuple(_frozen(j) for j in out.jacobians),
+                            None if red is None else _frozen(red),
+                            None if act is None else _frozen(act))
         key = (method, at)
         self._bytes += size - sizes.get(key, 0)
         kept[key], sizes[key] = new, size
