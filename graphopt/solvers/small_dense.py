@@ -33,9 +33,7 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
             deficient).
     """
     d = len(diag)
-    data = h_data.copy()
-    if lam:
-        data[diag] += lam * damping
+    data = _damped(h_data, diag, lam, damping)
     pivots = data[diag].tolist()
     # Symmetric: the column-major data read as a (d, d) C array and transposed is a
     # Fortran-ordered view that LAPACK factors in place.
@@ -45,13 +43,20 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
         du, info = sla.lapack.dpotrs(c, b, lower=1)
         if info == 0 and math.isfinite(sum(du.tolist())):
             return du
-    data = h_data.copy()  # the full rule from the matrix again (the first factored over it)
-    if lam:
-        data[diag] += lam * damping
+    data = _damped(h_data, diag, lam, damping)  # again: the first was factored over
     factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1, overwrite_a=1,
                                clean=0)
     return cholesky_solve("dense", factor, data[diag], b.copy(),
                           lambda s: _shifted_is_definite(data, diag, s))
+
+
+def _damped(h_data: np.ndarray, diag: np.ndarray, lam: float, damping: np.ndarray
+            ) -> np.ndarray:
+    """A copy of ``H``'s data with ``λD`` added to its diagonal."""
+    data = h_data.copy()
+    if lam:
+        data[diag] += lam * damping
+    return data
 
 
 def _shifted_is_definite(data: np.ndarray, diag: np.ndarray, scale: np.ndarray) -> bool:
