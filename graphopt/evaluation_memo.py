@@ -38,8 +38,10 @@ class EvaluationMemo:
             method: ``"evaluate"`` or ``"linearize"``.
             at: The estimate's bytes.
         """
-        kept = self._kept
-        return kept.get(("linearize", at)) or kept.get((method, at))
+        out = self._kept.get(("linearize", at))
+        if out is None and method != "linearize":
+            out = self._kept.get((method, at))
+        return out
 
     def put(self, method: str, at: bytes, out: Linearization) -> None:
         """Keep a read-only copy of ``out`` (a type may return its own buffers, ``out=``,
