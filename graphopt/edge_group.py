@@ -343,6 +343,17 @@ class EdgeGroup:
         return self._kidx
 
     @property
+    def sole_kernel(self) -> RobustKernel | None:
+        """The kernel every edge has when one serves them all (a broadcast index, O(1) to
+        recognise, or all zeros), else ``None``: no kernel, or edges with different ones."""
+        kernels = self.kernels
+        if len(kernels) != 1:
+            return None
+        ki = self.kernel_index
+        return kernels[0] if (len(ki) and ki.strides == (0,) and ki[0] == 0) or not ki.any() \
+            else None
+
+    @property
     def activity_version(self) -> tuple[int, int]:
         """Changes whenever what weighs the edges changes — levels, the initialised level,
         which kernel each edge has, any kernel's width (``robust_kernel.kernel_changes``) —

@@ -319,15 +319,12 @@ class Linearizer:
         """Per-edge ρ(s) and the weight ρ'(s) (clipped at 0; ``None`` unless ``weights``)."""
         if not g.kernels:
             return s, np.ones_like(s) if weights else None
-        if len(g.kernels) == 1:
-            ki = g.kernel_index
-            # One kernel for every edge: a broadcast index (O(1) to recognise) or all zeros.
-            if (len(ki) and ki.strides == (0,) and ki[0] == 0) or not np.any(ki):
-                kern = g.kernels[0]
-                if not weights:
-                    return kern.cost(s), None
-                r0, r1 = kern.cost_and_weight(s)
-                return r0, r1 if kern.nonnegative_weight else np.maximum(r1, 0.0)
+        kern = g.sole_kernel
+        if kern is not None:
+            if not weights:
+                return kern.cost(s), None
+            r0, r1 = kern.cost_and_weight(s)
+            return r0, r1 if kern.nonnegative_weight else np.maximum(r1, 0.0)
         rho = s.copy()
         w = np.ones_like(s)
         for ki, kern in enumerate(g.kernels):
@@ -353,13 +350,25 @@ class Linearizer:
         """``(out with inactive rows zeroed, Ωe, e'Ωe)`` of group ``gi``; every edge's errors
         are kept on the group (``raw_eval``) for the edge-set queries that usually follow an
         optimisation at the same estimates (ORB-SLAM's outlier checks)."""
-        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
-                       g.removals), out.error)
+        self.keep_errors(gi, state, out.error)
         act = g.active_edges
         if act is not None:  # edges of other levels: zero rows (also where not finite)
             out = only_active(out, act)
         oe, s = self._sq(g, out.error)
         return out, oe, s
+
+    def keep_errors(self, gi: int, state: tuple[int, ...], e: np.ndarray) -> None:
+        """Keep every edge's errors ``e`` of group ``gi`` at ``state`` (``raw_eval``), for the
+        edge-set queries that usually follow an optimisation at the same estimates.
+
+        Args:
+            gi: Group index.
+            state: Every store's estimate version (:meth:`_state`).
+            e: ``(m, dimension)`` errors, whatever the edges' levels.
+        """
+        g = self.groups[gi]
+        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
+                       g.removals), e)
 
     def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
                 active: np.ndarray | None, totals: list[float], chi2: float | None = None

@@ -175,8 +175,8 @@ class SingleVertexProblem(Problem):
             wg = (self._weighing_of(gi, g) if self._unary[gi] and not safe
                   and out.active is None else None)
             if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
-                J1 = out.jacobians[0] if lin else None
-                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J1)
+                J = (out.jacobians[0],) if lin else ()
+                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J[0] if J else None)
                 self._keep(gi, g, state, out.error, s, wg.count)
                 totals[0] += chi
                 totals[1] += rchi
@@ -184,22 +184,19 @@ class SingleVertexProblem(Problem):
                 if lin:
                     ht = hg if ht is None else ht + hg
                     bu = bg if bu is None else bu + bg
-                    jac.append((J1,))
-                else:
-                    complete = complete and not touch
-                    jac.append(())
-                continue
-            if safe:
-                out, oe, s = lz._weigh(gi, g, out, state)
-                rho, w = lz._robustify(g, s, weights=lin)
-                lz._record(g, s, rho, out.active, totals)
-                if lin:
-                    assert w is not None
-                    J, wj, we = weighted_rows(g, out.jacobians, oe, w, lz._live[gi])
             else:
-                J, wj, we = self._lean_terms(gi, g, out, state, lin, totals)
+                if safe:
+                    out, oe, s = lz._weigh(gi, g, out, state)
+                    rho, w = lz._robustify(g, s, weights=lin)
+                    lz._record(g, s, rho, out.active, totals)
+                    if lin:
+                        assert w is not None
+                        J, wj, we = weighted_rows(g, out.jacobians, oe, w, lz._live[gi])
+                else:
+                    J, wj, we = self._lean_terms(gi, g, out, state, lin, totals)
+                if lin:
+                    ht, bu = self._assembler.add_group(gi, J, wj, we, ht, bu)
             if lin:
-                ht, bu = self._assembler.add_group(gi, J, wj, we, ht, bu)
                 jac.append(J)
             else:
                 complete = complete and not touch
@@ -220,8 +217,7 @@ class SingleVertexProblem(Problem):
               s: np.ndarray, count: int) -> None:
         """Keep a group's errors for the edge sets' queries at this state (``raw_eval``), its
         per-edge chi2 and active count (:meth:`Linearizer._record`)."""
-        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
-                       g.removals), e)
+        self.linearizer.keep_errors(gi, state, e)
         g.last_chi2 = s
         g.active_count = count
 
@@ -277,19 +273,7 @@ class SingleVertexProblem(Problem):
         oe, s = lz._sq(g, e)
         if act is not None:  # an inactive edge's non-finite error reaches b: linearize sees it
             s = np.where(act, s, 0.0)
-        kernels = g.kernels
-        if len(kernels) == 1 and g.kernel_index.strides == (0,) and g.kernel_index[0] == 0:
-            kern = kernels[0]  # one kernel for all (Linearizer._robustify's first case)
-            if lin:
-                rho, w = kern.cost_and_weight(s)
-                if not kern.nonnegative_weight:
-                    w = np.maximum(w, 0.0)
-            else:
-                rho, w = kern.cost(s), None
-        elif kernels:
-            rho, w = lz._robustify(g, s, weights=lin)
-        else:
-            rho, w = s, None
+        rho, w = lz._robustify(g, s, weights=lin) if g.kernels else (s, None)
         self._keep(gi, g, state, e, s, g.size if act is None else int(np.count_nonzero(act)))
         chi2 = float(s.sum())
         totals[0] += chi2

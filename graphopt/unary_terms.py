@@ -53,15 +53,9 @@ def weighing(g: EdgeGroup) -> Weighing | None:
         info = g.info_diagonal
     else:
         return None
-    kernels = g.kernels
-    if len(kernels) > 1:
-        return None
-    kernel = None
-    if kernels:
-        ki = g.kernel_index
-        if not ((len(ki) and ki.strides == (0,) and ki[0] == 0) or not np.any(ki)):
-            return None  # some edges without the kernel
-        kernel = kernels[0]
+    kernel = g.sole_kernel
+    if kernel is None and g.kernels:
+        return None  # different kernels, or some edges without one
     act = g.active_edges
     count = g.size if act is None else int(np.count_nonzero(act))
     return Weighing(g.activity_version, act, count, kernel, info)
