@@ -8,10 +8,10 @@ there, in bulk, naming the offending ids). A later ``initialize_optimization`` a
 changes rebuilds the graphopt optimizer from the arrays without touching the records; records
 added or edited after it are filed again.
 
-g2o's semantics: ``optimize(n)`` runs ``n`` iterations unless no step is found
-(``StoppingConfig.iterations_only``) and returns the count; LM is g2o's (τ = 1e-5, Nielsen's λ
-rule, ``set_user_lambda_init``); ``set_verbose`` prints g2o's iteration lines; the force-stop
-flag is read after every iteration.
+g2o's semantics: ``optimize(n)`` runs ``n`` iterations unless no step is found or a trial
+leaves chi2 unchanged to rounding (``StoppingConfig.g2o``) and returns the count; LM is g2o's
+(τ = 1e-5, Nielsen's λ rule, ``set_user_lambda_init``); ``set_verbose`` prints g2o's iteration
+lines; the force-stop flag is read after every iteration.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 
 from graphopt.errors import GraphError
 from graphopt.optimizer import SparseOptimizer as CoreOptimizer
-from graphopt.stopping import StoppingConfig
+from graphopt.stopping import ROUNDING_CHANGE, StoppingConfig
 
 from .batch import Batch
 from .edges import BaseEdge
@@ -40,7 +40,15 @@ __all__ = ["SparseOptimizer"]
 
 
 class SparseOptimizer:
-    """g2o's ``SparseOptimizer`` (both bindings' method names)."""
+    """g2o's ``SparseOptimizer`` (both bindings' method names).
+
+    Attributes:
+        rounding_change: The relative chi2 change of a trial that ``optimize`` reads as none and
+            ends the run on (g2o's ``rho == 0``; ``StoppingConfig.g2o``); 0 runs every
+            iteration that finds a step, as ``StoppingConfig.iterations_only``.
+    """
+
+    rounding_change: float = ROUNDING_CHANGE
 
     def __init__(self) -> None:
         # Records point back weakly (this weak reference, shared by all of them), and batches
@@ -344,7 +352,7 @@ class SparseOptimizer:
         if self._flag is not None and bool(self._flag):
             return 0
         core.verbose = False  # g2o's lines come from _print_line (λ after its update)
-        core.stopping = StoppingConfig.iterations_only(max(int(iterations), 1))
+        core.stopping = StoppingConfig.g2o(max(int(iterations), 1), self.rounding_change)
         core._callbacks["post_iteration"] = [self._after_iteration]
         self._cum_time = 0.0
         try:

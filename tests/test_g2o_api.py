@@ -136,6 +136,54 @@ def test_orbslam_pose_optimization() -> None:
     assert inliers == 79
 
 
+def _pose_only_run(rounding_change: float | None) -> tuple[int, np.ndarray, float]:
+    """One ``optimize(10)`` of a 200-match pose-only problem from a perturbed pose, verbose:
+    ``(iterations, pose, active chi2)``."""
+    sc = programs.scene(2, 2000, 2, seed=2)
+    opt = g2o.SparseOptimizer()
+    if rounding_change is not None:
+        opt.rounding_change = rounding_change
+    opt.set_algorithm(programs._algorithm(g2o))
+    opt.set_verbose(True)
+    v = g2o.VertexSE3Expmap()
+    v.set_estimate(g2o.SE3Quat(sc["R0"][0], sc["t0"][0]))
+    v.set_id(0)
+    opt.add_vertex(v)
+    for p, _, uv in [o for o in sc["obs"] if o[1] == 0][:200]:
+        e = g2o.EdgeSE3ProjectXYZOnlyPose()
+        e.set_vertex(0, v)
+        e.set_measurement(uv)
+        e.set_information(np.identity(2))
+        e.set_robust_kernel(g2o.RobustKernelHuber(np.sqrt(programs.CHI2_MONO)))
+        e.fx, e.fy, e.cx, e.cy = programs.FX, programs.FY, programs.CX, programs.CY
+        e.Xw = sc["X"][p]
+        opt.add_edge(e)
+    opt.initialize_optimization(0)
+    iterations = opt.optimize(10)
+    opt.compute_active_errors()
+    return iterations, v.estimate().matrix(), opt.active_chi2()
+
+
+def test_optimize_ends_at_a_trial_that_changes_nothing(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # g2o ends a run when a trial leaves chi2 unchanged (rho == 0); graphopt.g2o reads a change
+    # of at most 1e-12 of chi2 as none. Without that, the converged run goes on through trials
+    # that change chi2 in its last digits only (10 rejected in a row end it), to the same pose.
+    runs = []
+    for change in (None, 0.0):
+        n, T, chi2 = _pose_only_run(change)
+        lines = capsys.readouterr().err.splitlines()
+        trials = [int(line.rsplit("levenbergIter= ", 1)[1]) for line in lines]
+        assert len(lines) == n
+        runs.append((n, T, chi2, trials))
+    (n, T, chi2, trials), (n_all, T_all, chi2_all, trials_all) = runs
+    assert trials == trials_all[:n]  # the same run, ended earlier
+    assert sum(trials_all) - sum(trials) >= 10
+    assert chi2 == pytest.approx(chi2_all, rel=1e-12)
+    assert np.allclose(T, T_all, rtol=0, atol=1e-9)
+    assert g2o.SparseOptimizer.rounding_change == 1e-12
+
+
 # g2opy 2.3.0 on the same inputs (its stereo pose-only edge exposes no intrinsics: none there).
 BACKEND_CHI2 = {"EdgeSE3ProjectXYZOnlyPose": 279.9426991326854,
                 "EdgeStereoSE3ProjectXYZ": 1119.1101232164244,
