@@ -147,8 +147,8 @@ def bare_g2o(T_init: np.ndarray, Xw: np.ndarray, z: np.ndarray, inv_sigma2: np.n
     program): every ``optimize(10)`` runs 10 iterations unless an iteration finds no step in 10
     trials or a trial changes chi2 by at most ``ROUNDING_CHANGE`` of it (g2o's ``rho == 0``, as
     ``StoppingConfig.g2o``); λ₀ = 1e-5·max diag(H) at each call; g2o's λ rules; a trial
-    evaluates errors only, an accepted one is linearised afresh. LAPACK's Cholesky directly (not ``cho_solve``'s checks).
-    ``count`` gets ``[iterations, trials]`` added."""
+    evaluates errors only, an accepted one is linearised afresh. LAPACK's Cholesky directly
+    (not ``cho_solve``'s checks). ``count`` gets ``[iterations, trials]`` added."""
     fx, fy = cam.fx, cam.fy
     f, c = np.array([fx, fy]), np.array([cam.cx, cam.cy])
     outlier = np.zeros(len(z), dtype=bool)
