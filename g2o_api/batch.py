@@ -93,7 +93,7 @@ class Batch:
         self.group: EdgeGroup | None = None
         self.rows = np.zeros(0, np.int64)  # the edges' indices in the group
         self.kernels_dirty = self.levels_dirty = False
-        self.measured = gtype.measurement_derived(meas) if m else None
+        self._measured: tuple[np.ndarray | None] | None = None  # see measured
         self._cache: tuple[Any, ...] | None = None
         # (state, chi2 as Python floats, depth tests as Python bools or None): what the per-edge
         # getters index, valid while the state is.
@@ -111,6 +111,14 @@ class Batch:
         # Every record's batch and index, in C loops (setattr over the records).
         deque(map(setattr, records, repeat("_batch"), repeat(self, m)), maxlen=0)
         deque(map(setattr, records, repeat("_idx"), range(m)), maxlen=0)
+
+    @property
+    def measured(self) -> np.ndarray | None:
+        """The type's ``measurement_derived`` values (the batch's own evaluation only: made when
+        first read)."""
+        if self._measured is None:
+            self._measured = (self.gtype.measurement_derived(self.meas) if self.m else None,)
+        return self._measured[0]
 
     # --- kernels and levels ------------------------------------------------------------------
 
@@ -198,13 +206,16 @@ class Batch:
             self._st0, self._st1 = self.banks[0].store, self.banks[-1].store
         if not self.m:
             return
-        es = core.add_edges(self.gtype, self.vids, self.meas, self.info, None, self.params,
+        kc = self.kcodes
+        c0 = int(kc[0])
+        one = bool((kc == c0).all())  # one kernel (or none) for all: given to add_edges
+        es = core.add_edges(self.gtype, self.vids, self.meas, self.info,
+                            self.kernels[c0] if one and c0 >= 0 else None, self.params,
                             self.data or None)
         self.group, self.rows = es.group, es._rows()
         if self.levels.any():
             self.group.set_levels(self.rows, self.levels)
-        if (self.kcodes >= 0).any():
-            self.kernels_dirty = True
+        self.kernels_dirty = not one
         self.levels_dirty = False
         self.sync(levels=False)
 

@@ -28,6 +28,9 @@ __all__ = ["bucket_edges", "by_class", "file_edges", "file_vertices"]
 _ID, _BANK, _EST = attrgetter("_id"), attrgetter("_bank"), attrgetter("_est")
 #: An edge's vertex ids at positions 0 and 1, its further vertices.
 _ID0, _ID1, _MORE = attrgetter("_v0._id"), attrgetter("_v1._id"), attrgetter("_vn")
+#: Up to this many vertex ids (edges x positions), the check that every one was added is a set
+#: of Python ints; above, ``np.isin``.
+_SET_CHECK = 1024
 
 
 def by_class(records: list[Any]) -> dict[type, list[Any]]:
@@ -118,6 +121,31 @@ def file_vertices(vertices: list[BaseVertex],
     return banks
 
 
+def _check_known(cls: type, vids: np.ndarray, perm: tuple[int, ...],
+                 vertices: dict[int, BaseVertex]) -> None:
+    """Raise a GraphError naming the first edge one of whose vertices was not added.
+
+    Args:
+        cls: The g2o edge class.
+        vids: ``(m, k)`` vertex ids in graphopt's position order (``perm``: position ``p``
+            holds g2o vertex ``perm[p]``).
+        perm: The class's permutation.
+        vertices: ``{id: vertex}`` of the optimizer.
+    """
+    if vids.size <= _SET_CHECK:  # a few edges: a set of ints (isin: 10 µs at any size)
+        if vertices.keys() >= set(vids.ravel().tolist()):
+            return
+        missing = np.array([[v not in vertices for v in row] for row in vids.tolist()])
+    else:
+        missing = ~np.isin(vids, np.fromiter(vertices, dtype=np.int64, count=len(vertices)))
+        if not missing.any():
+            return
+    i, p = (int(a[0]) for a in np.nonzero(missing))
+    g2o_order = [int(vids[i, perm.index(g)]) for g in range(len(perm))]
+    raise GraphError(f"{cls.__name__} on vertices {g2o_order}: vertex {int(vids[i, p])} "
+                     f"(position {perm[p]}) was not added to the optimizer")
+
+
 def file_edges(owner: Any, edge_buckets: dict[tuple[Any, ...], list[BaseEdge]],
                vertices: dict[int, BaseVertex], core_param: Callable[[type, Any], Any]
                ) -> dict[Batch, list[BaseEdge]]:
@@ -130,24 +158,17 @@ def file_edges(owner: Any, edge_buckets: dict[tuple[Any, ...], list[BaseEdge]],
         core_param: graphopt's parameter object of a class and key.
     """
     batches: dict[Batch, list[BaseEdge]] = {}
-    known = np.fromiter(vertices, dtype=np.int64, count=len(vertices))
     for (cls, pkey), recs in edge_buckets.items():
         gtype = cls._core_type(pkey)
         m, k = len(recs), len(recs[0]._v)  # the class's count, or the edges' own (LotsOf)
         perm = cls._perm if len(cls._perm) == k else tuple(range(k))
         more = list(map(_MORE, recs)) if k > 2 else []
-        vids = np.empty((m, k), dtype=np.int64)
-        for g in range(k):  # vertex ids column by column, in C loops
+        vids = np.empty((m, k), dtype=np.int64)  # in graphopt's position order (perm)
+        for p, g in enumerate(perm):  # vertex ids column by column, in C loops
             ids = (map(_ID0, recs) if g == 0 else map(_ID1, recs) if g == 1
                    else map(_ID, map(itemgetter(g - 2), more)))
-            vids[:, g] = np.fromiter(ids, np.int64, count=m)
-        missing = ~np.isin(vids, known)
-        if missing.any():
-            i, g = (int(a[0]) for a in np.nonzero(missing))
-            raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
-                             f"{int(vids[i, g])} (position {g}) was not added to the "
-                             "optimizer")
-        vids = vids[:, list(perm)]
+            vids[:, p] = np.fromiter(ids, np.int64, count=m)
+        _check_known(cls, vids, perm, vertices)
         banks = [vertices[int(vids[0, p])]._bank for p in range(k)]
         meas = stack_measurements(cls, recs)
         info = stack_information(cls, recs, gtype.dimension)

@@ -33,7 +33,7 @@ class Bank:
     core optimizer is rebuilt; records keep their slot). Records point at their bank, not the
     bank at them (no reference cycle: the optimizer holds the records)."""
 
-    __slots__ = ("gtype", "store", "ids", "user_fixed", "marg", "initial")
+    __slots__ = ("gtype", "store", "ids", "user_fixed", "marg", "initial", "_lookup")
 
     def __init__(self, gtype: type, records: list[BaseVertex], initial: np.ndarray) -> None:
         self.gtype = gtype
@@ -43,6 +43,7 @@ class Bank:
         self.user_fixed = np.fromiter(map(_FIXED, records), bool, count=n)
         self.marg = np.fromiter(map(_MARG, records), bool, count=n)
         self.initial = initial  # the estimates until the first core store exists
+        self._lookup: tuple[int, np.ndarray | None] | None = None  # see slots_of
         deque(map(setattr, records, repeat("_bank"), repeat(self, n)), maxlen=0)
         deque(map(setattr, records, repeat("_slot"), range(n)), maxlen=0)
 
@@ -52,9 +53,19 @@ class Bank:
         Args:
             ids: ``(m,)`` vertex ids.
         """
-        order = np.argsort(self.ids, kind="stable")
+        lookup = self._lookup
+        if lookup is None:  # once per bank: the first id if they run consecutively, else a sort
+            i, n = self.ids, len(self.ids)
+            lookup = self._lookup = (
+                (int(i[0]), None) if n and int(i[-1]) - int(i[0]) == n - 1
+                and (n < 3 or bool((i[1:] - i[:-1] == 1).all()))
+                else (0, np.argsort(i, kind="stable")))
+        first, order = lookup
+        if order is None:  # ids first, first + 1, ...: a subtraction (programs number so)
+            slots = ids - first
+            return slots, slots.view(np.uint64) < len(self.ids)  # negatives wrap around
         sorted_ids = self.ids[order]
-        loc = np.searchsorted(sorted_ids, ids).clip(0, max(len(order) - 1, 0))
+        loc = np.minimum(np.searchsorted(sorted_ids, ids), max(len(order) - 1, 0))
         ok = sorted_ids[loc] == ids if len(order) else np.zeros(len(ids), bool)
         return order[loc] if len(order) else loc, ok
 

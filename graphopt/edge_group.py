@@ -239,26 +239,32 @@ class EdgeGroup:
         if self._lvl:
             self.levels = _join_values(self._lvl, self.size)
         if self.size > first_new:  # uids of the edges appended since the last finalize
-            self.uids = np.concatenate([self.uids, np.arange(self.next_uid - self.size
-                                                             + first_new, self.next_uid)])
-        shared = [i for i in self._info if i.ndim == 2]
-        if len(shared) == len(self._info) and all(np.array_equal(shared[0], i) for i in shared):
-            self.information = shared[0] if shared else np.eye(self.dim)
+            new = np.arange(self.next_uid - self.size + first_new, self.next_uid)
+            self.uids = np.concatenate([self.uids, new]) if first_new else new
+        infos = self._info
+        if len(infos) == 1 and infos[0].ndim == 2:  # one chunk, one matrix (the usual group)
+            self.information = infos[0]
+        elif len(infos) == sum(i.ndim == 2 for i in infos) and all(
+                np.array_equal(infos[0], i) for i in infos):
+            self.information = infos[0] if infos else np.eye(self.dim)
         else:
             self.information = np.concatenate(
                 [np.broadcast_to(i, (len(v), self.dim, self.dim)) for i, v in
-                 zip(self._info, self._vids, strict=True)]
+                 zip(infos, self._vids, strict=True)]
             )
-        self.info_is_identity = self.information.ndim == 2 and np.array_equal(
-            self.information, np.eye(self.dim)
-        )
         self.info_diagonal = None
         info = self.information
         if info.ndim == 2:
-            if not np.count_nonzero(info - np.diag(np.diag(info))):
-                self.info_diagonal = np.diag(info).copy()
-        elif np.count_nonzero(info) == np.count_nonzero(diag := info.diagonal(0, 1, 2)):
-            self.info_diagonal = np.ascontiguousarray(diag)  # σ⁻²·I per edge (a SLAM system's)
+            # (Finite, checked on the way in.) Diagonal: as many nonzeros as its diagonal has.
+            d = info.diagonal()
+            nonzero = np.count_nonzero(info)
+            if nonzero == np.count_nonzero(d):
+                self.info_diagonal = d.copy()
+            self.info_is_identity = nonzero == self.dim and bool((d == 1.0).all())
+        else:
+            self.info_is_identity = False
+            if np.count_nonzero(info) == np.count_nonzero(diag := info.diagonal(0, 1, 2)):
+                self.info_diagonal = np.ascontiguousarray(diag)  # σ⁻²·I per edge (a SLAM system's)
         if self._data:
             self.data = {key: _join([d[key] for d in self._data]) for key in self._data[0]}
         self.measured = self.etype.measurement_derived(self.measurements) if self.size else None
@@ -478,15 +484,27 @@ class EdgeGroup:
         self.activity_count += 1
 
 
+def _const(value: int, n: int) -> np.ndarray:
+    """``(n,)`` int64 read-only, every entry ``value``: one number's bytes (stride 0), what
+    ``np.broadcast_to`` gives at half its cost."""
+    out = np.ndarray((n,), np.int64, np.full(1, value, np.int64), 0, (0,))
+    out.flags.writeable = False
+    return out
+
+
 def _per_edge(value: int | np.ndarray, n: int) -> np.ndarray:
     """``(n,)`` int64 values: a broadcast of one value (no bytes per edge), or a copy."""
+    if type(value) is int:
+        return _const(value, n)
     arr = np.asarray(value, dtype=np.int64)
-    return np.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr.copy()
+    return _const(int(arr), n) if arr.ndim == 0 else arr.copy()
 
 
 def _join_values(chunks: list[np.ndarray], n: int) -> np.ndarray:
     """Per-edge value chunks as one array: a broadcast while all are the same broadcast."""
+    if len(chunks) == 1:  # (a broadcast stays one)
+        return chunks[0]
     live = [c for c in chunks if len(c)]
     if live and all(c.strides == (0,) for c in live) and len({int(c[0]) for c in live}) == 1:
-        return np.broadcast_to(np.int64(live[0][0]), (n,))
+        return _const(int(live[0][0]), n)
     return _join(chunks) if chunks else np.zeros(0, dtype=np.int64)
