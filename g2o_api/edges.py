@@ -10,7 +10,6 @@ entry. Each class maps g2o's vertex order onto the graphopt type's (``_perm``: g
 
 from __future__ import annotations
 
-from operator import attrgetter, methodcaller
 from typing import Any
 
 import numpy as np
@@ -30,6 +29,8 @@ _F8 = np.dtype(np.float64)
 _PIDS1: tuple[tuple[int], ...] = tuple((i,) for i in range(64))
 #: The last information matrix set (its bytes and the shared read-only copy).
 _LAST_INFO: list[tuple[bytes, np.ndarray, int] | None] = [None]
+#: Per class, its compiled :meth:`BaseEdge._keys_of`.
+_KEYS: dict[type, Any] = {}
 
 
 class BaseEdge:
@@ -346,10 +347,25 @@ class BaseEdge:
             cls.__init__ = _flat_init(cls)  # type: ignore[method-assign]
 
     @classmethod
-    def _key_of(cls) -> Any:
-        """A callable giving a record's :meth:`_params_key` (C-level where it can be)."""
-        a = cls._key_attrs
-        return attrgetter(*a) if a else methodcaller("_params_key")
+    def _keys_of(cls, recs: list[BaseEdge]) -> list[Any]:
+        """Every record's :meth:`_params_key`.
+
+        One list comprehension compiled per class from ``_key_attrs``: a comprehension reads
+        slots twice as fast as ``map`` with an ``attrgetter`` (Python 3.11 specialises the
+        attribute reads), 15 against 32 µs for the 4 intrinsics of 500 records.
+
+        Args:
+            recs: Records of this class.
+        """
+        f = _KEYS.get(cls)
+        if f is None:
+            a = cls._key_attrs
+            expr = ("r._params_key()" if not a else f"r.{a[0]}" if len(a) == 1
+                    else "(" + ", ".join(f"r.{n}" for n in a) + ")")
+            ns: dict[str, Any] = {}
+            exec(f"def keys(recs):\n    return [{expr} for r in recs]", ns)  # noqa: S102 - class attribute names
+            f = _KEYS[cls] = ns["keys"]
+        return f(recs)
 
     @classmethod
     def _core_name(cls, key: tuple[Any, ...]) -> str:

@@ -7,10 +7,7 @@ only files the record: each type's estimates become graphopt's array in one step
 from __future__ import annotations
 
 import copy as _copy
-from collections import deque
 from importlib import import_module
-from itertools import repeat
-from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -25,7 +22,6 @@ from .sim3 import Sim3
 __all__ = ["BaseVertex", "VERTEX_CLASSES"]
 
 _F8 = np.dtype(np.float64)
-_VID, _FIXED, _MARG = attrgetter("_id"), attrgetter("_fixed"), attrgetter("_marg")
 
 
 class Bank:
@@ -39,13 +35,14 @@ class Bank:
         self.gtype = gtype
         self.store: VertexStore | None = None
         n = len(records)
-        self.ids = np.fromiter(map(_VID, records), np.int64, count=n)  # C loops
-        self.user_fixed = np.fromiter(map(_FIXED, records), bool, count=n)
-        self.marg = np.fromiter(map(_MARG, records), bool, count=n)
+        self.ids = np.fromiter([r._id for r in records], np.int64, count=n)
+        self.user_fixed = np.fromiter([r._fixed for r in records], bool, count=n)
+        self.marg = np.fromiter([r._marg for r in records], bool, count=n)
         self.initial = initial  # the estimates until the first core store exists
         self._lookup: tuple[int, np.ndarray | None] | None = None  # see slots_of
-        deque(map(setattr, records, repeat("_bank"), repeat(self, n)), maxlen=0)
-        deque(map(setattr, records, repeat("_slot"), range(n)), maxlen=0)
+        for i, r in enumerate(records):  # (one loop: half the cost of two setattr passes)
+            r._bank = self
+            r._slot = i
 
     def slots_of(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Slots of ``ids`` and whether each is in this bank.
