@@ -179,14 +179,29 @@ class Batch:
         """
         if self.group is None:
             return
+        whole = self._whole()
         if self.kernels_dirty:
             self.kernels_dirty = False
-            for c in np.unique(self.kcodes).tolist():
-                self.group.set_kernel(self.rows[self.kcodes == c],
-                                      None if c < 0 else self.kernels[c])
+            kc = self.kcodes
+            c0 = int(kc[0]) if len(kc) else -1
+            if (kc == c0).all():  # one kernel (or none) for all: no sort, no mask
+                self.group.set_kernel(whole if whole is not None else self.rows,
+                                      None if c0 < 0 else self.kernels[c0])
+            else:
+                for c in np.unique(kc).tolist():
+                    self.group.set_kernel(self.rows[kc == c], None if c < 0 else self.kernels[c])
         if levels and self.levels_dirty:
             self.levels_dirty = False
-            self.group.set_levels(self.rows, self.levels)
+            self.group.set_levels(whole if whole is not None else self.rows, self.levels)
+
+    def _whole(self) -> slice | None:
+        """``slice(None)`` if the batch's edges are its group's, in order (one g2o class and
+        parameters per graphopt group, nothing removed: the usual case), else ``None``."""
+        g, r = self.group, self.rows
+        if g is None or len(r) != g.size:
+            return None
+        return slice(None) if not len(r) or (int(r[0]) == 0 and int(r[-1]) == len(r) - 1) \
+            else None
 
     def add_to(self, core: Any) -> None:
         """Add every edge to the graphopt optimizer ``core`` (one ``add_edges``), with its
@@ -208,7 +223,8 @@ class Batch:
                             self.data or None)
         self.group, self.rows = es.group, es._rows()
         if self.levels.any():
-            self.group.set_levels(self.rows, self.levels)
+            whole = self._whole()
+            self.group.set_levels(whole if whole is not None else self.rows, self.levels)
         self.kernels_dirty = not one
         self.levels_dirty = False
         self.sync(levels=False)

@@ -267,7 +267,9 @@ def _rigid_rows(cls: type, raws: list[Any], ids: list[int], rows: int) -> np.nda
     matrices."""
     n = len(raws)
     out = np.zeros((n, rows, 4))
-    if all(isinstance(r, _RigidBase) for r in raws):
+    if n == 1 and isinstance(raws[0], _RigidBase):  # set_estimate of a filed vertex
+        out[0, :3, :3], out[0, :3, 3] = raws[0]._R, raws[0]._t
+    elif all(isinstance(r, _RigidBase) for r in raws):
         out[:, :3, :3] = np.array([r._R for r in raws])
         out[:, :3, 3] = np.array([r._t for r in raws])
     else:

@@ -385,17 +385,23 @@ class EdgeGroup:
         at a time is fine).
 
         Args:
-            i: Edge index (or indices) in the group.
+            i: Edge index (or indices) in the group; ``slice(None)``: every edge.
             kernel: The kernel or ``None``.
         """
         self.finalize()
         slot = self.kernel_slot(kernel)
+        whole = type(i) is slice and i == slice(None)
         if not self._kidx.flags.writeable:  # one broadcast slot so far
             if int(self._kidx[0]) == slot:
                 return
-            self._kidx = self._kidx.copy()
+            if not whole:
+                self._kidx = self._kidx.copy()
+                self._kern = [self._kidx]
+        if whole:  # every edge: one broadcast slot (no bytes per edge)
+            self._kidx = _const(slot, self.size)
             self._kern = [self._kidx]
-        self._kidx[i] = slot
+        else:
+            self._kidx[i] = slot
         self._kernels_stale = True
         self.activity_count += 1  # evaluations at the old kernels are stale
 

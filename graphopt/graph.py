@@ -419,8 +419,11 @@ class Graph:
     def structure_key(self) -> tuple[Any, ...]:
         """Changes whenever vertices, edges or fixed/marginalised flags change (not levels,
         kernels or estimates)."""
-        return (tuple((id(s), len(s), s.flags_version, s.removals) for s in self.stores.values()),
-                tuple((id(g), g.size, g.removals) for g in self.groups.values()))
+        if self._vbuf or self._ebuf:
+            self.flush()
+        return (tuple([(id(s), len(s), s.flags_version, s.removals)
+                       for s in self._stores.values()]),
+                tuple([(id(g), g.size, g.removals) for g in self._groups.values()]))
 
     def set_level(self, level: int) -> None:
         """Make the edges of ``level`` the active ones (g2o's ``initializeOptimization(level)``).
