@@ -218,10 +218,13 @@ class Batch:
         kc = self.kcodes
         c0 = int(kc[0])
         one = bool((kc == c0).all())  # one kernel (or none) for all: given to add_edges
-        es = core.add_edges(self.gtype, self.vids, self.meas, self.info,
-                            self.kernels[c0] if one and c0 >= 0 else None, self.params,
-                            self.data or None)
-        self.group, self.rows = es.group, es._rows()
+        # The graph's add_edges (the optimizer's wraps it in an EdgeSet): every vertex at a
+        # position is in its bank's store (checked at filing), so only the stores' types are.
+        group, start, m = core.graph.add_edges(
+            self.gtype, self.vids, self.meas, self.info,
+            self.kernels[c0] if one and c0 >= 0 else None, self.params, self.data or None,
+            vertex_stores=[b.store for b in self.banks])
+        self.group, self.rows = group, group.index_of(np.arange(start, start + m))
         if self.levels.any():
             whole = self._whole()
             self.group.set_levels(whole if whole is not None else self.rows, self.levels)

@@ -125,7 +125,7 @@ class Graph:
         vertex._slot = -2
 
     def add_vertices(self, vtype: type[BaseVertex], ids: Any, estimates: Any, fixed: Any = False,
-                     marginalized: Any = False) -> None:
+                     marginalized: Any = False, new_ids: bool = False) -> None:
         """Add many vertices of one type (see :meth:`SparseOptimizer.add_vertices`).
 
         Args:
@@ -134,16 +134,21 @@ class Graph:
             estimates: ``(n, *estimate_shape)``.
             fixed: One flag for all or ``(n,)`` flags.
             marginalized: One flag for all or ``(n,)`` flags.
+            new_ids: The caller guarantees the ids distinct and not in the graph (graphopt.g2o
+                files its vertices by id into a new graph): no sort, no lookups. Estimates are
+                checked all the same.
         """
         self.flush()
         ids_arr = np.asarray(ids)
         if ids_arr.ndim != 1 or ids_arr.dtype.kind not in "iu":  # (issubdtype: 2 µs)
             raise GraphError(f"{vtype.__name__}: ids must be a 1-D integer array")
-        self._add(vtype, ids_arr.astype(np.int64), estimates, fixed, marginalized)
+        self._add(vtype, ids_arr.astype(np.int64), estimates, fixed, marginalized,
+                  new_ids=new_ids)
 
     def _add(self, vtype: type[BaseVertex], ids: np.ndarray, estimates: Any, fixed: Any,
-             marg: Any, checked: bool = False) -> int:
-        """Validate (unless ``checked``) and append; returns the first new slot."""
+             marg: Any, checked: bool = False, new_ids: bool = False) -> int:
+        """Validate (unless ``checked``; the ids not either with ``new_ids``) and append;
+        returns the first new slot."""
         store = self._store(vtype)
         n = len(ids)
         shape = tuple(vtype.estimate_shape)
@@ -156,13 +161,13 @@ class Graph:
                 f"{vtype.__name__}: estimates have shape {est.shape}, expected {(n, *shape)} "
                 f"(first vertex id {int(ids[0]) if n else '-'})"
             )
-        if n > 1:  # (a sort: not for the one pose of a motion-only BA)
+        if n > 1 and not new_ids:  # (a sort: not for the one pose of a motion-only BA)
             uniq, counts = np.unique(ids, return_counts=True)
             if np.any(counts > 1):
                 raise GraphError(f"duplicate vertex id {int(uniq[counts > 1][0])} "
                                  f"({vtype.__name__})")
         if not checked:
-            dup = next((v for v in ids.tolist() if v in self._ids), None)
+            dup = None if new_ids else next((v for v in ids.tolist() if v in self._ids), None)
             if dup is not None:
                 raise GraphError(f"duplicate vertex id {dup} ({vtype.__name__})")
             store.check_estimates(est, ids)
@@ -233,7 +238,8 @@ class Graph:
 
     def add_edges(self, etype: type[BaseEdge], vertex_ids: Any, measurements: Any,
                   information: Any = None, robust_kernel: RobustKernel | None = None,
-                  params: Any = None, data: dict[str, Any] | None = None
+                  params: Any = None, data: dict[str, Any] | None = None,
+                  vertex_stores: list[VertexStore] | None = None
                   ) -> tuple[EdgeGroup, int, int]:
         """Add many edges of one type (see :meth:`SparseOptimizer.add_edges`).
 
@@ -245,6 +251,9 @@ class Graph:
             robust_kernel: One kernel for these edges, or ``None``.
             params: Shared parameters.
             data: Per-edge auxiliary arrays.
+            vertex_stores: The caller guarantees that every vertex at position ``p`` is in
+                store ``vertex_stores[p]`` (graphopt.g2o checks its banks): the stores' types
+                are checked, not every distinct id.
 
         Returns:
             ``(group, uid of the first edge, number of edges)``.
@@ -286,13 +295,19 @@ class Graph:
                 raise GraphError(f"{etype.__name__}: data[{key!r}] must have first dimension {m}")
             arrays[key] = arr
         kslot = group.kernel_slot(robust_kernel)
-        start = self._add_edges(group, vids.astype(np.int64), meas, info, kslot, arrays)
+        known = vertex_stores is not None and len(vertex_stores) == k and all(
+            self._stores.get(st.vtype) is st and issubclass(st.vtype, vt)
+            for st, vt in zip(vertex_stores, etype.vertex_types, strict=True))
+        start = self._add_edges(group, vids.astype(np.int64), meas, info, kslot, arrays,
+                                known_vertices=known)
         return group, start, m
 
     def _add_edges(self, group: EdgeGroup, vids: np.ndarray, meas: np.ndarray, info: np.ndarray,
                    kslot: int | np.ndarray, data: dict[str, np.ndarray],
-                   levels: int | np.ndarray = 0) -> int:
-        """Validate and append; the group is registered only once something was added.
+                   levels: int | np.ndarray = 0, known_vertices: bool = False) -> int:
+        """Validate and append (the vertex ids not with ``known_vertices``: each in a store of
+        its position's type, checked by the caller); the group is registered only once
+        something was added.
 
         Raises:
             BatchError: a check failed for one edge (its index as ``culprit``); a
@@ -313,7 +328,7 @@ class Graph:
         if bad.any():
             raise blame(int(np.flatnonzero(bad)[0]), "non-finite measurement")
         info = checked_information(et, vids, info)
-        for pos, vt in enumerate(et.vertex_types):
+        for pos, vt in enumerate(() if known_vertices else et.vertex_types):
             # Check each distinct id once; report the first edge that names a bad one.
             col = vids[:, pos]
             first = col[0]  # one vertex at this position (a pose's unary edges): no sort
