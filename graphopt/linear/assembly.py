@@ -364,7 +364,10 @@ class Assembler:
             return None
         gram = GatheredGram(target, sel, sel, n_t, r, d)
         seconds = cost.gram_seconds(gram, 2 * gram.padded)  # J and ρ'ΩJ (once if equal)
-        return gram if seconds < sparse else None
+        if seconds >= sparse:
+            return None
+        gram.build()
+        return gram
 
     # --- numbers -----------------------------------------------------------------------------
 

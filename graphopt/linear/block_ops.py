@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -343,6 +345,10 @@ class EdgeContraction(_CscContraction):
         return A.reshape(-1) if self.all or self.scratch else A[self.sel].reshape(-1)
 
 
+#: What :meth:`GatheredGram.build` makes.
+_BUILT = frozenset({"ia", "ib", "pads", "chunks", "_bufa", "_bufb"})
+
+
 class GatheredGram:
     """``out[j] = Σ_{q: piece[q]=j} A[a_idx[q]]ᵀ · B[b_idx[q]]`` by batched BLAS products.
 
@@ -372,6 +378,7 @@ class GatheredGram:
         n_out: Number of outputs.
         padded: Blocks multiplied, padding included.
         gathered: Blocks gathered when ``B`` is ``A``, padding included.
+        n_chunks: Number of ``np.matmul`` calls.
     """
 
     def __init__(
@@ -412,8 +419,6 @@ class GatheredGram:
         porder = np.lexsort((pcnt, level, ~same))
         key = (~same[porder]).astype(np.int64) * (int(level.max(initial=0)) + 1) + level[porder]
         bounds = np.flatnonzero(np.diff(key)) + 1
-        # Chunks as (first slot, outputs, padded count, first output, same, pad range).
-        self.chunks: list[tuple[int, int, int, int, bool, int, int]] = []
         slot = np.empty(n_out, dtype=np.int64)  # first padded slot of every output
         p0 = 0
         spans = []
@@ -426,12 +431,35 @@ class GatheredGram:
                 spans.append((p0, n, m, o0, bool(same[porder[o0]])))
                 p0 += n * m
         self.padded = p0
+        self.gathered = sum(n * m * (1 if sm else 2) for _, n, m, _, sm in spans)
+        self.targets = piece_target[porder]
+        self.n_out = n_out
+        self.n_chunks = len(spans)
+        # What build() needs: a cost model reads the sizes above and may choose another
+        # product (a local BA's camera blocks: 0.2 of its 5 ms set-up for a Gram not taken).
+        self._plan = (a_idx, b_idx, piece, pos, porder, slot, spans, len(target))
+
+    def __getattr__(self, name: str) -> Any:
+        """``ia``, ``ib``, ``pads``, ``chunks`` of a Gram not built yet: built on first read."""
+        if name in _BUILT and self.__dict__.get("_plan") is not None:
+            self.build()
+            return getattr(self, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def build(self) -> None:
+        """The gather indices, padding and buffers of the planned chunks (once; a chosen
+        Gram is built at set-up, not at its first call)."""
+        if self._plan is None:
+            return
+        a_idx, b_idx, piece, pos, porder, slot, spans, q = self._plan
+        self._plan = None
+        p0, n_out, r, d = self.padded, self.n_out, self.r, self.d
         out_of = np.empty(n_out, dtype=np.int64)
         out_of[porder] = np.arange(n_out)  # output row of every piece
         dest = slot[out_of[piece]] + pos
         # Padding slots gather block 0, then are zeroed; int32 where it fits (np.take widens a
         # chunk's indices, at most max_blocks, on the fly): 8 bytes per term fewer.
-        idx_t = np.int32 if max(len(target), int(a_idx.max(initial=0)),
+        idx_t = np.int32 if max(q, int(a_idx.max(initial=0)),
                                 int(b_idx.max(initial=0))) < 2**31 else np.intp
         self.ia = np.zeros(p0, dtype=idx_t)
         self.ib = np.zeros(p0, dtype=idx_t)
@@ -439,15 +467,14 @@ class GatheredGram:
         filled = np.zeros(p0, dtype=bool)
         filled[dest] = True
         pads, q0 = [], 0
+        # Chunks as (first slot, outputs, padded count, first output, same, pad range).
+        self.chunks: list[tuple[int, int, int, int, bool, int, int]] = []
         for c0, n, m, o0, sm in spans:  # padding slots of every chunk, relative to its start
             pad = np.flatnonzero(~filled[c0:c0 + n * m])
             pads.append(pad)
             self.chunks.append((c0, n, m, o0, sm, q0, q0 + len(pad)))
             q0 += len(pad)
         self.pads = np.concatenate(pads) if pads else np.zeros(0, dtype=np.intp)
-        self.gathered = sum(n * m * (1 if sm else 2) for _, n, m, _, sm, _, _ in self.chunks)
-        self.targets = piece_target[porder]
-        self.n_out = n_out
         largest = max((n * m for _, n, m, _, _, _, _ in self.chunks), default=0)
         self._bufa = np.zeros(largest * r * d)
         self._bufb = np.zeros(largest * r * d)
@@ -468,6 +495,8 @@ class GatheredGram:
         self.ia = a_idx.astype(idx_t)
         self.ib = b_idx.astype(idx_t)
         self.chunks = [(0, 1, q, 0, same, 0, 0)]
+        self.n_chunks = 1
+        self._plan = None  # (built)
         self.pads = np.zeros(0, dtype=np.intp)
         self.padded = q
         self.gathered = q * (1 if same else 2)
@@ -484,6 +513,8 @@ class GatheredGram:
             out: ``(n_out, d, d)`` output (overwritten).
             B: ``(nB, r·d)`` right blocks as rows; ``None``: the same as ``A``.
         """
+        if self._plan is not None:
+            self.build()
         r, d = self.r, self.d
         w = r * d
         for p0, n, m, o0, same, q0, q1 in self.chunks:

@@ -97,7 +97,7 @@ class SchurCostModel:
         return (self.gram_gather * gathered * r * d
                 + self.gemm_mac * gram.padded * r * d * d
                 + self.gemm_output * gram.n_out
-                + self.gemm_chunk * len(gram.chunks))
+                + self.gemm_chunk * gram.n_chunks)
 
 
 @dataclass(frozen=True)

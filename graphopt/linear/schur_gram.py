@@ -40,6 +40,7 @@ class GramProducts(SchurStrategy):
     def __init__(self, index: BlockIndex, plan: GramPlan) -> None:
         super().__init__(index, plan)
         self.gram = plan.gram
+        self.gram.build()  # (planned: built once chosen)
         c = index.wclasses[self.k]
         nb = max(index.n_ublocks, 1)
         dv, du, nw = c.dv, c.du, len(c.ublock)
