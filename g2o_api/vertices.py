@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from graphopt.errors import GraphError
+from graphopt.linear.indexing import IdLookup
 from graphopt.storage import VertexStore
 
 from .geometry import SE2, Isometry3d, SE3Quat, _RigidBase
@@ -39,7 +40,7 @@ class Bank:
         self.user_fixed = np.fromiter([r._fixed for r in records], bool, count=n)
         self.marg = np.fromiter([r._marg for r in records], bool, count=n)
         self.initial = initial  # the estimates until the first core store exists
-        self._lookup: tuple[int, np.ndarray | None] | None = None  # see slots_of
+        self._lookup: IdLookup | None = None  # see slots_of
         for i, r in enumerate(records):  # (one loop: half the cost of two setattr passes)
             r._bank = self
             r._slot = i
@@ -50,21 +51,9 @@ class Bank:
         Args:
             ids: ``(m,)`` vertex ids.
         """
-        lookup = self._lookup
-        if lookup is None:  # once per bank: the first id if they run consecutively, else a sort
-            i, n = self.ids, len(self.ids)
-            lookup = self._lookup = (
-                (int(i[0]), None) if n and int(i[-1]) - int(i[0]) == n - 1
-                and (n < 3 or bool((i[1:] - i[:-1] == 1).all()))
-                else (0, np.argsort(i, kind="stable")))
-        first, order = lookup
-        if order is None:  # ids first, first + 1, ...: a subtraction (programs number so)
-            slots = ids - first
-            return slots, slots.view(np.uint64) < len(self.ids)  # negatives wrap around
-        sorted_ids = self.ids[order]
-        loc = np.minimum(np.searchsorted(sorted_ids, ids), max(len(order) - 1, 0))
-        ok = sorted_ids[loc] == ids if len(order) else np.zeros(len(ids), bool)
-        return order[loc] if len(order) else loc, ok
+        if self._lookup is None:  # once per bank
+            self._lookup = IdLookup(self.ids)
+        return self._lookup(ids)
 
     def estimates(self) -> np.ndarray:
         """The current ``(n, *shape)`` estimates (the store's, or the initial ones)."""

@@ -19,6 +19,7 @@ from graphopt.edge import BaseEdge
 from graphopt.edge_object import check_level
 from graphopt.edge_set import group_depth_positive, group_errors
 from graphopt.errors import GraphError
+from graphopt.linear.indexing import IdLookup
 from graphopt.object_batch import BatchError, checked_information, edge_batch, vertex_batch
 from graphopt.robust_kernel import RobustKernel
 from graphopt.storage import EdgeGroup, VertexStore
@@ -32,13 +33,11 @@ def _flags(vtype: type[BaseVertex], name: str, value: Any, n: int) -> np.ndarray
     """``(n,)`` flags from one flag or ``n`` of them, else a :class:`GraphError`."""
     if type(value) is bool:  # one flag (the usual call): no broadcast
         return np.full(n, value)
-    if type(value) is np.ndarray and value.dtype == bool and value.shape == (n,):
-        return value.copy()  # one flag per vertex already (broadcast_to costs 3 µs)
     arr = np.asarray(value, dtype=bool)
     if arr.shape not in ((), (n,)):
         raise GraphError(f"{vtype.__name__}: {name} must be one flag or {n} of them, got shape "
                          f"{arr.shape}")
-    return np.broadcast_to(arr, (n,)).copy()
+    return arr.copy() if arr.ndim else np.full(n, bool(arr))  # (broadcast_to: 3 µs)
 
 
 class Graph:
@@ -134,21 +133,18 @@ class Graph:
             estimates: ``(n, *estimate_shape)``.
             fixed: One flag for all or ``(n,)`` flags.
             marginalized: One flag for all or ``(n,)`` flags.
-            new_ids: The caller guarantees the ids distinct and not in the graph (graphopt.g2o
-                files its vertices by id into a new graph): no sort, no lookups. Estimates are
-                checked all the same.
+            new_ids: The caller vouches for the ids being distinct and new (graphopt.g2o's,
+                into a new graph): not checked (the estimates are).
         """
         self.flush()
         ids_arr = np.asarray(ids)
         if ids_arr.ndim != 1 or ids_arr.dtype.kind not in "iu":  # (issubdtype: 2 µs)
             raise GraphError(f"{vtype.__name__}: ids must be a 1-D integer array")
-        self._add(vtype, ids_arr.astype(np.int64), estimates, fixed, marginalized,
-                  new_ids=new_ids)
+        self._add(vtype, ids_arr.astype(np.int64), estimates, fixed, marginalized, new_ids=new_ids)
 
     def _add(self, vtype: type[BaseVertex], ids: np.ndarray, estimates: Any, fixed: Any,
              marg: Any, checked: bool = False, new_ids: bool = False) -> int:
-        """Validate (unless ``checked``; the ids not either with ``new_ids``) and append;
-        returns the first new slot."""
+        """Validate (unless ``checked``; ids not with ``new_ids``); returns the first slot."""
         store = self._store(vtype)
         n = len(ids)
         shape = tuple(vtype.estimate_shape)
@@ -251,9 +247,8 @@ class Graph:
             robust_kernel: One kernel for these edges, or ``None``.
             params: Shared parameters.
             data: Per-edge auxiliary arrays.
-            vertex_stores: The caller guarantees that every vertex at position ``p`` is in
-                store ``vertex_stores[p]`` (graphopt.g2o checks its banks): the stores' types
-                are checked, not every distinct id.
+            vertex_stores: The caller vouches for every vertex at position ``p`` being in
+                ``vertex_stores[p]`` (graphopt.g2o's banks): the stores' types are checked.
 
         Returns:
             ``(group, uid of the first edge, number of edges)``.
@@ -305,9 +300,8 @@ class Graph:
     def _add_edges(self, group: EdgeGroup, vids: np.ndarray, meas: np.ndarray, info: np.ndarray,
                    kslot: int | np.ndarray, data: dict[str, np.ndarray],
                    levels: int | np.ndarray = 0, known_vertices: bool = False) -> int:
-        """Validate and append (the vertex ids not with ``known_vertices``: each in a store of
-        its position's type, checked by the caller); the group is registered only once
-        something was added.
+        """Validate (the vertex ids not with ``known_vertices``) and append; the group is
+        registered only once something was added.
 
         Raises:
             BatchError: a check failed for one edge (its index as ``culprit``); a
@@ -434,11 +428,9 @@ class Graph:
     def structure_key(self) -> tuple[Any, ...]:
         """Changes whenever vertices, edges or fixed/marginalised flags change (not levels,
         kernels or estimates)."""
-        if self._vbuf or self._ebuf:
-            self.flush()
-        return (tuple([(id(s), len(s), s.flags_version, s.removals)
-                       for s in self._stores.values()]),
-                tuple([(id(g), g.size, g.removals) for g in self._groups.values()]))
+        st, gs = self.stores.values(), self.groups.values()
+        return (tuple([(id(s), len(s), s.flags_version, s.removals) for s in st]),
+                tuple([(id(g), g.size, g.removals) for g in gs]))
 
     def set_level(self, level: int) -> None:
         """Make the edges of ``level`` the active ones (g2o's ``initializeOptimization(level)``).
@@ -450,29 +442,12 @@ class Graph:
         for g in self.groups.values():
             g.apply_level(self.level)
 
-    # --- structure ---------------------------------------------------------------------------
-
-    def _lookup(self, st: VertexStore) -> tuple[int, np.ndarray | None, np.ndarray | None]:
-        """A store's first id if its ids run consecutively by slot (``first, first + 1, ...``:
-        a slot is then a subtraction), else its ids sorted and the slots in that order (cached
-        per store content).
-
-        Returns:
-            ``(first id, None, None)`` or ``(0, sorted ids, slots)``.
-        """
-        key = (len(st), st.removals)
-        hit = self._lookups.get(id(st))
+    def _lookup(self, st: VertexStore) -> IdLookup:
+        """A store's id → slot lookup (cached per store content)."""
+        key, hit = (len(st), st.removals), self._lookups.get(id(st))
         if hit is None or hit[0] != key or hit[1] is not st:
-            ids = st.ids
-            n = len(ids)
-            if n and int(ids[-1]) - int(ids[0]) == n - 1 and (
-                    n < 3 or bool((ids[1:] - ids[:-1] == 1).all())):
-                hit = (key, st, int(ids[0]), None, None)
-            else:
-                order = np.argsort(ids)
-                hit = (key, st, 0, ids[order], order)
-            self._lookups[id(st)] = hit
-        return hit[2], hit[3], hit[4]
+            hit = self._lookups[id(st)] = (key, st, IdLookup(st.ids))
+        return hit[2]
 
     def group_slots(self, g: EdgeGroup, rows: slice | np.ndarray = slice(None)
                     ) -> list[tuple[VertexStore, np.ndarray]]:
@@ -485,28 +460,17 @@ class Graph:
         Raises:
             GraphError: a position of an edge type that mixes vertex types.
         """
-        out = []
-        vids = g.vertex_ids[rows]
-        ids = self.ids
+        out, vids, ids = [], g.vertex_ids[rows], self.ids
         for a in range(g.k):
             col = vids[:, a]
             first = ids[int(col[0])][0]
-            lo, sids, order = self._lookup(first)
-            if sids is None:  # consecutive ids: slots by a subtraction, no search
-                slots = col - lo
-                ok = slots.view(np.uint64) < len(first)  # (negatives wrap around)
-            else:
-                # minimum, not clip(0, …) (searchsorted is >= 0): 0.5 against 5.5 us
-                loc = np.minimum(np.searchsorted(sids, col), max(len(sids) - 1, 0))
-                ok = sids[loc] == col
-                slots = order[loc]
+            slots, ok = self._lookup(first)(col)
             if not ok.all():
                 bad = int(col[np.flatnonzero(~ok)[0]])
-                other = ids[bad][0].vtype.__name__
                 raise GraphError(
                     f"{g.etype.__name__}: position {a} mixes vertex types "
-                    f"({first.vtype.__name__} and {other}, vertex {bad}); use one type per "
-                    "position within an edge type"
+                    f"({first.vtype.__name__} and {ids[bad][0].vtype.__name__}, vertex {bad}); "
+                    "use one type per position within an edge type"
                 )
             out.append((first, slots))
         return out

@@ -29,11 +29,13 @@ def _bank(ids: list[int]) -> Bank:
     return Bank(VertexSE2, recs, np.zeros((len(ids), 3)))
 
 
-@pytest.mark.parametrize("ids", [[7, 8, 9, 10, 11], [7], [7, 8], [7, 9, 8, 11, 10], [11, 3, 5]])
+@pytest.mark.parametrize("ids", [[7, 8, 9, 10, 11], [7], [7, 8], [7, 9, 8, 11, 10], [11, 3, 5], []])
 def test_bank_slots_of_consecutive_and_other_ids(ids: list[int]) -> None:
+    """(graphopt.linear.indexing.IdLookup, which the graph's resolve uses too.)"""
     bank = _bank(ids)
     where = {v: s for s, v in enumerate(ids)}
-    probe = np.array([*ids[::-1], ids[0] - 1, max(ids) + 1, -3, 6, 12, 2**40])
+    probe = np.array([*ids[::-1], min(ids, default=7) - 1, max(ids, default=7) + 1, -3, 6, 12,
+                      2**40])
     slots, ok = bank.slots_of(probe)
     expected_ok = np.array([int(p) in where for p in probe])
     np.testing.assert_array_equal(ok, expected_ok)

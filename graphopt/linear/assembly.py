@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.sparse as sp
 
-from graphopt.linear.block_ops import EdgeContraction, GatheredGram
+from graphopt.linear.block_ops import EdgeContraction
+from graphopt.linear.gathered_gram import GatheredGram
 from graphopt.linear.indexing import unique_ints
 from graphopt.linear.jacobian_w import JacobianProducts, JacobianW
 from graphopt.linear.schur_config import SchurCostModel

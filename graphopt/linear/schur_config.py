@@ -14,7 +14,7 @@ from numbers import Real
 from typing import TYPE_CHECKING, Literal
 
 if TYPE_CHECKING:
-    from graphopt.linear.block_ops import GatheredGram
+    from graphopt.linear.gathered_gram import GatheredGram
 
 SchurStrategyName = Literal["auto", "sparse", "dense", "gram"]
 STRATEGIES: tuple[str, ...] = ("auto", "sparse", "dense", "gram")
