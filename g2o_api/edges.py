@@ -10,6 +10,7 @@ entry. Each class maps g2o's vertex order onto the graphopt type's (``_perm``: g
 
 from __future__ import annotations
 
+from math import prod
 from typing import Any
 
 import numpy as np
@@ -160,7 +161,7 @@ class BaseEdge:
         m = self._meas
         if type(m) is bytes:  # a float vector kept as its bytes (see _raw_vector)
             a = np.frombuffer(m).copy()
-            return a.reshape(self._mshape) if a.size == int(np.prod(self._mshape)) else a
+            return a.reshape(self._mshape) if a.size == prod(self._mshape) else a
         return m
 
     def set_information(self, information: Any) -> None:

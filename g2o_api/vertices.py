@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy as _copy
 from importlib import import_module
+from math import prod
 from typing import Any
 
 import numpy as np
@@ -148,7 +149,7 @@ class BaseVertex:
                 return None
             if type(est) is bytes:  # set_estimate's bytes of a float vector
                 est = np.frombuffer(est).copy()
-                if est.size == int(np.prod(self._shape)):
+                if est.size == prod(self._shape):
                     return est.reshape(self._shape)
             return self._from_row(self._to_array([est], [self._id])[0])
         return self._from_row(bank.estimates()[self._slot])
