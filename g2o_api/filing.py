@@ -50,10 +50,11 @@ def bucket_edges(edges: Any) -> dict[tuple[Any, ...], list[Any]]:
     """
     buckets: dict[tuple[Any, ...], list[Any]] = {}
     for cls, recs in by_class(list(edges)).items():
-        keys = cls._keys_of(recs)
-        if keys.count(keys[0]) == len(keys):  # the usual case: one key for the class
-            buckets[(cls, keys[0])] = recs
+        key = cls._shared_key(recs)
+        if key is not None:  # the usual case: one key for the class
+            buckets[(cls, key)] = recs
             continue
+        keys = cls._keys_of(recs)
         for e, key in zip(recs, keys, strict=True):
             b = buckets.get((cls, key))
             if b is None:

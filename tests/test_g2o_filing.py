@@ -294,3 +294,24 @@ def test_vertices_of_the_wrong_type_are_still_named() -> None:
     with pytest.raises(GraphError, match=r"vertex 1 is a VertexPointXYZ, position 0 needs a "
                                          r"VertexSE3Expmap"):
         opt.initialize_optimization()
+
+
+@pytest.mark.parametrize("cls", [g2o.EdgeSE3ProjectXYZOnlyPose, g2o.EdgeProjectXYZ2UV])
+def test_batches_by_shared_key_and_by_keys(cls: type) -> None:
+    """One key for every edge (compared attribute by attribute) and several keys (one tuple
+    per edge) bucket as a direct grouping by ``_params_key`` does, in the order added."""
+    for split in (False, True):
+        recs = [cls() for _ in range(7)]
+        for i, e in enumerate(recs):
+            if split and i % 3 == 1:
+                if cls is g2o.EdgeProjectXYZ2UV:
+                    e.set_parameter_id(0, 4)
+                else:
+                    e.fx = 900.0
+        buckets = filing.bucket_edges(recs)
+        expected: dict = {}
+        for e in recs:
+            expected.setdefault((cls, e._params_key()), []).append(e)
+        assert list(buckets) == list(expected) and len(buckets) == 1 + split
+        for k, v in expected.items():
+            assert buckets[k] == v
