@@ -25,7 +25,6 @@ from .vertices import Bank
 __all__ = ["Batch", "stack_information", "stack_measurements"]
 
 
-
 def kernel_key(kernel: Any) -> Any:
     """Edges whose kernels have equal keys share one graphopt kernel."""
     if kernel is None:
