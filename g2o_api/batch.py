@@ -6,9 +6,8 @@ once per state; ``set_level`` and ``set_robust_kernel`` as one entry of an array
 from __future__ import annotations
 
 import weakref
-from collections import deque
 from itertools import repeat
-from operator import attrgetter, is_
+from operator import is_
 from typing import Any
 
 import numpy as np
@@ -24,12 +23,6 @@ from .solvers import RobustKernelBase, graphopt_kernel
 from .vertices import Bank
 
 __all__ = ["Batch", "stack_information", "stack_measurements"]
-
-_LEVEL = attrgetter("_level")
-_KERNEL = attrgetter("_kernel")
-_INFO = attrgetter("_info")
-_MEAS = attrgetter("_meas")
-_DELTA = attrgetter("_delta")
 
 
 def kernel_key(kernel: Any) -> Any:
@@ -78,12 +71,12 @@ class Batch:
                 raise GraphError(f"{cls.__name__} on vertices {vids[i].tolist()}: vertex "
                                  f"{int(vids[i, p])} is not a {b.gtype.__name__} like the "
                                  "other edges' vertices at its position")
-        levels = list(map(_LEVEL, records))
+        levels = [r._level for r in records]
         self.levels = (np.zeros(m, dtype=np.int64) if levels.count(0) == m  # the usual case
                        else np.array(levels, dtype=np.int64))
         self.kernels: list[Any] = []  # graphopt kernels by code
         self._codes: dict[Any, int] = {}
-        kernels = list(map(_KERNEL, records))
+        kernels = [r._kernel for r in records]
         first = kernels[0] if m else None
         if all(map(is_, kernels, repeat(first))) or (  # one object (or None) for all: one code
                 isinstance(first, RobustKernelBase) and self._one_key(kernels)):
@@ -93,7 +86,7 @@ class Batch:
         self.group: EdgeGroup | None = None
         self.rows = np.zeros(0, np.int64)  # the edges' indices in the group
         self.kernels_dirty = self.levels_dirty = False
-        self.measured = gtype.measurement_derived(meas) if m else None
+        self._measured: tuple[np.ndarray | None] | None = None  # see measured
         self._cache: tuple[Any, ...] | None = None
         # (state, chi2 as Python floats, depth tests as Python bools or None): what the per-edge
         # getters index, valid while the state is.
@@ -108,9 +101,17 @@ class Batch:
         self._fchi2: list[float] | None = None
         self._fdepth: list[bool] | None = None
         self._fv0 = self._fv1 = -1
-        # Every record's batch and index, in C loops (setattr over the records).
-        deque(map(setattr, records, repeat("_batch"), repeat(self, m)), maxlen=0)
-        deque(map(setattr, records, repeat("_idx"), range(m)), maxlen=0)
+        for i, r in enumerate(records):  # every record's batch and index (one loop: half
+            r._batch = self  # the cost of two C passes of setattr)
+            r._idx = i
+
+    @property
+    def measured(self) -> np.ndarray | None:
+        """The type's ``measurement_derived`` values (the batch's own evaluation only: made when
+        first read)."""
+        if self._measured is None:
+            self._measured = (self.gtype.measurement_derived(self.meas) if self.m else None,)
+        return self._measured[0]
 
     # --- kernels and levels ------------------------------------------------------------------
 
@@ -121,7 +122,7 @@ class Batch:
         d0 = kernels[0]._delta
         # Sets in C loops (5,000 kernels: 0.4 → 0.1 ms); a NaN width equals nothing.
         return (len(set(map(type, kernels))) == 1 and d0 == d0
-                and len(set(map(_DELTA, kernels))) == 1)
+                and len({k._delta for k in kernels}) == 1)
 
     def code(self, kernel: Any) -> int:
         """The batch's code of a kernel (-1: none)."""
@@ -177,14 +178,29 @@ class Batch:
         """
         if self.group is None:
             return
+        whole = self._whole()
         if self.kernels_dirty:
             self.kernels_dirty = False
-            for c in np.unique(self.kcodes).tolist():
-                self.group.set_kernel(self.rows[self.kcodes == c],
-                                      None if c < 0 else self.kernels[c])
+            kc = self.kcodes
+            c0 = int(kc[0]) if len(kc) else -1
+            if (kc == c0).all():  # one kernel (or none) for all: no sort, no mask
+                self.group.set_kernel(whole if whole is not None else self.rows,
+                                      None if c0 < 0 else self.kernels[c0])
+            else:
+                for c in np.unique(kc).tolist():
+                    self.group.set_kernel(self.rows[kc == c], None if c < 0 else self.kernels[c])
         if levels and self.levels_dirty:
             self.levels_dirty = False
-            self.group.set_levels(self.rows, self.levels)
+            self.group.set_levels(whole if whole is not None else self.rows, self.levels)
+
+    def _whole(self) -> slice | None:
+        """``slice(None)`` if the batch's edges are its group's, in order (one g2o class and
+        parameters per graphopt group, nothing removed: the usual case), else ``None``."""
+        g, r = self.group, self.rows
+        if g is None or len(r) != g.size:
+            return None
+        return slice(None) if not len(r) or (int(r[0]) == 0 and int(r[-1]) == len(r) - 1) \
+            else None
 
     def add_to(self, core: Any) -> None:
         """Add every edge to the graphopt optimizer ``core`` (one ``add_edges``), with its
@@ -198,13 +214,20 @@ class Batch:
             self._st0, self._st1 = self.banks[0].store, self.banks[-1].store
         if not self.m:
             return
-        es = core.add_edges(self.gtype, self.vids, self.meas, self.info, None, self.params,
-                            self.data or None)
-        self.group, self.rows = es.group, es._rows()
+        kc = self.kcodes
+        c0 = int(kc[0])
+        one = bool((kc == c0).all())  # one kernel (or none) for all: given to add_edges
+        # The graph's add_edges (the optimizer's wraps it in an EdgeSet): every vertex at a
+        # position is in its bank's store (checked at filing), so only the stores' types are.
+        group, start, m = core.graph.add_edges(
+            self.gtype, self.vids, self.meas, self.info,
+            self.kernels[c0] if one and c0 >= 0 else None, self.params, self.data or None,
+            vertex_stores=[b.store for b in self.banks])
+        self.group, self.rows = group, group.index_of(np.arange(start, start + m))
         if self.levels.any():
-            self.group.set_levels(self.rows, self.levels)
-        if (self.kcodes >= 0).any():
-            self.kernels_dirty = True
+            whole = self._whole()
+            self.group.set_levels(whole if whole is not None else self.rows, self.levels)
+        self.kernels_dirty = not one
         self.levels_dirty = False
         self.sync(levels=False)
 
@@ -332,7 +355,7 @@ def stack_measurements(cls: type, recs: list[Any]) -> np.ndarray:
         cls: The g2o edge class.
         recs: Its records.
     """
-    raws = list(map(_MEAS, recs))
+    raws = [r._meas for r in recs]
     if cls._raw_vector:  # set_measurement kept float arrays as bytes: one join
         arr = joined(raws, cls._mshape)
         if arr is not None:
@@ -371,7 +394,7 @@ def stack_information(cls: type, recs: list[Any], d: int) -> np.ndarray | None:
         recs: Its records.
         d: The error dimension.
     """
-    infos = list(map(_INFO, recs))
+    infos = [r._info for r in recs]
     first = infos[0]
     if all(map(is_, infos, repeat(first))):  # one object (set_information's shared copies) or None
         return None if first is None else _checked_one(cls, recs[0], first, d)

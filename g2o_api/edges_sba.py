@@ -4,7 +4,6 @@ and stereo variants and the anchored inverse-depth edge, mapped onto graphopt's 
 
 from __future__ import annotations
 
-from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -15,7 +14,7 @@ __all__ = ["SBA_EDGES"]
 
 _ORIGIN = np.zeros(3)
 _ORIGIN.flags.writeable = False
-_XW = attrgetter("Xw")
+_F8 = np.dtype(np.float64)
 
 
 def _depth_pose_point(x: list[np.ndarray], data: dict[str, np.ndarray], params: Any
@@ -70,8 +69,15 @@ class EdgeSE3ProjectXYZOnlyPose(EdgeSE3ProjectXYZ):
 
     @classmethod
     def _data(cls, recs: list[BaseEdge]) -> dict[str, np.ndarray]:
-        xw = list(map(_XW, recs))  # C loops: one pass, one join of 3-element rows
-        if set(map(len, xw)) == {3}:
+        xw = [r.Xw for r in recs]
+        lengths = set(map(len, xw))
+        try:  # float arrays of 3 (programs copy a point in): one join of their bytes
+            buf = b"".join(xw)  # (each at least 3 floats: 24 bytes each, exactly 3)
+            if lengths == {3} and len(buf) == 24 * len(xw) and {x.dtype for x in xw} == {_F8}:
+                return {"Xw": np.frombuffer(buf).reshape(-1, 3).copy()}
+        except (TypeError, AttributeError):  # lists, tuples, strided views
+            pass
+        if lengths == {3}:
             return {"Xw": np.asarray(np.concatenate(xw, axis=None), dtype=float).reshape(-1, 3)}
         return {"Xw": np.array(xw, dtype=float).reshape(len(recs), 3)}
 

@@ -278,8 +278,9 @@ class SparseOptimizer:
         alg = self._algorithm
         core = CoreOptimizer(alg.config, alg.solver, verbose=self._verbose,
                              stopping=StoppingConfig.iterations_only())
-        for gtype, bank in self._banks.items():
-            core.add_vertices(gtype, bank.ids, bank.estimates(), bank.user_fixed, bank.marg)
+        for gtype, bank in self._banks.items():  # (ids: the keys of a dict, in a new graph)
+            core.graph.add_vertices(gtype, bank.ids, bank.estimates(), bank.user_fixed,
+                                    bank.marg, new_ids=True)
         for gtype, bank in self._banks.items():
             bank.store = core.graph.stores[gtype]
         for b in self._batches:

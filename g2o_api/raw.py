@@ -4,6 +4,7 @@ object the cyclic collector tracks); filing joins a batch's bytes into one array
 
 from __future__ import annotations
 
+from math import prod
 from typing import Any
 
 import numpy as np
@@ -23,7 +24,7 @@ def joined(raws: list[Any], shape: tuple[int, ...]) -> np.ndarray | None:
     if not raws or type(raws[0]) is not bytes:
         return None
     try:  # C loops; len() of None or join of a list raise TypeError
-        if set(map(len, raws)) != {8 * int(np.prod(shape))}:
+        if set(map(len, raws)) != {8 * prod(shape)}:  # (math.prod: np.prod costs 3 µs)
             return None
         buf = b"".join(raws)
     except TypeError:

@@ -7,15 +7,14 @@ only files the record: each type's estimates become graphopt's array in one step
 from __future__ import annotations
 
 import copy as _copy
-from collections import deque
 from importlib import import_module
-from itertools import repeat
-from operator import attrgetter
+from math import prod
 from typing import Any
 
 import numpy as np
 
 from graphopt.errors import GraphError
+from graphopt.linear.indexing import IdLookup
 from graphopt.storage import VertexStore
 
 from .geometry import SE2, Isometry3d, SE3Quat, _RigidBase
@@ -25,7 +24,6 @@ from .sim3 import Sim3
 __all__ = ["BaseVertex", "VERTEX_CLASSES"]
 
 _F8 = np.dtype(np.float64)
-_VID, _FIXED, _MARG = attrgetter("_id"), attrgetter("_fixed"), attrgetter("_marg")
 
 
 class Bank:
@@ -33,18 +31,20 @@ class Bank:
     core optimizer is rebuilt; records keep their slot). Records point at their bank, not the
     bank at them (no reference cycle: the optimizer holds the records)."""
 
-    __slots__ = ("gtype", "store", "ids", "user_fixed", "marg", "initial")
+    __slots__ = ("gtype", "store", "ids", "user_fixed", "marg", "initial", "_lookup")
 
     def __init__(self, gtype: type, records: list[BaseVertex], initial: np.ndarray) -> None:
         self.gtype = gtype
         self.store: VertexStore | None = None
         n = len(records)
-        self.ids = np.fromiter(map(_VID, records), np.int64, count=n)  # C loops
-        self.user_fixed = np.fromiter(map(_FIXED, records), bool, count=n)
-        self.marg = np.fromiter(map(_MARG, records), bool, count=n)
+        self.ids = np.fromiter([r._id for r in records], np.int64, count=n)
+        self.user_fixed = np.fromiter([r._fixed for r in records], bool, count=n)
+        self.marg = np.fromiter([r._marg for r in records], bool, count=n)
         self.initial = initial  # the estimates until the first core store exists
-        deque(map(setattr, records, repeat("_bank"), repeat(self, n)), maxlen=0)
-        deque(map(setattr, records, repeat("_slot"), range(n)), maxlen=0)
+        self._lookup: IdLookup | None = None  # see slots_of
+        for i, r in enumerate(records):  # (one loop: half the cost of two setattr passes)
+            r._bank = self
+            r._slot = i
 
     def slots_of(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Slots of ``ids`` and whether each is in this bank.
@@ -52,11 +52,9 @@ class Bank:
         Args:
             ids: ``(m,)`` vertex ids.
         """
-        order = np.argsort(self.ids, kind="stable")
-        sorted_ids = self.ids[order]
-        loc = np.searchsorted(sorted_ids, ids).clip(0, max(len(order) - 1, 0))
-        ok = sorted_ids[loc] == ids if len(order) else np.zeros(len(ids), bool)
-        return order[loc] if len(order) else loc, ok
+        if self._lookup is None:  # once per bank
+            self._lookup = IdLookup(self.ids)
+        return self._lookup(ids)
 
     def estimates(self) -> np.ndarray:
         """The current ``(n, *shape)`` estimates (the store's, or the initial ones)."""
@@ -151,7 +149,7 @@ class BaseVertex:
                 return None
             if type(est) is bytes:  # set_estimate's bytes of a float vector
                 est = np.frombuffer(est).copy()
-                if est.size == int(np.prod(self._shape)):
+                if est.size == prod(self._shape):
                     return est.reshape(self._shape)
             return self._from_row(self._to_array([est], [self._id])[0])
         return self._from_row(bank.estimates()[self._slot])
@@ -259,7 +257,9 @@ def _rigid_rows(cls: type, raws: list[Any], ids: list[int], rows: int) -> np.nda
     matrices."""
     n = len(raws)
     out = np.zeros((n, rows, 4))
-    if all(isinstance(r, _RigidBase) for r in raws):
+    if n == 1 and isinstance(raws[0], _RigidBase):  # set_estimate of a filed vertex
+        out[0, :3, :3], out[0, :3, 3] = raws[0]._R, raws[0]._t
+    elif all(isinstance(r, _RigidBase) for r in raws):
         out[:, :3, :3] = np.array([r._R for r in raws])
         out[:, :3, 3] = np.array([r._t for r in raws])
     else:

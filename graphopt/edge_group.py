@@ -12,21 +12,10 @@ from typing import Any
 
 import numpy as np
 
+from graphopt.chunks import const_ints, join_chunks, join_values, per_edge
 from graphopt.edge import BaseEdge, EdgeContext
 from graphopt.errors import GraphError
 from graphopt.robust_kernel import RobustKernel, kernel_changes, kernel_key
-
-
-def join_chunks(chunks: list[np.ndarray]) -> np.ndarray:
-    """The chunks as one array: the only chunk itself, or their concatenation.
-
-    Args:
-        chunks: Arrays with the same trailing shape.
-    """
-    return chunks[0] if len(chunks) == 1 else np.concatenate(chunks)
-
-
-_join = join_chunks
 
 
 class EdgeGroup:
@@ -180,8 +169,8 @@ class EdgeGroup:
         self._meas.append(meas)
         self._info.append(info)
         # One value for the chunk: a broadcast (no bytes per edge) until it is set per edge.
-        self._kern.append(_per_edge(kernel, n))
-        self._lvl.append(_per_edge(levels, n))
+        self._kern.append(per_edge(kernel, n))
+        self._lvl.append(per_edge(levels, n))
         self._data.append(data)
         self.size += n
         self.next_uid += n
@@ -221,7 +210,7 @@ class EdgeGroup:
         if not parts[0]:
             return (np.zeros((0, self.k), np.int64), np.zeros((0, *self.mshape)),
                     np.zeros((0, self.dim, self.dim)), np.zeros(0, np.int64), {})
-        joined = [_join(p) for p in parts]
+        joined = [join_chunks(p) for p in parts]
         merged = {k: np.concatenate([d[k] for d in data]) for k in data[0]} if data else {}
         return joined[0], joined[1], joined[2], joined[3], merged
 
@@ -232,35 +221,41 @@ class EdgeGroup:
         if self._finalized_size == self.size:
             return
         first_new = len(self.uids)
-        self.vertex_ids = _join(self._vids) if self._vids else self.vertex_ids
-        self.measurements = _join(self._meas) if self._meas else self.measurements
+        self.vertex_ids = join_chunks(self._vids) if self._vids else self.vertex_ids
+        self.measurements = join_chunks(self._meas) if self._meas else self.measurements
         if self._kern:
-            self._kidx = _join_values(self._kern, self.size)
+            self._kidx = join_values(self._kern, self.size)
         if self._lvl:
-            self.levels = _join_values(self._lvl, self.size)
+            self.levels = join_values(self._lvl, self.size)
         if self.size > first_new:  # uids of the edges appended since the last finalize
-            self.uids = np.concatenate([self.uids, np.arange(self.next_uid - self.size
-                                                             + first_new, self.next_uid)])
-        shared = [i for i in self._info if i.ndim == 2]
-        if len(shared) == len(self._info) and all(np.array_equal(shared[0], i) for i in shared):
-            self.information = shared[0] if shared else np.eye(self.dim)
+            new = np.arange(self.next_uid - self.size + first_new, self.next_uid)
+            self.uids = np.concatenate([self.uids, new]) if first_new else new
+        infos = self._info
+        if len(infos) == 1 and infos[0].ndim == 2:  # one chunk, one matrix (the usual group)
+            self.information = infos[0]
+        elif len(infos) == sum(i.ndim == 2 for i in infos) and all(
+                np.array_equal(infos[0], i) for i in infos):
+            self.information = infos[0] if infos else np.eye(self.dim)
         else:
             self.information = np.concatenate(
                 [np.broadcast_to(i, (len(v), self.dim, self.dim)) for i, v in
-                 zip(self._info, self._vids, strict=True)]
+                 zip(infos, self._vids, strict=True)]
             )
-        self.info_is_identity = self.information.ndim == 2 and np.array_equal(
-            self.information, np.eye(self.dim)
-        )
         self.info_diagonal = None
         info = self.information
         if info.ndim == 2:
-            if not np.count_nonzero(info - np.diag(np.diag(info))):
-                self.info_diagonal = np.diag(info).copy()
-        elif np.count_nonzero(info) == np.count_nonzero(diag := info.diagonal(0, 1, 2)):
-            self.info_diagonal = np.ascontiguousarray(diag)  # σ⁻²·I per edge (a SLAM system's)
+            # (Finite, checked on the way in.) Diagonal: as many nonzeros as its diagonal has.
+            d = info.diagonal()
+            nonzero = np.count_nonzero(info)
+            if nonzero == np.count_nonzero(d):
+                self.info_diagonal = d.copy()
+            self.info_is_identity = nonzero == self.dim and bool((d == 1.0).all())
+        else:
+            self.info_is_identity = False
+            if np.count_nonzero(info) == np.count_nonzero(diag := info.diagonal(0, 1, 2)):
+                self.info_diagonal = np.ascontiguousarray(diag)  # σ⁻²·I per edge (a SLAM system's)
         if self._data:
-            self.data = {key: _join([d[key] for d in self._data]) for key in self._data[0]}
+            self.data = {key: join_chunks([d[key] for d in self._data]) for key in self._data[0]}
         self.measured = self.etype.measurement_derived(self.measurements) if self.size else None
         if self.measured is not None and (self.measured.ndim != 2
                                           or len(self.measured) != self.size):
@@ -379,17 +374,23 @@ class EdgeGroup:
         at a time is fine).
 
         Args:
-            i: Edge index (or indices) in the group.
+            i: Edge index (or indices) in the group; ``slice(None)``: every edge.
             kernel: The kernel or ``None``.
         """
         self.finalize()
         slot = self.kernel_slot(kernel)
+        whole = type(i) is slice and i == slice(None)
         if not self._kidx.flags.writeable:  # one broadcast slot so far
             if int(self._kidx[0]) == slot:
                 return
-            self._kidx = self._kidx.copy()
+            if not whole:
+                self._kidx = self._kidx.copy()
+                self._kern = [self._kidx]
+        if whole:  # every edge: one broadcast slot (no bytes per edge)
+            self._kidx = const_ints(slot, self.size)
             self._kern = [self._kidx]
-        self._kidx[i] = slot
+        else:
+            self._kidx[i] = slot
         self._kernels_stale = True
         self.activity_count += 1  # evaluations at the old kernels are stale
 
@@ -476,17 +477,3 @@ class EdgeGroup:
         self._active = None
         self.finalize()
         self.activity_count += 1
-
-
-def _per_edge(value: int | np.ndarray, n: int) -> np.ndarray:
-    """``(n,)`` int64 values: a broadcast of one value (no bytes per edge), or a copy."""
-    arr = np.asarray(value, dtype=np.int64)
-    return np.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr.copy()
-
-
-def _join_values(chunks: list[np.ndarray], n: int) -> np.ndarray:
-    """Per-edge value chunks as one array: a broadcast while all are the same broadcast."""
-    live = [c for c in chunks if len(c)]
-    if live and all(c.strides == (0,) for c in live) and len({int(c[0]) for c in live}) == 1:
-        return np.broadcast_to(np.int64(live[0][0]), (n,))
-    return _join(chunks) if chunks else np.zeros(0, dtype=np.int64)

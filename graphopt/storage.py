@@ -43,6 +43,11 @@ class VertexStore:
     def _consolidate(self) -> None:
         if self._pending:
             self.version += 1
+            if len(self._pending) == 1 and not len(self._ids):  # the first chunk: taken as
+                # it is (Graph._add hands over arrays of its own)
+                self._ids, self._est, self._fixed, self._marg = self._pending[0]
+                self._pending = []
+                return
             ids, est, fixed, marg = zip(*self._pending, strict=True)
             self._ids = np.concatenate([self._ids, *ids])
             self._est = np.concatenate([self._est, *est])
@@ -51,6 +56,8 @@ class VertexStore:
             self._pending = []
 
     def __len__(self) -> int:
+        if not self._pending:
+            return len(self._ids)
         return len(self._ids) + sum(len(p[0]) for p in self._pending)
 
     @property
@@ -95,7 +102,7 @@ class VertexStore:
             marg: ``(n,)`` bool.
         """
         start = len(self)
-        self._pending.append((ids, estimates, fixed, marg))
+        self._pending.append((ids, estimates, fixed, marg))  # (the store's own from now)
         return start
 
     def remove(self, slots: np.ndarray) -> None:
@@ -120,6 +127,9 @@ class VertexStore:
             ids: Their ids.
         """
         ok = self.vtype.validate(estimates)
+        if len(ok) == 1 and ok[0]:  # one vertex (a motion-only BA's pose): set_estimate of
+            self._valid = estimates[0].tobytes()  # this value again is not checked again
+            return
         if not np.all(ok):
             i = int(np.flatnonzero(~ok)[0])
             raise GraphError(

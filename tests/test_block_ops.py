@@ -9,6 +9,7 @@ import scipy.sparse as sp
 import graphopt.linear.block_ops as bo
 from graphopt.errors import NotPositiveDefiniteError
 from graphopt.linear.block_ops import batched_cholesky_inverses, block_products
+from graphopt.linear.gathered_gram import GatheredGram
 
 
 @pytest.mark.parametrize("d", [1, 2, 3, 4, 6])
@@ -71,7 +72,7 @@ def test_gathered_gram_sums_block_products_per_target() -> None:
     b[target == 3] = a[target == 3]
     perm = rng.permutation(len(target))  # terms need not come sorted
     target, a, b = target[perm], a[perm], b[perm]
-    gram = bo.GatheredGram(target, a, b, n_targets, r, d, max_blocks=16, ratio=1.25)
+    gram = GatheredGram(target, a, b, n_targets, r, d, max_blocks=16, ratio=1.25)
     Y = rng.normal(size=(nz, r, d))
     for B in (None, Y):  # Σ Zᵀ Z and Σ Zᵀ Y
         ref = np.zeros((n_targets, d, d))
@@ -98,8 +99,8 @@ def test_gathered_gram_of_one_output_plans_as_the_general_case(same: bool) -> No
     Z = rng.normal(size=(nz, r * d))
     a = rng.integers(0, nz, q)
     b = a if same else rng.integers(0, nz, q)
-    one = bo.GatheredGram(np.zeros(q, dtype=int), a, b, 1, r, d)
-    two = bo.GatheredGram(np.zeros(q, dtype=int), a, b, 2, r, d)  # target 1: no terms
+    one = GatheredGram(np.zeros(q, dtype=int), a, b, 1, r, d)
+    two = GatheredGram(np.zeros(q, dtype=int), a, b, 2, r, d)  # target 1: no terms
     assert (one.chunks, one.padded, one.gathered, one.n_out) == (
         two.chunks, two.padded, two.gathered, two.n_out)
     for name in ("ia", "ib", "pads", "targets"):

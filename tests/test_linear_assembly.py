@@ -145,3 +145,22 @@ def test_edge_contraction_sums_the_selected_edges(left_out: int) -> None:
     np.testing.assert_allclose(con(A, B), want, rtol=1e-13, atol=1e-13)
     out = np.full(con.out_size(d2), np.nan)  # the scratch block is part of the buffer
     np.testing.assert_allclose(con(A, B, out), want, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_u_gram_bound_never_exceeds_the_gram_estimate(seed: int) -> None:
+    """``Assembler._u_gram`` skips planning a Gram when a lower bound of its modelled cost does
+    not beat the sparse contraction: the bound (no padding, one output per target, one chunk)
+    is at most the planned Gram's estimate, so the choice is the one the plan would make."""
+    from graphopt.linear.gathered_gram import GatheredGram
+
+    rng = np.random.default_rng(seed)
+    cost = SchurCostModel()
+    n_t, r, d = int(rng.integers(1, 40)), 2, 6
+    counts = rng.integers(1, 3000 if seed % 2 else 30, n_t)  # every target has a term
+    target = rng.permutation(np.repeat(np.arange(n_t), counts))
+    sel = np.arange(len(target))
+    gram = GatheredGram(target, sel, sel, n_t, r, d)
+    bound = ((2 * cost.gram_gather * r * d + cost.gemm_mac * r * d * d) * len(sel)
+             + cost.gemm_output * n_t + cost.gemm_chunk)
+    assert bound <= cost.gram_seconds(gram, 2 * gram.padded) * (1 + 1e-12)

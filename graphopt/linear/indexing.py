@@ -109,3 +109,41 @@ def concat_ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     lengths = np.asarray(lengths, dtype=np.int64)
     return np.repeat(np.asarray(starts, dtype=np.int64) - (np.cumsum(lengths) - lengths),
                      lengths) + np.arange(int(lengths.sum()))
+
+
+class IdLookup:
+    """Positions of ids in an array of distinct ids: a subtraction when they run consecutively
+    (``first, first + 1, ...``: how programs number vertices), else a binary search in a sorted
+    copy. Built once per id array.
+
+    Args:
+        ids: ``(n,)`` distinct integer ids; an id's position is its slot.
+    """
+
+    __slots__ = ("n", "first", "sorted", "order")
+
+    def __init__(self, ids: np.ndarray) -> None:
+        ids = np.asarray(ids, dtype=np.int64)
+        n = self.n = len(ids)
+        self.first, self.sorted, self.order = 0, None, None
+        if n and int(ids[-1]) - int(ids[0]) == n - 1 and (
+                n < 3 or bool((ids[1:] - ids[:-1] == 1).all())):
+            self.first = int(ids[0])
+        else:
+            self.order = np.argsort(ids, kind="stable")
+            self.sorted = ids[self.order]
+
+    def __call__(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(slots, found)`` of ``(m,)`` int64 ids (a slot is meaningless where not found).
+
+        Args:
+            ids: The ids to look up.
+        """
+        if self.sorted is None:
+            slots = ids - self.first
+            return slots, slots.view(np.uint64) < self.n  # (negatives wrap around)
+        if not self.n:
+            return np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=bool)
+        # minimum, not clip(0, …) (searchsorted is >= 0): 0.5 against 5.5 µs
+        loc = np.minimum(np.searchsorted(self.sorted, ids), self.n - 1)
+        return self.order[loc], self.sorted[loc] == ids

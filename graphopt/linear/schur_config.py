@@ -14,7 +14,7 @@ from numbers import Real
 from typing import TYPE_CHECKING, Literal
 
 if TYPE_CHECKING:
-    from graphopt.linear.block_ops import GatheredGram
+    from graphopt.linear.gathered_gram import GatheredGram
 
 SchurStrategyName = Literal["auto", "sparse", "dense", "gram"]
 STRATEGIES: tuple[str, ...] = ("auto", "sparse", "dense", "gram")
@@ -97,7 +97,7 @@ class SchurCostModel:
         return (self.gram_gather * gathered * r * d
                 + self.gemm_mac * gram.padded * r * d * d
                 + self.gemm_output * gram.n_out
-                + self.gemm_chunk * len(gram.chunks))
+                + self.gemm_chunk * gram.n_chunks)
 
 
 @dataclass(frozen=True)

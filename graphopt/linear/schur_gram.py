@@ -5,7 +5,7 @@ gathered Gram products.
 ``L⁻¹`` times the W array as it is) into a reused buffer. Every block of ``S`` is then a sum of
 ``Z_aᵀ Z_b`` over the W blocks ``a``, ``b`` of its two U blocks that share a V block (a U
 block with itself on the diagonal), computed per block of ``S`` by
-:class:`~graphopt.linear.block_ops.GatheredGram`; the right-hand side takes
+:class:`~graphopt.linear.gathered_gram.GatheredGram`; the right-hand side takes
 ``Z_wᵀ L⁻¹b_v`` per W block. This suits few U blocks with many W blocks each.
 """
 
@@ -17,7 +17,8 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from graphopt.linear.block_ops import GatheredGram, csr_product_into
+from graphopt.linear.block_ops import csr_product_into
+from graphopt.linear.gathered_gram import GatheredGram
 from graphopt.linear.indexing import unique_ints
 from graphopt.linear.schur_config import SchurCostModel
 from graphopt.linear.schur_strategy import SchurPlan, SchurStrategy, VFactors
@@ -40,6 +41,7 @@ class GramProducts(SchurStrategy):
     def __init__(self, index: BlockIndex, plan: GramPlan) -> None:
         super().__init__(index, plan)
         self.gram = plan.gram
+        self.gram.build()  # (planned: built once chosen)
         c = index.wclasses[self.k]
         nb = max(index.n_ublocks, 1)
         dv, du, nw = c.dv, c.du, len(c.ublock)
