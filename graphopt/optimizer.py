@@ -20,7 +20,6 @@ import numpy as np
 
 from graphopt.algorithms import Algorithm, AlgorithmConfig, make_algorithm
 from graphopt.edge import BaseEdge
-from graphopt.edge_object import check_level
 from graphopt.edge_set import EdgeSet
 from graphopt.editing import GraphEditing
 from graphopt.errors import GraphError
@@ -302,7 +301,7 @@ class SparseOptimizer(GraphEditing):
         Raises:
             GraphError: a level that is not a non-negative integer, or invalid objects.
         """
-        self.graph.set_level(check_level(level))
+        self.graph.set_level(level)  # checked there
         self.graph.flush()
         if self._problem is None or self._structure_key != self.graph.structure_key():
             stores, groups, positions = self.graph.resolve()
@@ -323,8 +322,9 @@ class SparseOptimizer(GraphEditing):
 
     def compute_active_errors(self) -> None:
         """Evaluate every edge's error at the current estimates (g2o's
-        ``computeActiveErrors``)."""
-        self._ensure_problem().evaluate()
+        ``computeActiveErrors``): errors only, and none if the last evaluation was at the same
+        estimates, levels and kernels."""
+        self._last()
 
     def _last(self) -> Evaluation:
         """The evaluation at the current estimates, levels and kernels (made if stale)."""
