@@ -20,6 +20,7 @@ import gc
 import os
 import sys
 import weakref
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,12 @@ from .solvers import OptimizationAlgorithm, OptimizationAlgorithmLevenberg, iter
 from .vertices import Bank, BaseVertex, core_type
 
 __all__ = ["SparseOptimizer"]
+
+
+@lru_cache(maxsize=64)
+def _g2o_stopping(iterations: int, change: float) -> StoppingConfig:
+    """``StoppingConfig.g2o`` (frozen: one per count and change, not one per ``optimize``)."""
+    return StoppingConfig.g2o(iterations, change)
 
 
 
@@ -353,7 +360,7 @@ class SparseOptimizer:
         if self._flag is not None and bool(self._flag):
             return 0
         core.verbose = False  # g2o's lines come from _print_line (λ after its update)
-        core.stopping = StoppingConfig.g2o(max(int(iterations), 1), self.rounding_change)
+        core.stopping = _g2o_stopping(max(int(iterations), 1), self.rounding_change)
         core._callbacks["post_iteration"] = [self._after_iteration]
         self._cum_time = 0.0
         try:
