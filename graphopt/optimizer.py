@@ -77,6 +77,10 @@ class SparseOptimizer(GraphEditing):
         self._structure_key: tuple[Any, ...] | None = None
         self._stop = False
         self._interrupt = False
+        # The algorithm's interrupt poll, made once. A weak reference: a bound method would
+        # make a cycle that keeps the whole problem (w10000: 72 MB, CHOLMOD's 15 MB factor)
+        # alive until the garbage collector runs.
+        self._interrupt_poll = _weak_call(weakref.WeakMethod(self._interrupted))
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -368,9 +372,7 @@ class SparseOptimizer(GraphEditing):
         p = self._ensure_problem()
         self.algorithm.reset()  # λ (Dogleg: the radius) from its rule again, as g2o and Ceres
         self._stop = self._interrupt = False
-        # A weak reference: a bound method would make a cycle that keeps the whole problem
-        # (w10000: 72 MB, CHOLMOD's 15 MB factor) alive until the garbage collector runs.
-        self.algorithm.interrupted = _weak_call(weakref.WeakMethod(self._interrupted))
+        self.algorithm.interrupted = self._interrupt_poll
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
         if not np.isfinite(initial):

@@ -41,6 +41,7 @@ from graphopt.linearizer import (
 )
 from graphopt.numeric import checked_oplus
 from graphopt.problem import Problem, Step, Timing
+from graphopt.robust_kernel import kernel_changes
 from graphopt.row_weights import weighted_rows
 from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
 from graphopt.solvers.small_dense import damped_solve
@@ -105,6 +106,8 @@ class SingleVertexProblem(Problem):
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
                            list[tuple[np.ndarray, ...]]] | None = None
+        # Per group, the store index of each vertex position (``raw_eval``'s state).
+        self._stores_of = [tuple(si for si, _ in pos) for pos in positions]
         self._idle_key: tuple[tuple[int, int], ...] | None = None
         self._idle = False
 
@@ -164,7 +167,7 @@ class SingleVertexProblem(Problem):
         again with ``safe``."""
         lz = self.linearizer
         totals = [0.0, 0.0, 0.0]
-        state = lz._state()
+        state, versions = key = self._state_key()
         ht = bu = None
         jac: list[tuple[np.ndarray, ...]] = []
         complete = True
@@ -172,7 +175,7 @@ class SingleVertexProblem(Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             out = self._call(gi, g, "linearize" if lin else "evaluate")
-            wg = (self._weighing_of(gi, g) if self._unary[gi] and not safe
+            wg = (self._weighing_of(gi, g, versions[gi]) if self._unary[gi] and not safe
                   and out.active is None else None)
             if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
                 J = (out.jacobians[0],) if lin else ()
@@ -201,13 +204,22 @@ class SingleVertexProblem(Problem):
             else:
                 complete = complete and not touch
                 jac.append(())
-        ev = lz._finish(totals, state)
-        self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
+        # Linearizer._finish, with the state key formed once above.
+        rchi2 = totals[1] if math.isfinite(totals[1]) else math.inf
+        ev = lz.last = Evaluation(totals[0], rchi2, int(totals[2]))
+        lz.last_state = key
+        self._terms = (key, ht, bu, jac) if linearize and complete else None
         return ev
 
-    def _weighing_of(self, gi: int, g: EdgeGroup) -> Weighing | None:
-        """Group ``gi``'s :class:`~graphopt.unary_terms.Weighing` at its activity version."""
-        version = g.activity_version
+    def _state_key(self) -> tuple[tuple[int, ...], tuple[tuple[int, int], ...]]:
+        """:meth:`Linearizer.state_key` (the same values) in two comprehensions."""
+        kc = kernel_changes()
+        return (tuple([st.version for st in self.stores]),
+                tuple([(g.activity_count, kc) for g in self.groups]))
+
+    def _weighing_of(self, gi: int, g: EdgeGroup, version: tuple[int, int]
+                     ) -> Weighing | None:
+        """Group ``gi``'s :class:`~graphopt.unary_terms.Weighing` at its activity ``version``."""
         kept = self._weighing[gi]
         if kept is None or kept[0] != version:
             kept = self._weighing[gi] = (version, weighing(g))
@@ -217,7 +229,8 @@ class SingleVertexProblem(Problem):
               s: np.ndarray, count: int) -> None:
         """Keep a group's errors for the edge sets' queries at this state (``raw_eval``), its
         per-edge chi2 and active count (:meth:`Linearizer._record`)."""
-        self.linearizer.keep_errors(gi, state, e)
+        g.raw_eval = (tuple([state[si] for si in self._stores_of[gi]]), g.next_uid,
+                      g.removals), e  # Linearizer.keep_errors
         g.last_chi2 = s
         g.active_count = count
 
@@ -331,7 +344,7 @@ class SingleVertexProblem(Problem):
         t0 = time.perf_counter()
         lz = self.linearizer
         terms = self._terms
-        key = lz.state_key()
+        key = self._state_key()
         if terms is None or terms[0] != key:
             self._evaluate(True, every=True, safe=safe)
             terms = self._terms
