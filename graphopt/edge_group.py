@@ -233,6 +233,8 @@ class EdgeGroup:
         infos = self._info
         if len(infos) == 1 and infos[0].ndim == 2:  # one chunk, one matrix (the usual group)
             self.information = infos[0]
+        elif len(infos) == 1 and len(infos[0]) == self.size:  # one chunk, a matrix per edge
+            self.information = infos[0].copy()  # (what the concatenation below makes)
         elif len(infos) == sum(i.ndim == 2 for i in infos) and all(
                 np.array_equal(infos[0], i) for i in infos):
             self.information = infos[0] if infos else np.eye(self.dim)

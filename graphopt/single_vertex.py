@@ -355,7 +355,7 @@ class SingleVertexProblem(Problem):
         if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
             self._name_non_finite(jac)
         asm = self._assembler.finish(ht, bu)
-        if self._idle_vertex(key[1]):
+        if (self._idle if key[1] == self._idle_key else self._idle_vertex(key[1])):
             asm.h_data[self._diag] += 1.0
         h, b = asm.h_data, asm.bu
         if not math.isfinite(h @ h + b @ b) and not (np.isfinite(h).all()  # two dots, not
