@@ -273,7 +273,7 @@ class SparseOptimizer(GraphEditing):
         """
         group, start, m = self.graph.add_edges(etype, vertex_ids, measurements, information,
                                                robust_kernel, params, data)
-        return EdgeSet(self.graph, group, np.arange(start, start + m))
+        return EdgeSet(self.graph, group, np.arange(start, start + m), ascending=True)
 
     def edges(self) -> list[BaseEdge]:
         """The edges added one at a time (bulk edges live only as arrays)."""
