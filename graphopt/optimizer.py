@@ -10,6 +10,7 @@ which only compute numbers.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 import weakref
@@ -375,7 +376,7 @@ class SparseOptimizer(GraphEditing):
         self.algorithm.interrupted = self._interrupt_poll
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
-        if not np.isfinite(initial):
+        if not math.isfinite(initial):
             raise FloatingPointError(f"the initial chi2 is not finite: {self._first_non_finite()}")
         cum = 0.0
         last = initial
