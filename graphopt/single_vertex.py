@@ -106,8 +106,13 @@ class SingleVertexProblem(Problem):
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
                            list[tuple[np.ndarray, ...]]] | None = None
-        # Per group, the store index of each vertex position (``raw_eval``'s state).
-        self._stores_of = [tuple(si for si, _ in pos) for pos in positions]
+        # Per group, the store index of each vertex position (``raw_eval``'s state); None
+        # where they are every store in order (the state itself).
+        every = tuple(range(len(stores)))
+        self._stores_of = [None if at == every else at
+                           for at in (tuple(si for si, _ in pos) for pos in positions)]
+        # The one store and the one group, if so (see _state_key).
+        self._lone = (stores[0], groups[0]) if len(stores) == len(groups) == 1 else None
         self._idle_key: tuple[tuple[int, int], ...] | None = None
         self._idle = False
 
@@ -212,8 +217,12 @@ class SingleVertexProblem(Problem):
         return ev
 
     def _state_key(self) -> tuple[tuple[int, ...], tuple[tuple[int, int], ...]]:
-        """:meth:`Linearizer.state_key` (the same values) in two comprehensions."""
+        """:meth:`Linearizer.state_key` (the same values) in two comprehensions, or none for
+        one store and one group (a motion-only BA)."""
         kc = kernel_changes()
+        if self._lone is not None:
+            st, g = self._lone
+            return (st.version,), ((g.activity_count, kc),)
         return (tuple([st.version for st in self.stores]),
                 tuple([(g.activity_count, kc) for g in self.groups]))
 
@@ -229,8 +238,9 @@ class SingleVertexProblem(Problem):
               s: np.ndarray, count: int) -> None:
         """Keep a group's errors for the edge sets' queries at this state (``raw_eval``), its
         per-edge chi2 and active count (:meth:`Linearizer._record`)."""
-        g.raw_eval = (tuple([state[si] for si in self._stores_of[gi]]), g.next_uid,
-                      g.removals), e  # Linearizer.keep_errors
+        at = self._stores_of[gi]  # Linearizer.keep_errors
+        g.raw_eval = (state if at is None else tuple([state[si] for si in at]), g.next_uid,
+                      g.removals), e
         g.last_chi2 = s
         g.active_count = count
 
