@@ -180,12 +180,20 @@ class SingleVertexProblem(Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             out = self._call(gi, g, "linearize" if lin else "evaluate")
-            wg = (self._weighing_of(gi, g, versions[gi]) if self._unary[gi] and not safe
-                  and out.active is None else None)
+            wg = None
+            if self._unary[gi] and not safe and out.active is None:
+                kept = self._weighing[gi]  # (_weighing_of, its call spared when kept)
+                wg = (kept[1] if kept is not None and kept[0] == versions[gi]
+                      else self._weighing_of(gi, g, versions[gi]))
             if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
+                e = out.error
                 J = (out.jacobians[0],) if lin else ()
-                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J[0] if J else None)
-                self._keep(gi, g, state, out.error, s, wg.count)
+                s, chi, rchi, hg, bg = unary_terms(wg, e, J[0] if J else None)
+                at = self._stores_of[gi]  # _keep's, inline
+                g.raw_eval = (state if at is None else tuple([state[si] for si in at]),
+                              g.next_uid, g.removals), e
+                g.last_chi2 = s
+                g.active_count = wg.count
                 totals[0] += chi
                 totals[1] += rchi
                 totals[2] += wg.count
