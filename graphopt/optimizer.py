@@ -37,6 +37,7 @@ from graphopt.storage import EdgeGroup
 from graphopt.vertex import BaseVertex
 
 Callback = Callable[["SparseOptimizer", IterationInfo], Any]
+_DEFAULT_STOPPING = StoppingConfig()  # the default tests, shared (frozen)
 
 
 class SparseOptimizer(GraphEditing):
@@ -71,7 +72,7 @@ class SparseOptimizer(GraphEditing):
         self._solver_spec = solver
         self._schur = schur
         self.verbose = verbose
-        self.stopping = stopping if stopping is not None else StoppingConfig()
+        self.stopping = stopping if stopping is not None else _DEFAULT_STOPPING
         self.stream = stream
         self._callbacks: dict[str, list[Callback]] = {"pre_iteration": [], "post_iteration": []}
         self._problem: Problem | None = None
