@@ -88,7 +88,8 @@ class SingleVertexProblem(Problem):
         self._ones.flags.writeable = False
         # Per group: whether the free vertex is at each position, per edge.
         on = [[(s == si) & (slots == slot) for s, slots in pos] for pos in positions]
-        self._on_any = [np.logical_or.reduce(o) if o else np.zeros(0, dtype=bool) for o in on]
+        self._on_any = [o[0] if len(o) == 1 else np.logical_or.reduce(o) if o
+                        else np.zeros(0, dtype=bool) for o in on]
         #: Groups whose Jacobians reach ``H`` (the others are evaluated for their chi2 only).
         self._touch = [bool(a.any()) for a in self._on_any]
         self._assembler = SingleBlockAssembler(d, [group_terms(o) for o in on])
