@@ -480,6 +480,7 @@ NAMES: dict[str, type] = {
     "lm": LevenbergConfig, "levenberg": LevenbergConfig,
     "dogleg": DoglegConfig, "dl": DoglegConfig,
 }
+_DEFAULTS: dict[type, AlgorithmConfig] = {}  # the default configs made (frozen: shared)
 
 
 def make_algorithm(spec: str | AlgorithmConfig) -> Algorithm:
@@ -491,7 +492,8 @@ def make_algorithm(spec: str | AlgorithmConfig) -> Algorithm:
     if isinstance(spec, str):
         if spec.lower() not in NAMES:
             raise ValueError(f"unknown algorithm {spec!r}; choose gn, lm or dogleg")
-        spec = NAMES[spec.lower()]()
+        cls = NAMES[spec.lower()]
+        spec = _DEFAULTS.get(cls) or _DEFAULTS.setdefault(cls, cls())
     for base in type(spec).__mro__:  # a subclass of a config runs its base's algorithm
         if base in ALGORITHMS:
             return ALGORITHMS[base](spec)  # type: ignore[arg-type]

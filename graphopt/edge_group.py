@@ -233,6 +233,8 @@ class EdgeGroup:
         infos = self._info
         if len(infos) == 1 and infos[0].ndim == 2:  # one chunk, one matrix (the usual group)
             self.information = infos[0]
+        elif len(infos) == 1 and len(infos[0]) == self.size:  # one chunk, a matrix per edge
+            self.information = infos[0].copy()  # (what the concatenation below makes)
         elif len(infos) == sum(i.ndim == 2 for i in infos) and all(
                 np.array_equal(infos[0], i) for i in infos):
             self.information = infos[0] if infos else np.eye(self.dim)
@@ -403,8 +405,18 @@ class EdgeGroup:
     def _compact_kernels(self) -> None:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
         self._kernels_stale = False
-        kidx = self._kidx  # one kernel (or none) for all, a broadcast: no sort
-        used = kidx[:1] if len(kidx) and kidx.strides == (0,) else np.unique(kidx)
+        kidx = self._kidx
+        if len(kidx) and kidx.strides == (0,):  # one kernel (or none) for all, a broadcast:
+            k = int(kidx[0])  # no sort, no remap (what the general code below gives)
+            keep = [k] if k >= 0 else []
+            if len(keep) != len(self._kernels):
+                self._kernels = [self._kernels[u] for u in keep]
+                self._members = [self._members[u] for u in keep]
+                self._kernel_keys = {kernel_key(kn): i for i, kn in enumerate(self._kernels)}
+                self._kidx = const_ints(0 if keep else -1, self.size)
+            self._kern = [self._kidx]
+            return
+        used = np.unique(kidx)
         used = used[used >= 0]
         if len(used) != len(self._kernels):
             remap = np.full(len(self._kernels) + 1, -1, dtype=np.int64)

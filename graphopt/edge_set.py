@@ -155,10 +155,19 @@ class EdgeSet:
         uids: ``(m,)`` their uids.
     """
 
-    def __init__(self, graph: Graph, group: EdgeGroup, uids: np.ndarray) -> None:
+    def __init__(self, graph: Graph, group: EdgeGroup, uids: np.ndarray,
+                 ascending: bool = False) -> None:
         self._graph = graph
         self._group = group
         self._uids = uids
+        # The uids are distinct and ascending (a set of add_edges or of a whole group): as
+        # many rows as the group has edges are then all of them, in order (see _whole).
+        self._ascending = ascending
+
+    def _whole(self, rows: np.ndarray) -> bool:
+        """Whether ``rows`` (:meth:`_rows`) are every edge of the group, in order: its arrays
+        are then copied or set whole, not through an index."""
+        return self._ascending and len(rows) == self._group.size
 
     # --- what the set is -----------------------------------------------------------------------
 
@@ -237,12 +246,14 @@ class EdgeSet:
         """``(m,)`` ``eᵀΩe`` of every edge at the current estimates, without the kernel and
         whatever its level (g2o's per-edge ``chi2()`` after ``computeError()``)."""
         rows = self._rows()
-        return group_errors(self._graph, self._group)[1][rows].copy()
+        out = group_errors(self._graph, self._group)[1]
+        return out.copy() if self._whole(rows) else out[rows]
 
     def errors(self) -> np.ndarray:
         """``(m, dimension)`` errors at the current estimates."""
         rows = self._rows()
-        return group_errors(self._graph, self._group)[0][rows].copy()
+        out = group_errors(self._graph, self._group)[0]
+        return out.copy() if self._whole(rows) else out[rows]
 
     def is_depth_positive(self) -> np.ndarray:
         """``(m,)`` whether each edge's point lies in front of its camera(s) (the type's
@@ -253,12 +264,14 @@ class EdgeSet:
             GraphError: the type has no ``depth_positive``.
         """
         rows = self._rows()
-        return group_depth_positive(self._graph, self._group)[rows].copy()
+        ok = group_depth_positive(self._graph, self._group)
+        return ok.copy() if self._whole(rows) else ok[rows]
 
     def levels(self) -> np.ndarray:
         """``(m,)`` every edge's level."""
         rows = self._rows()
-        return np.array(self._group.levels[rows])
+        levels = self._group.levels
+        return np.array(levels) if self._whole(rows) else levels[rows]
 
     # --- edits ---------------------------------------------------------------------------------
 
@@ -273,7 +286,8 @@ class EdgeSet:
             GraphError: levels that are not non-negative integers, or of the wrong shape.
         """
         value = _check_levels(levels, len(self), f"EdgeSet of {self.edge_type.__name__}")
-        self._group.set_levels(self._rows(), value)
+        rows = self._rows()
+        self._group.set_levels(slice(None) if self._whole(rows) else rows, value)
 
     def set_robust_kernel(self, kernel: RobustKernel | None) -> None:
         """Give every edge of the set this robust kernel (``None``: none). No new structure.
@@ -284,7 +298,8 @@ class EdgeSet:
         if kernel is not None and not isinstance(kernel, RobustKernel):
             raise GraphError(f"EdgeSet of {self.edge_type.__name__}: robust_kernel must be a "
                              f"RobustKernel or None, got {kernel!r}")
-        self._group.set_kernel(self._rows(), kernel)
+        rows = self._rows()
+        self._group.set_kernel(slice(None) if self._whole(rows) else rows, kernel)
 
     def remove(self, mask: Any = None) -> None:
         """Remove edges from the optimizer (the structure is rebuilt at the next run); the set

@@ -76,5 +76,5 @@ class GraphEditing:
         out = []
         for g in self.graph.groups.values():
             g.finalize()
-            out.append(EdgeSet(self.graph, g, g.uids.copy()))
+            out.append(EdgeSet(self.graph, g, g.uids.copy(), ascending=True))
         return out

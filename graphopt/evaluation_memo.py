@@ -52,12 +52,13 @@ class EvaluationMemo:
             at: The estimate's bytes.
             out: The type's (checked) output.
         """
-        size = sum(a.nbytes for a in (out.error, *out.jacobians))
+        e, jacs = out.error, out.jacobians
+        size = e.nbytes + sum([j.nbytes for j in jacs])
         if size > MEMO_BYTES:
             return
         kept, sizes = self._kept, self._sizes
         red, act = out.reduced_error, out.active
-        new = Linearization(_frozen(out.error), tuple(_frozen(j) for j in out.jacobians),
+        new = Linearization(_frozen(e), tuple([_frozen(j) for j in jacs]),
                             None if red is None else _frozen(red),
                             None if act is None else _frozen(act))
         key = (method, at)

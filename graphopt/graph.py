@@ -318,8 +318,8 @@ class Graph:
         def blame(i: int, what: str) -> BatchError:
             return BatchError(f"{et.__name__} on vertices {vids[i].tolist()}: {what}", i)
 
-        bad = ~np.isfinite(meas.reshape(m, -1)).all(axis=1)
-        if bad.any():
+        if not np.isfinite(meas).all():  # per edge only to name one
+            bad = ~np.isfinite(meas.reshape(m, -1)).all(axis=1)
             raise blame(int(np.flatnonzero(bad)[0]), "non-finite measurement")
         info = checked_information(et, vids, info)
         for pos, vt in enumerate(() if known_vertices else et.vertex_types):

@@ -218,7 +218,7 @@ def _se3_exp_one(wx: float, wy: float, wz: float, ux: float, uy: float, uz: floa
          [b * wz + c * xy, 1.0 + c * yy, -b * wx + c * yz],
          [-b * wy + c * xz, b * wx + c * yz, 1.0 + c * zz]]
     t = [vi[0] * ux + vi[1] * uy + vi[2] * uz for vi in v]
-    return np.array([[[*r[0], t[0]], [*r[1], t[1]], [*r[2], t[2]], [0.0, 0.0, 0.0, 1.0]]])
+    return np.array([*r[0], t[0], *r[1], t[1], *r[2], t[2], 0.0, 0.0, 0.0, 1.0]).reshape(1, 4, 4)
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:

@@ -230,16 +230,17 @@ def checked_information(et: type[BaseEdge], vids: np.ndarray, info: np.ndarray) 
             return BatchError(f"{et.__name__} on vertices {vids[i].tolist()}: {what}", i)
         return GraphError(f"{et.__name__} (one matrix for all {m} edges): {what}")
 
-    finite = np.isfinite(infos).all(axis=(1, 2))
-    if not finite.all():
-        raise bad_info(finite, "non-finite information matrix")
+    if not np.isfinite(infos).all():  # per matrix only to name one
+        raise bad_info(np.isfinite(infos).all(axis=(1, 2)), "non-finite information matrix")
     diag = infos.diagonal(axis1=1, axis2=2)
     if len(infos) > 1 and np.count_nonzero(infos) == np.count_nonzero(diag):
         # Diagonal matrices (σ⁻²·I per observation, a SLAM system's edges): symmetric, and
-        # their eigenvalues are their diagonals (the test below, without eigvalsh and isclose).
-        ok = diag.min(axis=1) >= -1e-9 * np.maximum(np.abs(diag.max(axis=1)), 1.0)
-        if not ok.all():
-            raise bad_info(ok, "information matrix is not positive semi-definite")
+        # their eigenvalues are their diagonals (the test below, without eigvalsh and isclose;
+        # per matrix only when a diagonal is negative, as its bound is never positive).
+        if diag.min() < 0.0:
+            ok = diag.min(axis=1) >= -1e-9 * np.maximum(np.abs(diag.max(axis=1)), 1.0)
+            if not ok.all():
+                raise bad_info(ok, "information matrix is not positive semi-definite")
         return infos[0].copy() if bool((infos == infos[0]).all()) else info
     sym = np.isclose(infos, np.swapaxes(infos, 1, 2), rtol=1e-9, atol=1e-12).all(axis=(1, 2))
     if not sym.all():

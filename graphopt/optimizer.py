@@ -10,6 +10,7 @@ which only compute numbers.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 import weakref
@@ -36,6 +37,7 @@ from graphopt.storage import EdgeGroup
 from graphopt.vertex import BaseVertex
 
 Callback = Callable[["SparseOptimizer", IterationInfo], Any]
+_DEFAULT_STOPPING = StoppingConfig()  # the default tests, shared (frozen)
 
 
 class SparseOptimizer(GraphEditing):
@@ -70,13 +72,17 @@ class SparseOptimizer(GraphEditing):
         self._solver_spec = solver
         self._schur = schur
         self.verbose = verbose
-        self.stopping = stopping if stopping is not None else StoppingConfig()
+        self.stopping = stopping if stopping is not None else _DEFAULT_STOPPING
         self.stream = stream
         self._callbacks: dict[str, list[Callback]] = {"pre_iteration": [], "post_iteration": []}
         self._problem: Problem | None = None
         self._structure_key: tuple[Any, ...] | None = None
         self._stop = False
         self._interrupt = False
+        # The algorithm's interrupt poll, made once. A weak reference: a bound method would
+        # make a cycle that keeps the whole problem (w10000: 72 MB, CHOLMOD's 15 MB factor)
+        # alive until the garbage collector runs.
+        self._interrupt_poll = _weak_call(weakref.WeakMethod(self._interrupted))
 
     # --- configuration -----------------------------------------------------------------------
 
@@ -269,7 +275,7 @@ class SparseOptimizer(GraphEditing):
         """
         group, start, m = self.graph.add_edges(etype, vertex_ids, measurements, information,
                                                robust_kernel, params, data)
-        return EdgeSet(self.graph, group, np.arange(start, start + m))
+        return EdgeSet(self.graph, group, np.arange(start, start + m), ascending=True)
 
     def edges(self) -> list[BaseEdge]:
         """The edges added one at a time (bulk edges live only as arrays)."""
@@ -368,12 +374,10 @@ class SparseOptimizer(GraphEditing):
         p = self._ensure_problem()
         self.algorithm.reset()  # λ (Dogleg: the radius) from its rule again, as g2o and Ceres
         self._stop = self._interrupt = False
-        # A weak reference: a bound method would make a cycle that keeps the whole problem
-        # (w10000: 72 MB, CHOLMOD's 15 MB factor) alive until the garbage collector runs.
-        self.algorithm.interrupted = _weak_call(weakref.WeakMethod(self._interrupted))
+        self.algorithm.interrupted = self._interrupt_poll
         initial = p.evaluate().robust_chi2
         res = OptimizationResult(initial_chi2=initial, final_chi2=initial)
-        if not np.isfinite(initial):
+        if not math.isfinite(initial):
             raise FloatingPointError(f"the initial chi2 is not finite: {self._first_non_finite()}")
         cum = 0.0
         last = initial

@@ -41,6 +41,7 @@ from graphopt.linearizer import (
 )
 from graphopt.numeric import checked_oplus
 from graphopt.problem import Problem, Step, Timing
+from graphopt.robust_kernel import kernel_changes
 from graphopt.row_weights import weighted_rows
 from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
 from graphopt.solvers.small_dense import damped_solve
@@ -87,7 +88,8 @@ class SingleVertexProblem(Problem):
         self._ones.flags.writeable = False
         # Per group: whether the free vertex is at each position, per edge.
         on = [[(s == si) & (slots == slot) for s, slots in pos] for pos in positions]
-        self._on_any = [np.logical_or.reduce(o) if o else np.zeros(0, dtype=bool) for o in on]
+        self._on_any = [o[0] if len(o) == 1 else np.logical_or.reduce(o) if o
+                        else np.zeros(0, dtype=bool) for o in on]
         #: Groups whose Jacobians reach ``H`` (the others are evaluated for their chi2 only).
         self._touch = [bool(a.any()) for a in self._on_any]
         self._assembler = SingleBlockAssembler(d, [group_terms(o) for o in on])
@@ -105,6 +107,13 @@ class SingleVertexProblem(Problem):
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
                            list[tuple[np.ndarray, ...]]] | None = None
+        # Per group, the store index of each vertex position (``raw_eval``'s state); None
+        # where they are every store in order (the state itself).
+        every = tuple(range(len(stores)))
+        self._stores_of = [None if at == every else at
+                           for at in (tuple(si for si, _ in pos) for pos in positions)]
+        # The one store and the one group, if so (see _state_key).
+        self._lone = (stores[0], groups[0]) if len(stores) == len(groups) == 1 else None
         self._idle_key: tuple[tuple[int, int], ...] | None = None
         self._idle = False
 
@@ -164,7 +173,7 @@ class SingleVertexProblem(Problem):
         again with ``safe``."""
         lz = self.linearizer
         totals = [0.0, 0.0, 0.0]
-        state = lz._state()
+        state, versions = key = self._state_key()
         ht = bu = None
         jac: list[tuple[np.ndarray, ...]] = []
         complete = True
@@ -172,12 +181,20 @@ class SingleVertexProblem(Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             out = self._call(gi, g, "linearize" if lin else "evaluate")
-            wg = (self._weighing_of(gi, g) if self._unary[gi] and not safe
-                  and out.active is None else None)
+            wg = None
+            if self._unary[gi] and not safe and out.active is None:
+                kept = self._weighing[gi]  # (_weighing_of, its call spared when kept)
+                wg = (kept[1] if kept is not None and kept[0] == versions[gi]
+                      else self._weighing_of(gi, g, versions[gi]))
             if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
+                e = out.error
                 J = (out.jacobians[0],) if lin else ()
-                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J[0] if J else None)
-                self._keep(gi, g, state, out.error, s, wg.count)
+                s, chi, rchi, hg, bg = unary_terms(wg, e, J[0] if J else None)
+                at = self._stores_of[gi]  # _keep's, inline
+                g.raw_eval = (state if at is None else tuple([state[si] for si in at]),
+                              g.next_uid, g.removals), e
+                g.last_chi2 = s
+                g.active_count = wg.count
                 totals[0] += chi
                 totals[1] += rchi
                 totals[2] += wg.count
@@ -201,13 +218,26 @@ class SingleVertexProblem(Problem):
             else:
                 complete = complete and not touch
                 jac.append(())
-        ev = lz._finish(totals, state)
-        self._terms = (lz.last_state, ht, bu, jac) if linearize and complete else None
+        # Linearizer._finish, with the state key formed once above.
+        rchi2 = totals[1] if math.isfinite(totals[1]) else math.inf
+        ev = lz.last = Evaluation(totals[0], rchi2, int(totals[2]))
+        lz.last_state = key
+        self._terms = (key, ht, bu, jac) if linearize and complete else None
         return ev
 
-    def _weighing_of(self, gi: int, g: EdgeGroup) -> Weighing | None:
-        """Group ``gi``'s :class:`~graphopt.unary_terms.Weighing` at its activity version."""
-        version = g.activity_version
+    def _state_key(self) -> tuple[tuple[int, ...], tuple[tuple[int, int], ...]]:
+        """:meth:`Linearizer.state_key` (the same values) in two comprehensions, or none for
+        one store and one group (a motion-only BA)."""
+        kc = kernel_changes()
+        if self._lone is not None:
+            st, g = self._lone
+            return (st.version,), ((g.activity_count, kc),)
+        return (tuple([st.version for st in self.stores]),
+                tuple([(g.activity_count, kc) for g in self.groups]))
+
+    def _weighing_of(self, gi: int, g: EdgeGroup, version: tuple[int, int]
+                     ) -> Weighing | None:
+        """Group ``gi``'s :class:`~graphopt.unary_terms.Weighing` at its activity ``version``."""
         kept = self._weighing[gi]
         if kept is None or kept[0] != version:
             kept = self._weighing[gi] = (version, weighing(g))
@@ -217,7 +247,9 @@ class SingleVertexProblem(Problem):
               s: np.ndarray, count: int) -> None:
         """Keep a group's errors for the edge sets' queries at this state (``raw_eval``), its
         per-edge chi2 and active count (:meth:`Linearizer._record`)."""
-        self.linearizer.keep_errors(gi, state, e)
+        at = self._stores_of[gi]  # Linearizer.keep_errors
+        g.raw_eval = (state if at is None else tuple([state[si] for si in at]), g.next_uid,
+                      g.removals), e
         g.last_chi2 = s
         g.active_count = count
 
@@ -331,7 +363,7 @@ class SingleVertexProblem(Problem):
         t0 = time.perf_counter()
         lz = self.linearizer
         terms = self._terms
-        key = lz.state_key()
+        key = self._state_key()
         if terms is None or terms[0] != key:
             self._evaluate(True, every=True, safe=safe)
             terms = self._terms
@@ -342,7 +374,7 @@ class SingleVertexProblem(Problem):
         if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
             self._name_non_finite(jac)
         asm = self._assembler.finish(ht, bu)
-        if self._idle_vertex(key[1]):
+        if (self._idle if key[1] == self._idle_key else self._idle_vertex(key[1])):
             asm.h_data[self._diag] += 1.0
         h, b = asm.h_data, asm.bu
         if not math.isfinite(h @ h + b @ b) and not (np.isfinite(h).all()  # two dots, not

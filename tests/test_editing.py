@@ -405,3 +405,33 @@ def test_every_optimize_call_starts_lambda_from_its_rule(scene) -> None:
     assert runs[0][0] == runs[1][0]
     for a, b in zip(runs[0][1], runs[1][1], strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_whole_groups_set_reads_and_edits_its_arrays_whole(scene) -> None:
+    """A set of every edge of its group (``add_edges``' or ``edge_sets()``') is read and edited
+    without an index; a set as long as the group but with an edge twice (indexing) is not
+    taken for the whole group. Both give the indexed set's numbers; dropping the one kernel
+    leaves a broadcast kernel index and no kernel."""
+    opt, es = build(scene)
+    g = es.group
+    m = len(es)
+    assert m == g.size and es._whole(es._rows())
+    twice = es[np.r_[0, np.arange(m - 1)]]  # edge 0 twice, the last edge missing
+    assert len(twice) == m and not twice._whole(twice._rows())
+    levels = (np.arange(m) % 7 == 0).astype(int)
+    twice.set_level(np.r_[5, levels[:-1]])  # edge 0 gets 5, then its own level
+    assert g.levels[-1] == 0 and g.levels[0] == levels[0]
+    es.set_level(levels)
+    np.testing.assert_array_equal(es.levels(), levels)
+    np.testing.assert_array_equal(twice.levels(), np.r_[levels[0], levels[:-1]])
+    np.testing.assert_allclose(es.chi2(), _chi2_by_hand(scene, opt), rtol=1e-12)
+    np.testing.assert_array_equal(twice.chi2(), es.chi2()[np.r_[0, np.arange(m - 1)]])
+    out = es.chi2()
+    out[:] = -1.0  # a copy: the cached values stay
+    assert (es.chi2() >= 0).all()
+    twice.set_robust_kernel(None)  # all but the last edge
+    assert len(g.kernels) == 1 and g.kernel_of(m - 1) is not None
+    (opt.edge_sets()[0]).set_robust_kernel(None)
+    assert g.kernels == [] and g.kernel_index.strides == (0,) and g.kernel_of(m - 1) is None
+    assert opt.chi2() == pytest.approx(float(_chi2_by_hand(scene, opt)[levels == 0].sum()),
+                                       rel=1e-12)

@@ -18,7 +18,7 @@ from graphopt.single_vertex import SingleVertexProblem
 from graphopt.solvers import LinearSolverDense
 from graphopt.solvers.cholmod import LinearSolverCholmod
 from graphopt.stopping import StoppingConfig
-from graphopt.types import EdgeSE3ProjectXYZOnlyPose
+from graphopt.types import EdgeSE3ProjectXYZOnlyPose, VertexSE3Expmap
 
 
 @pytest.fixture
@@ -256,3 +256,40 @@ def test_the_memo_keeps_copies_of_a_types_buffers(edge: type) -> None:
         np.testing.assert_allclose(chi_b, chi_a, rtol=1e-9)
         np.testing.assert_allclose(x_b, x_a, rtol=1e-9)
     assert runs[1][1][0] == runs[1][0][0]  # the second round retraced the first
+
+
+def test_its_own_state_key_is_the_linearizers_after_every_edit() -> None:
+    """The key the problem forms without the linearizer (one store and one group, or the
+    general comprehension) equals :meth:`Linearizer.state_key` after each edit that makes
+    evaluations stale, and an evaluation keeps it; so does the errors' key for the edge sets
+    (a query after a run reuses the run's errors)."""
+    lone = SparseOptimizer("lm", "dense")
+    lone.add_vertices(VertexSE3Expmap, [0], one_free_pose(False).vertex(0).estimate[None])
+    rng = np.random.default_rng(1)
+    es = lone.add_edges(EdgeSE3ProjectXYZOnlyPose, np.zeros((30, 1), dtype=int),
+                        rng.uniform(100, 500, (30, 2)), params=CAM,
+                        data={"Xw": rng.uniform(-1, 1, (30, 3)) + [0, 0, 5]},
+                        robust_kernel=RobustKernelHuber(2.0))
+    for opt in (lone, one_free_pose(True)):
+        opt.initialize_optimization(0)
+        p = opt.problem
+        assert isinstance(p, SingleVertexProblem)
+        assert (p._lone is not None) == (opt is lone)
+        g = opt.edge_groups()[0]
+        kernel = RobustKernelHuber(3.0)
+        for edit in range(5):
+            if edit == 1:
+                g.set_levels(np.arange(5), 1)
+            elif edit == 2:
+                g.set_kernel(np.arange(3), kernel)
+            elif edit == 3:
+                kernel.set_delta(2.5)
+            elif edit == 4:
+                opt.vertex(0).set_estimate(opt.vertex(0).estimate * 1.0)
+            assert p._state_key() == p.linearizer.state_key()
+            p.evaluate()
+            assert p.linearizer.last_state == p.linearizer.state_key()
+    lone.optimize(3)
+    kept = lone.edge_groups()[0].raw_eval
+    assert kept is not None and kept[0][0] == lone.problem.linearizer.state_key()[0]
+    np.testing.assert_array_equal(es.chi2() > 0, np.ones(30, dtype=bool))

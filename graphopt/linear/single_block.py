@@ -31,6 +31,8 @@ def group_terms(on: list[np.ndarray]) -> _Terms:
         on: Per vertex position, ``(m,)`` whether the edge's vertex there is the free one.
     """
     k = len(on)
+    if k == 1 and len(on[0]) and on[0].all():  # unary edges, all on the block (no selection)
+        return [(0, 0, None)], [(0, None)]
     sel = [None if o.all() else np.flatnonzero(o) for o in on]
     hterms = [(a, b, None if sel[a] is None and sel[b] is None else np.flatnonzero(on[a] & on[b]))
               for a in range(k) for b in range(a, k) if (on[a] & on[b]).any()]

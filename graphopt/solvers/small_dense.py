@@ -33,16 +33,22 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
             deficient).
     """
     d = len(diag)
-    data = _damped(h_data, diag, lam, damping)
-    pivots = data[diag].tolist()
+    data = h_data.copy()
+    on = data[::d + 1]  # the diagonal (``diag``'s positions) as a view: no fancy indexing
+    if lam:
+        on += lam * damping
+    pivots = on.tolist()
     # Symmetric: the column-major data read as a (d, d) C array and transposed is a
     # Fortran-ordered view that LAPACK factors in place.
     c, info = sla.lapack.dpotrf(data.reshape(d, d).T, lower=1, overwrite_a=1, clean=0)
-    if info == 0 and all(p * p > PIVOT_SCREEN * abs(q) for p, q in
-                         zip(c.diagonal().tolist(), pivots, strict=True)):
-        du, info = sla.lapack.dpotrs(c, b, lower=1)
-        if info == 0 and math.isfinite(sum(du.tolist())):
-            return du
+    if info == 0:
+        for p, q in zip(c.diagonal().tolist(), pivots, strict=True):
+            if not p * p > PIVOT_SCREEN * abs(q):
+                break
+        else:
+            du, info = sla.lapack.dpotrs(c, b, lower=1)
+            if info == 0 and math.isfinite(sum(du.tolist())):
+                return du
     data = _damped(h_data, diag, lam, damping)  # again: the first was factored over
     factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1, overwrite_a=1,
                                clean=0)
