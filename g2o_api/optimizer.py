@@ -361,7 +361,8 @@ class SparseOptimizer:
             return 0
         core.verbose = False  # g2o's lines come from _print_line (λ after its update)
         core.stopping = _g2o_stopping(max(int(iterations), 1), self.rounding_change)
-        core._callbacks["post_iteration"] = [self._after_iteration]
+        if self._verbose or self._flag is not None:  # else none: a run may be replayed
+            core._callbacks["post_iteration"] = [self._after_iteration]
         self._cum_time = 0.0
         try:
             result = core.optimize(int(iterations))

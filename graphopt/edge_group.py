@@ -433,13 +433,16 @@ class EdgeGroup:
 
     def set_levels(self, i: int | slice | np.ndarray, levels: int | np.ndarray) -> None:
         """Set the level of some edges (validated by the caller); the structure stays (O(edges
-        set): the active mask is recomputed when next read).
+        set): the active mask is recomputed when next read). Levels set to what they are change
+        nothing, :attr:`activity_version` included (ORB-SLAM's outlier passes mostly repeat).
 
         Args:
             i: Edge indices in the group.
             levels: One level or one per edge.
         """
         self.finalize()
+        if (self.levels[i] == levels).all():  # unchanged: what was evaluated at them holds
+            return
         if not self.levels.flags.writeable:
             self.levels = self.levels.copy()
             self._lvl = [self.levels]

@@ -3,6 +3,8 @@ linearisations, and the edge to name when an error or Jacobian is not finite."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 
 from graphopt.edge import Linearization
@@ -101,3 +103,17 @@ def raise_non_finite_edge(g: EdgeGroup, e: np.ndarray, J: tuple[np.ndarray, ...]
     raise FloatingPointError(
         f"{g.etype.__name__} on vertices {ids}: non-finite error or Jacobian at linearisation"
     )
+
+
+def first_non_finite(groups: Iterable[EdgeGroup]) -> str:
+    """The first edge whose error was not finite at the last evaluation, named (or a hint).
+
+    Args:
+        groups: The graph's edge groups.
+    """
+    for g in groups:
+        bad = np.flatnonzero(~np.isfinite(g.last_chi2))
+        if len(bad):
+            return (f"{g.etype.__name__} on vertices {g.vertex_ids[int(bad[0])].tolist()} "
+                    f"(and {len(bad) - 1} more edges of its type); check the estimates")
+    return "check the estimates"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -97,6 +98,10 @@ class Problem:
         solver: The linear solver (analysed here, once).
         schur: How to form the Schur complement (``None``: the cost model chooses).
     """
+
+    #: Whether runs are kept and replayed by their inputs (:mod:`~graphopt.run_memo`, which
+    #: reads :attr:`runs`): for small states only.
+    replayable: ClassVar[bool] = False
 
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
                  positions: Positions, solver: LinearSolver,

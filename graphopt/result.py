@@ -95,6 +95,9 @@ class OptimizationResult:
         seconds: Wall time of the whole call.
         stop_reason: Why the run stopped.
         info: The :class:`IterationInfo` of every iteration.
+        replayed: The run had the inputs of an earlier one on the same structure, whose end
+            state and records it took instead of iterating (:mod:`~graphopt.run_memo`; the
+            records' times are that run's).
     """
 
     initial_chi2: float
@@ -102,6 +105,7 @@ class OptimizationResult:
     seconds: float = 0.0
     stop_reason: StopReason = StopReason.ITERATIONS
     info: list[IterationInfo] = field(default_factory=list)
+    replayed: bool = False
 
     @property
     def iterations(self) -> int:

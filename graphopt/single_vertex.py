@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 
@@ -65,6 +66,8 @@ class SingleVertexProblem(Problem):
         free: ``(store index, slot)`` of the free vertex.
     """
 
+    replayable = True
+
     def __init__(self, stores: list[VertexStore], groups: list[EdgeGroup],
                  positions: Positions, solver: LinearSolver, schur: SchurConfig | None,
                  free: tuple[int, int]) -> None:
@@ -82,6 +85,7 @@ class SingleVertexProblem(Problem):
         si, slot = free
         self._store, self._slot = si, slot
         self._free = [si]
+        self.runs: dict[tuple[Any, ...], Any] = {}  # kept runs (graphopt.run_memo)
         self.d = d = stores[si].vtype.dimension
         self._diag = np.arange(d) * (d + 1)  # diagonal positions in H's column-major data
         self._ones = np.ones(d)
