@@ -422,7 +422,7 @@ class SparseOptimizer(GraphEditing):
         res.final_chi2 = last
         res.seconds = time.perf_counter() - t_start
         if key is not None:
-            keep(p, key, res)
+            keep(p, key, res, self.algorithm, self.stopping)
         return res
 
     def _stop_reason(self, info: IterationInfo, last: float) -> StopReason | None:

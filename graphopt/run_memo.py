@@ -61,13 +61,10 @@ def run_key(p: Problem, algorithm: Any, stopping: Any, iterations: int, plain: b
         if size > MAX_STATE_BYTES:
             return None
         parts.append(est.tobytes())
-    key = (tuple(parts), tuple([g.activity_version for g in p.groups]), type(algorithm),
-           algorithm.config, stopping, iterations)
-    try:
-        hash(key)
-    except TypeError:  # a configuration with an unhashable field
-        return None
-    return key
+    # The frozen configurations by identity (hashing them costs more than the rest of the key;
+    # an equal copy only misses): the entry holds them, so that no other object takes an id.
+    return (tuple(parts), tuple([g.activity_version for g in p.groups]), type(algorithm),
+            id(algorithm.config), id(stopping), iterations)
 
 
 def replay(p: Problem, key: tuple[Any, ...], t_start: float) -> OptimizationResult | None:
@@ -81,33 +78,34 @@ def replay(p: Problem, key: tuple[Any, ...], t_start: float) -> OptimizationResu
     kept = p.runs.get(key)
     if kept is None:
         return None
-    ends, res = kept
+    ends, (initial, final, reason, infos), _ = kept
     for st, end in zip(p.stores, ends, strict=True):
         if end is not None:  # the stores with free vertices
             st.estimates = end.copy()  # a copy: set_estimate writes into the live array
     p.evaluate(linearize=False)  # the last evaluation at the end state, as after the run
-    return OptimizationResult(initial_chi2=res.initial_chi2, final_chi2=res.final_chi2,
-                              seconds=time.perf_counter() - t_start,
-                              stop_reason=res.stop_reason, info=[copy(i) for i in res.info],
-                              replayed=True)
+    return OptimizationResult(initial_chi2=initial, final_chi2=final,
+                              seconds=time.perf_counter() - t_start, stop_reason=reason,
+                              info=[copy(i) for i in infos], replayed=True)
 
 
-def keep(p: Problem, key: tuple[Any, ...], res: OptimizationResult) -> None:
+def keep(p: Problem, key: tuple[Any, ...], res: OptimizationResult, algorithm: Any,
+         stopping: Any) -> None:
     """Keep a finished run's result and end state under its inputs.
 
     Args:
         p: The problem.
         key: From :func:`run_key`, taken before the run.
-        res: The run's result (copied: the caller may change it).
+        res: The run's result (its list is copied; its records are copied when replayed).
+        algorithm: The algorithm whose configuration the key names.
+        stopping: The stopping configuration the key names.
     """
     if res.stop_reason in _NOT_KEPT:
         return
-    free = set(p._free)
-    ends = [np.array(st.estimates) if si in free else None for si, st in enumerate(p.stores)]
+    ends = [None] * len(p.stores)
+    for si in p._free:
+        ends[si] = np.array(p.stores[si].estimates)
     runs = p.runs
-    runs[key] = (ends, OptimizationResult(initial_chi2=res.initial_chi2,
-                                          final_chi2=res.final_chi2, seconds=res.seconds,
-                                          stop_reason=res.stop_reason,
-                                          info=[copy(i) for i in res.info]))
-    while len(runs) > MEMO_RUNS:
+    runs[key] = (ends, (res.initial_chi2, res.final_chi2, res.stop_reason, tuple(res.info)),
+                 (algorithm.config, stopping))
+    if len(runs) > MEMO_RUNS:
         del runs[next(iter(runs))]
