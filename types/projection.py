@@ -198,6 +198,10 @@ def projected_rows(M: np.ndarray, iz: np.ndarray, uv: np.ndarray,
                                                           * cam.focal[:, None])
 
 
+#: Edges up to which :func:`normalised_projection` works on whole ``(m, 2)`` arrays.
+_ROWWISE_EDGES = 256
+
+
 def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
                           bf: float | None = None
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -213,6 +217,18 @@ def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
     Returns:
         ``(e (m, 2|3), iz (m,), uv (m, 2))``.
     """
+    if type(P) is np.ndarray and len(P) <= _ROWWISE_EDGES:
+        # Few edges: whole (m, 2) operations, fewer calls (100 edges: 4.7 against 5.7 µs);
+        # the same operations per element, so the same bits.
+        iz = 1.0 / P[:, 2]
+        uv = P[:, :2] * iz[:, None]
+        pix = uv * cam.focal + cam.centre
+        if bf is None:
+            return z - pix, iz, uv
+        e = np.empty((len(P), 3))
+        e[:, :2] = z[:, :2] - pix
+        e[:, 2] = z[:, 2] - (pix[:, 0] - bf * iz)
+        return e, iz, uv
     # Coordinate by coordinate over the edges (long inner loops): an (m, 2) operation with a
     # strided last axis of 2 runs 2-element loops (500 edges: 4.7 against 10.5 µs).
     PT = P.T
