@@ -184,6 +184,41 @@ def test_optimize_ends_at_a_trial_that_changes_nothing(
     assert g2o.SparseOptimizer.rounding_change == 1e-12
 
 
+def test_a_repeated_round_is_replayed_to_the_same_end() -> None:
+    # ORB-SLAM's rounds restart from the prediction; a round whose levels did not change
+    # repeats the last one, and graphopt answers it from memory (graphopt.run_memo).
+    sc = programs.scene(2, 2000, 2, seed=2)
+    opt = g2o.SparseOptimizer()
+    opt.set_algorithm(programs._algorithm(g2o))
+    v = g2o.VertexSE3Expmap()
+    start = g2o.SE3Quat(sc["R0"][0], sc["t0"][0])
+    v.set_estimate(start)
+    v.set_id(0)
+    opt.add_vertex(v)
+    edges = []
+    for p, _, uv in [o for o in sc["obs"] if o[1] == 0][:150]:
+        e = g2o.EdgeSE3ProjectXYZOnlyPose()
+        e.set_vertex(0, v)
+        e.set_measurement(uv)
+        e.set_robust_kernel(g2o.RobustKernelHuber(np.sqrt(programs.CHI2_MONO)))
+        e.fx, e.fy, e.cx, e.cy = programs.FX, programs.FY, programs.CX, programs.CY
+        e.Xw = sc["X"][p]
+        opt.add_edge(e)
+        edges.append(e)
+    ends = []
+    for _ in range(3):
+        v.set_estimate(start)
+        opt.initialize_optimization(0)
+        n = opt.optimize(10)
+        ends.append((n, v.estimate().matrix(), [e.chi2() for e in edges]))
+        for e in edges:  # the same outliers every round (a level set to what it is)
+            e.set_level(1 if e.chi2() > 1e9 else 0)
+    assert len(opt.core._problem.runs) == 1  # one run kept, replayed twice
+    for n, T, chi2 in ends[1:]:
+        assert n == ends[0][0]
+        assert np.array_equal(T, ends[0][1]) and chi2 == ends[0][2]
+
+
 # g2opy 2.3.0 on the same inputs (its stereo pose-only edge exposes no intrinsics: none there).
 BACKEND_CHI2 = {"EdgeSE3ProjectXYZOnlyPose": 279.9426991326854,
                 "EdgeStereoSE3ProjectXYZ": 1119.1101232164244,
