@@ -486,10 +486,14 @@ def local_ba(g2o: Any, sc: dict[str, Any], n_free: int) -> tuple[float, float, f
     return t1 - t0, clock() - t1, chi2, inliers
 
 
-def motion_only(g2o: Any, sc: dict[str, Any], n: int) -> tuple[float, float, float, int]:
-    """ORB-SLAM's pose optimisation of keyframe 0 against ``n`` fixed world points."""
-    obs = [(p, uv) for p, k, uv in sc["obs"] if k == 0][:n]
-    t0 = clock()
+def pose_only_graph(g2o: Any, sc: dict[str, Any], obs: list[tuple[int, Any]]
+                    ) -> tuple[Any, Any, Any, list[Any]]:
+    """ORB-SLAM's ``PoseOptimization`` graph: keyframe 0's pose (from its noisy start) and one
+    ``EdgeSE3ProjectXYZOnlyPose`` with a Huber kernel per ``(point, pixel)`` of ``obs``.
+
+    Returns:
+        ``(optimizer, pose vertex, start SE3Quat, edges)``.
+    """
     opt = g2o.SparseOptimizer()
     opt.set_algorithm(_algorithm(g2o))
     v = g2o.VertexSE3Expmap()
@@ -509,6 +513,14 @@ def motion_only(g2o: Any, sc: dict[str, Any], n: int) -> tuple[float, float, flo
         e.Xw = sc["X"][p].copy()
         opt.add_edge(e)
         edges.append(e)
+    return opt, v, start, edges
+
+
+def motion_only(g2o: Any, sc: dict[str, Any], n: int) -> tuple[float, float, float, int]:
+    """ORB-SLAM's pose optimisation of keyframe 0 against ``n`` fixed world points."""
+    obs = [(p, uv) for p, k, uv in sc["obs"] if k == 0][:n]
+    t0 = clock()
+    opt, v, start, edges = pose_only_graph(g2o, sc, obs)
     t1 = clock()
     for it in range(4):
         v.set_estimate(start)

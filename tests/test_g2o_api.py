@@ -140,24 +140,11 @@ def _pose_only_run(rounding_change: float | None) -> tuple[int, np.ndarray, floa
     """One ``optimize(10)`` of a 200-match pose-only problem from a perturbed pose, verbose:
     ``(iterations, pose, active chi2)``."""
     sc = programs.scene(2, 2000, 2, seed=2)
-    opt = g2o.SparseOptimizer()
+    obs = [(p, uv) for p, k, uv in sc["obs"] if k == 0][:200]
+    opt, v, _, _ = programs.pose_only_graph(g2o, sc, obs)
     if rounding_change is not None:
         opt.rounding_change = rounding_change
-    opt.set_algorithm(programs._algorithm(g2o))
     opt.set_verbose(True)
-    v = g2o.VertexSE3Expmap()
-    v.set_estimate(g2o.SE3Quat(sc["R0"][0], sc["t0"][0]))
-    v.set_id(0)
-    opt.add_vertex(v)
-    for p, _, uv in [o for o in sc["obs"] if o[1] == 0][:200]:
-        e = g2o.EdgeSE3ProjectXYZOnlyPose()
-        e.set_vertex(0, v)
-        e.set_measurement(uv)
-        e.set_information(np.identity(2))
-        e.set_robust_kernel(g2o.RobustKernelHuber(np.sqrt(programs.CHI2_MONO)))
-        e.fx, e.fy, e.cx, e.cy = programs.FX, programs.FY, programs.CX, programs.CY
-        e.Xw = sc["X"][p]
-        opt.add_edge(e)
     opt.initialize_optimization(0)
     iterations = opt.optimize(10)
     opt.compute_active_errors()
@@ -188,23 +175,8 @@ def test_a_repeated_round_is_replayed_to_the_same_end() -> None:
     # ORB-SLAM's rounds restart from the prediction; a round whose levels did not change
     # repeats the last one, and graphopt answers it from memory (graphopt.run_memo).
     sc = programs.scene(2, 2000, 2, seed=2)
-    opt = g2o.SparseOptimizer()
-    opt.set_algorithm(programs._algorithm(g2o))
-    v = g2o.VertexSE3Expmap()
-    start = g2o.SE3Quat(sc["R0"][0], sc["t0"][0])
-    v.set_estimate(start)
-    v.set_id(0)
-    opt.add_vertex(v)
-    edges = []
-    for p, _, uv in [o for o in sc["obs"] if o[1] == 0][:150]:
-        e = g2o.EdgeSE3ProjectXYZOnlyPose()
-        e.set_vertex(0, v)
-        e.set_measurement(uv)
-        e.set_robust_kernel(g2o.RobustKernelHuber(np.sqrt(programs.CHI2_MONO)))
-        e.fx, e.fy, e.cx, e.cy = programs.FX, programs.FY, programs.CX, programs.CY
-        e.Xw = sc["X"][p]
-        opt.add_edge(e)
-        edges.append(e)
+    obs = [(p, uv) for p, k, uv in sc["obs"] if k == 0][:150]
+    opt, v, start, edges = programs.pose_only_graph(g2o, sc, obs)
     ends = []
     for _ in range(3):
         v.set_estimate(start)
