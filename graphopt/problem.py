@@ -296,6 +296,11 @@ class Problem:
         parts = [float(np.abs(a).max()) for a in (du, *dv) if a.size]
         return max(parts, default=0.0)
 
+    @property
+    def free_stores(self) -> list[int]:
+        """The indices of the stores with free vertices: those a step changes."""
+        return self._free
+
     def push(self) -> None:
         """Save the estimates of every store with free vertices (g2o's ``push``): the arrays
         themselves, since :meth:`apply` replaces them instead of writing into them."""

@@ -102,7 +102,7 @@ def keep(p: Problem, key: tuple[Any, ...], res: OptimizationResult, algorithm: A
     if res.stop_reason in _NOT_KEPT:
         return
     ends = [None] * len(p.stores)
-    for si in p._free:
+    for si in p.free_stores:
         ends[si] = np.array(p.stores[si].estimates)
     runs = p.runs
     runs[key] = (ends, (res.initial_chi2, res.final_chi2, res.stop_reason, tuple(res.info)),
