@@ -130,6 +130,8 @@ class Linearizer:
             tuple(int(slots[0]) if len(slots) > 1 and not np.any(slots != slots[0]) else -1
                   for _, slots in pos) for pos in positions]
         self.last_state: tuple[tuple[int, ...], tuple[int, ...]] | None = None
+        # The one store and the one group, if so (a motion-only BA's): see state_key.
+        self._lone = (stores[0], groups[0]) if len(stores) == len(groups) == 1 else None
         # Per group, what a trial that linearised computed besides the linearisation — Ωe,
         # e'Ωe, ρ, ρ' — keyed by (state, activity version): the next linearize reuses it.
         self._weights: dict[int, tuple[object, Linearization, np.ndarray, np.ndarray,
@@ -382,15 +384,24 @@ class Linearizer:
         totals[1] += chi2 if rho is s else float(rho.sum())
         totals[2] += g.active_count
 
-    def _finish(self, totals: list[float], state: tuple[int, ...]) -> Evaluation:
+    def _finish(self, totals: list[float], state: tuple[int, ...],
+                key: tuple[tuple[int, ...], tuple[Any, ...]] | None = None) -> Evaluation:
+        """Keep the evaluation's totals as :attr:`last`, made at ``state`` (``key``: its
+        :meth:`state_key`, if the caller has it)."""
         rchi2 = totals[1] if math.isfinite(totals[1]) else float("inf")
         self.last = Evaluation(totals[0], rchi2, int(totals[2]))
-        self.last_state = state, tuple(g.activity_version for g in self.groups)
+        self.last_state = key if key is not None else (
+            state, tuple(g.activity_version for g in self.groups))
         return self.last
 
-    def state_key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
-        """What an evaluation depends on besides the structure: estimates, levels, kernels."""
-        return self._state(), tuple(g.activity_version for g in self.groups)
+    def state_key(self) -> tuple[tuple[int, ...], tuple[Any, ...]]:
+        """What an evaluation depends on besides the structure: estimates, levels, kernels
+        (formed without comprehensions for one store and one group: a motion-only BA's key,
+        taken twice an iteration)."""
+        if self._lone is not None:
+            st, g = self._lone
+            return (st.version,), (g.activity_version,)
+        return self._state(), tuple([g.activity_version for g in self.groups])
 
     # --- the two entry points ----------------------------------------------------------------
 

@@ -42,7 +42,6 @@ from graphopt.linearizer import (
 )
 from graphopt.numeric import checked_oplus
 from graphopt.problem import Problem, Step, Timing
-from graphopt.robust_kernel import kernel_changes
 from graphopt.row_weights import weighted_rows
 from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
 from graphopt.solvers.small_dense import damped_solve
@@ -116,8 +115,6 @@ class SingleVertexProblem(Problem):
         every = tuple(range(len(stores)))
         self._stores_of = [None if at == every else at
                            for at in (tuple(si for si, _ in pos) for pos in positions)]
-        # The one store and the one group, if so (see _state_key).
-        self._lone = (stores[0], groups[0]) if len(stores) == len(groups) == 1 else None
         self._idle_key: tuple[tuple[int, int], ...] | None = None
         self._idle = False
 
@@ -177,7 +174,7 @@ class SingleVertexProblem(Problem):
         again with ``safe``."""
         lz = self.linearizer
         totals = [0.0, 0.0, 0.0]
-        state, versions = key = self._state_key()
+        state, versions = key = lz.state_key()
         ht = bu = None
         jac: list[tuple[np.ndarray, ...]] = []
         complete = True
@@ -185,20 +182,12 @@ class SingleVertexProblem(Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             out = self._call(gi, g, "linearize" if lin else "evaluate")
-            wg = None
-            if self._unary[gi] and not safe and out.active is None:
-                kept = self._weighing[gi]  # (_weighing_of, its call spared when kept)
-                wg = (kept[1] if kept is not None and kept[0] == versions[gi]
-                      else self._weighing_of(gi, g, versions[gi]))
+            wg = (self._weighing_of(gi, g, versions[gi])
+                  if self._unary[gi] and not safe and out.active is None else None)
             if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
-                e = out.error
                 J = (out.jacobians[0],) if lin else ()
-                s, chi, rchi, hg, bg = unary_terms(wg, e, J[0] if J else None)
-                at = self._stores_of[gi]  # _keep's, inline
-                g.raw_eval = (state if at is None else tuple([state[si] for si in at]),
-                              g.next_uid, g.removals), e
-                g.last_chi2 = s
-                g.active_count = wg.count
+                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J[0] if J else None)
+                self._keep(gi, g, state, out.error, s, wg.count)
                 totals[0] += chi
                 totals[1] += rchi
                 totals[2] += wg.count
@@ -222,22 +211,9 @@ class SingleVertexProblem(Problem):
             else:
                 complete = complete and not touch
                 jac.append(())
-        # Linearizer._finish, with the state key formed once above.
-        rchi2 = totals[1] if math.isfinite(totals[1]) else math.inf
-        ev = lz.last = Evaluation(totals[0], rchi2, int(totals[2]))
-        lz.last_state = key
+        ev = lz._finish(totals, state, key)
         self._terms = (key, ht, bu, jac) if linearize and complete else None
         return ev
-
-    def _state_key(self) -> tuple[tuple[int, ...], tuple[tuple[int, int], ...]]:
-        """:meth:`Linearizer.state_key` (the same values) in two comprehensions, or none for
-        one store and one group (a motion-only BA)."""
-        kc = kernel_changes()
-        if self._lone is not None:
-            st, g = self._lone
-            return (st.version,), ((g.activity_count, kc),)
-        return (tuple([st.version for st in self.stores]),
-                tuple([(g.activity_count, kc) for g in self.groups]))
 
     def _weighing_of(self, gi: int, g: EdgeGroup, version: tuple[int, int]
                      ) -> Weighing | None:
@@ -367,7 +343,7 @@ class SingleVertexProblem(Problem):
         t0 = time.perf_counter()
         lz = self.linearizer
         terms = self._terms
-        key = self._state_key()
+        key = lz.state_key()
         if terms is None or terms[0] != key:
             self._evaluate(True, every=True, safe=safe)
             terms = self._terms
@@ -378,7 +354,7 @@ class SingleVertexProblem(Problem):
         if not math.isfinite(ev.chi2):  # one sum: no pass over the errors when finite
             self._name_non_finite(jac)
         asm = self._assembler.finish(ht, bu)
-        if (self._idle if key[1] == self._idle_key else self._idle_vertex(key[1])):
+        if self._idle_vertex(key[1]):
             asm.h_data[self._diag] += 1.0
         h, b = asm.h_data, asm.bu
         if not math.isfinite(h @ h + b @ b) and not (np.isfinite(h).all()  # two dots, not

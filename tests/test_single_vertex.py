@@ -258,9 +258,9 @@ def test_the_memo_keeps_copies_of_a_types_buffers(edge: type) -> None:
     assert runs[1][1][0] == runs[1][0][0]  # the second round retraced the first
 
 
-def test_its_own_state_key_is_the_linearizers_after_every_edit() -> None:
-    """The key the problem forms without the linearizer (one store and one group, or the
-    general comprehension) equals :meth:`Linearizer.state_key` after each edit that makes
+def test_the_state_keys_lone_form_is_the_general_one_after_every_edit() -> None:
+    """:meth:`Linearizer.state_key`'s form for one store and one group equals the general one
+    (every store's version, every group's activity version) after each edit that makes
     evaluations stale, and an evaluation keeps it; so does the errors' key for the edge sets
     (a query after a run reuses the run's errors)."""
     lone = SparseOptimizer("lm", "dense")
@@ -274,7 +274,8 @@ def test_its_own_state_key_is_the_linearizers_after_every_edit() -> None:
         opt.initialize_optimization(0)
         p = opt.problem
         assert isinstance(p, SingleVertexProblem)
-        assert (p._lone is not None) == (opt is lone)
+        lz = p.linearizer
+        assert (lz._lone is not None) == (opt is lone)
         g = opt.edge_groups()[0]
         kernel = RobustKernelHuber(3.0)
         for edit in range(5):
@@ -286,7 +287,8 @@ def test_its_own_state_key_is_the_linearizers_after_every_edit() -> None:
                 kernel.set_delta(2.5)
             elif edit == 4:
                 opt.vertex(0).set_estimate(opt.vertex(0).estimate * 1.0)
-            assert p._state_key() == p.linearizer.state_key()
+            assert lz.state_key() == (lz._state(), tuple(g.activity_version
+                                                         for g in lz.groups))
             p.evaluate()
             assert p.linearizer.last_state == p.linearizer.state_key()
     lone.optimize(3)
