@@ -33,11 +33,8 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
             deficient).
     """
     d = len(diag)
-    data = h_data.copy()
-    on = data[::d + 1]  # the diagonal (``diag``'s positions) as a view: no fancy indexing
-    if lam:
-        on += lam * damping
-    pivots = on.tolist()
+    data = _damped(h_data, diag, lam, damping)
+    pivots = data[::d + 1].tolist()
     # Symmetric: the column-major data read as a (d, d) C array and transposed is a
     # Fortran-ordered view that LAPACK factors in place.
     c, info = sla.lapack.dpotrf(data.reshape(d, d).T, lower=1, overwrite_a=1, clean=0)
@@ -58,10 +55,11 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
 
 def _damped(h_data: np.ndarray, diag: np.ndarray, lam: float, damping: np.ndarray
             ) -> np.ndarray:
-    """A copy of ``H``'s data with ``λD`` added to its diagonal."""
+    """A copy of ``H``'s data with ``λD`` added to its diagonal (``diag``'s positions, every
+    ``d + 1``-th entry: written through a strided view, no fancy indexing)."""
     data = h_data.copy()
     if lam:
-        data[diag] += lam * damping
+        data[::len(diag) + 1] += lam * damping
     return data
 
 
