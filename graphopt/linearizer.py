@@ -323,17 +323,13 @@ class Linearizer:
             return s, np.ones_like(s) if weights else None
         kern = g.sole_kernel
         if kern is not None:
-            if not weights:
-                return kern.cost(s), None
-            r0, r1 = kern.cost_and_weight(s)
-            return r0, r1 if kern.nonnegative_weight else np.maximum(r1, 0.0)
+            return kern.cost_and_clipped_weight(s) if weights else (kern.cost(s), None)
         rho = s.copy()
         w = np.ones_like(s)
         for ki, kern in enumerate(g.kernels):
             sel = g.kernel_index == ki
             if sel.any():
-                r0, r1 = kern.cost_and_weight(s[sel])
-                rho[sel], w[sel] = r0, np.maximum(r1, 0.0)
+                rho[sel], w[sel] = kern.cost_and_clipped_weight(s[sel])
         return rho, w
 
     @staticmethod

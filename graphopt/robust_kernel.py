@@ -79,6 +79,16 @@ class RobustKernel:
         r0, r1, _ = self.robustify(s)
         return r0, r1
 
+    def cost_and_clipped_weight(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(ρ(s), max(ρ'(s), 0))``: what the normal equations weigh rows by (an approximated
+        ρ' below 0 weighs its row zero; a :attr:`nonnegative_weight` kernel's is kept as is).
+
+        Args:
+            s: Array of ``e'Ωe`` values (non-negative).
+        """
+        r0, r1 = self.cost_and_weight(s)
+        return r0, r1 if self.nonnegative_weight else np.maximum(r1, 0.0)
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(delta={self.delta:g})"
 

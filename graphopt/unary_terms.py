@@ -92,10 +92,8 @@ def unary_terms(wg: Weighing, e: np.ndarray, J: np.ndarray | None
     elif J is None:
         rchi = float(kernel.cost(s).sum())
     else:
-        rho, w = kernel.cost_and_weight(s)
+        rho, w = kernel.cost_and_clipped_weight(s)
         rchi = float(rho.sum())
-        if not kernel.nonnegative_weight:
-            w = np.maximum(w, 0.0)
     if J is None:
         return s, chi, rchi, None, None
     both = wg.active_info
