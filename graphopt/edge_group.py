@@ -406,29 +406,21 @@ class EdgeGroup:
         """Drop kernels no edge uses, so that an all-kernel-free group takes the fast path."""
         self._kernels_stale = False
         kidx = self._kidx
-        if len(kidx) and kidx.strides == (0,):  # one kernel (or none) for all, a broadcast:
-            k = int(kidx[0])  # no sort, no remap (what the general code below gives)
-            keep = [k] if k >= 0 else []
-            if len(keep) != len(self._kernels):
-                self._kernels = [self._kernels[u] for u in keep]
-                self._members = [self._members[u] for u in keep]
-                self._kernel_keys = {kernel_key(kn): i for i, kn in enumerate(self._kernels)}
-                self._kidx = const_ints(0 if keep else -1, self.size)
-            self._kern = [self._kidx]
-            return
-        used = np.unique(kidx)
+        one = bool(len(kidx)) and kidx.strides == (0,)  # one kernel (or none) for all: no sort
+        used = kidx[:1] if one else np.unique(kidx)
         used = used[used >= 0]
         if len(used) != len(self._kernels):
             remap = np.full(len(self._kernels) + 1, -1, dtype=np.int64)
             remap[used] = np.arange(len(used))
-            self._kidx = remap[self._kidx]
+            # (a broadcast stays one: its one value remapped)
+            self._kidx = const_ints(int(remap[kidx[0]]), self.size) if one else remap[kidx]
             self._kernels = [self._kernels[int(u)] for u in used]
             self._members = [self._members[int(u)] for u in used]
             self._kernel_keys = {kernel_key(k): i for i, k in enumerate(self._kernels)}
-        if len(used) <= 1 and len(self._kidx):
-            value = np.int64(self._kidx[0])
+        if not one and len(used) <= 1 and len(self._kidx):
+            value = int(self._kidx[0])
             if (self._kidx == value).all():
-                self._kidx = np.broadcast_to(value, (self.size,))
+                self._kidx = const_ints(value, self.size)
         self._kern = [self._kidx]
 
     def set_levels(self, i: int | slice | np.ndarray, levels: int | np.ndarray) -> None:
