@@ -97,26 +97,23 @@ def file_vertices(vertices: list[BaseVertex],
         gtype = core_type(name)
         cls, n = type(recs[0]), len(recs)
         est = np.empty((n, *gtype.estimate_shape))
-        if [v._bank for v in recs].count(None) == n:  # none filed before: one conversion
-            raws = [v._est for v in recs]
-            if any(map(is_, raws, repeat(None))):
-                raws = [r if r is not None else cls._default() for r in raws]
-            conv = cls._to_array(raws, [v._id for v in recs])
-            cls._finish(conv, recs)
-            est[:] = conv
-        else:
-            raws, where = [], []
+        todo, where = recs, slice(None)  # the records to convert: all, unless
+        if [v._bank for v in recs].count(None) != n:  # some were filed before (their store's)
+            where = []
             for i, v in enumerate(recs):
-                b = v._bank
-                if b is not None:
-                    est[i] = b.estimates()[v._slot]
-                else:
-                    raws.append(v._est if v._est is not None else v._default())
+                if v._bank is None:
                     where.append(i)
-            if raws:
-                conv = cls._to_array(raws, [recs[i]._id for i in where])
-                cls._finish(conv, [recs[i] for i in where])
-                est[where] = conv
+                else:
+                    est[i] = v._bank.estimates()[v._slot]
+            todo = [recs[i] for i in where]
+        if todo:  # one conversion
+            raws = [v._est for v in todo]
+            if any(map(is_, raws, repeat(None))):
+                raws = [r if r is not None else v._default() for r, v in zip(raws, todo,
+                                                                              strict=True)]
+            conv = cls._to_array(raws, [v._id for v in todo])
+            cls._finish(conv, todo)
+            est[where] = conv
         banks[gtype] = Bank(gtype, recs, est)
     return banks
 
