@@ -67,6 +67,28 @@ def block_order(n_blocks: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray
                                       ).P(), np.int64)
 
 
+def _reserve_columns(M: sp.csc_matrix, n: int, reserve: int, value: float,
+                     itype: type) -> sp.csc_matrix:
+    """``M`` (``n + reserve`` rows, none of them used from ``n`` on) with ``reserve`` columns
+    appended, column ``i`` holding ``value`` in row ``n + i``: the reserve's diagonal block of
+    ``diag(H, ε·I)`` (``value`` ε, ``M`` = ``H``) or its columns (``value`` √ε, ``M`` = ``C``).
+
+    Args:
+        M: CSC matrix.
+        n: Rows in use.
+        reserve: Columns to append.
+        value: Their one entry.
+        itype: The index dtype.
+    """
+    return sp.csc_matrix(
+        (np.concatenate([M.data, np.full(reserve, value)]),
+         np.concatenate([M.indices.astype(itype, copy=False),
+                         np.arange(n, n + reserve, dtype=itype)]),
+         np.concatenate([M.indptr.astype(itype, copy=False),
+                         M.indptr[-1] + np.arange(1, reserve + 1, dtype=itype)])),
+        shape=(n + reserve, M.shape[1] + reserve))
+
+
 class GrowingFactor:
     """``LDLᵀ`` of ``diag(H, ε·I_reserve)`` kept current by rank updates.
 
@@ -87,12 +109,7 @@ class GrowingFactor:
         n = H.shape[0]
         H = H.tocsc()  # CHOLMOD reads the lower triangle only: no copy of it is needed
         self._start(n, reserve, float(H.diagonal().max()) if n else 1.0)
-        itype = H.indices.dtype
-        full = sp.csc_matrix(
-            (np.concatenate([H.data, np.full(reserve, self.epsilon)]),
-             np.concatenate([H.indices, np.arange(n, n + reserve, dtype=itype)]),
-             np.concatenate([H.indptr, H.indptr[-1] + np.arange(1, reserve + 1, dtype=itype)])),
-            shape=(n + reserve, n + reserve))
+        full = _reserve_columns(H, n, reserve, self.epsilon, H.indices.dtype)
         self._factorise(lambda mode: cholesky(full, mode=mode, ordering_method="natural"),
                         supernodal)
 
@@ -115,15 +132,7 @@ class GrowingFactor:
         """
         self = cls.__new__(cls)
         self._start(n, reserve, largest)
-        k = C.shape[1]
-        itype = np.int32
-        full = sp.csc_matrix(
-            (np.concatenate([C.data, np.full(reserve, np.sqrt(self.epsilon))]),
-             np.concatenate([C.indices.astype(itype, copy=False),
-                             np.arange(n, n + reserve, dtype=itype)]),
-             np.concatenate([C.indptr.astype(itype, copy=False),
-                             C.indptr[-1] + np.arange(1, reserve + 1, dtype=itype)])),
-            shape=(n + reserve, k + reserve))
+        full = _reserve_columns(C, n, reserve, np.sqrt(self.epsilon), np.int32)
         full.has_sorted_indices = C.has_sorted_indices
         self._factorise(lambda mode: cholesky_AAt(full, mode=mode, ordering_method="natural"),
                         False)
