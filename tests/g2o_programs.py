@@ -180,6 +180,27 @@ def ba_anchored_inverse_depth(g2o: Any, seed: int = 0, noise: float = 1.0,
             "rmse_after": np.sqrt(sse1 / len(inliers)), "iterations": its}
 
 
+def se2_chain(g2o: Any, poses: list[tuple[float, float, float]], measurement: Any,
+              information: np.ndarray) -> Any:
+    """A chain of ``VertexSE2`` built object by object (the first fixed), an ``EdgeSE2`` with
+    ``measurement`` and ``information`` between each and the next."""
+    opt = g2o.SparseOptimizer()
+    for i, p in enumerate(poses):
+        v = g2o.VertexSE2()
+        v.set_id(i)
+        v.set_estimate(g2o.SE2(*p))
+        v.set_fixed(i == 0)
+        opt.add_vertex(v)
+    for i in range(len(poses) - 1):
+        e = g2o.EdgeSE2()
+        e.set_vertex(0, opt.vertex(i))
+        e.set_vertex(1, opt.vertex(i + 1))
+        e.set_measurement(measurement)
+        e.set_information(information)
+        opt.add_edge(e)
+    return opt
+
+
 def pose_graph_se2(g2o: Any, seed: int = 0, n: int = 200, iterations: int = 10
                    ) -> dict[str, Any]:
     """A 2D pose graph built object by object: a noisy square-ish loop of ``VertexSE2`` with

@@ -517,21 +517,8 @@ def test_verbose_lines_and_user_lambda(capsys: pytest.CaptureFixture[str]) -> No
 
 
 def test_save_a_graph_built_object_by_object(tmp_path: Path) -> None:
-    opt = g2o.SparseOptimizer()
-    poses = [(0.0, 0.0, 0.0), (1.0, 0.1, 0.2), (2.0, 0.3, 0.1)]
-    for i, p in enumerate(poses):
-        v = g2o.VertexSE2()
-        v.set_id(i)
-        v.set_estimate(g2o.SE2(*p))
-        v.set_fixed(i == 0)
-        opt.add_vertex(v)
-    for i in range(2):
-        e = g2o.EdgeSE2()
-        e.set_vertex(0, opt.vertex(i))
-        e.set_vertex(1, opt.vertex(i + 1))
-        e.set_measurement(g2o.SE2(1.0, 0.0, 0.1))
-        e.set_information(np.diag([10.0, 10.0, 100.0]))
-        opt.add_edge(e)
+    opt = programs.se2_chain(g2o, [(0.0, 0.0, 0.0), (1.0, 0.1, 0.2), (2.0, 0.3, 0.1)],
+                             g2o.SE2(1.0, 0.0, 0.1), np.diag([10.0, 10.0, 100.0]))
     opt.initialize_optimization()
     opt.compute_active_errors()
     chi2 = opt.active_chi2()

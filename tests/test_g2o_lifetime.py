@@ -123,23 +123,11 @@ def test_g2o_programs_leave_no_cycles(program: Callable[[], Any], no_collector: 
 
 
 def test_load_and_save_leave_no_cycles(tmp_path: Path, no_collector: None) -> None:
-    opt = g2o.SparseOptimizer()
-    for i in range(5):
-        v = g2o.VertexSE2()
-        v.set_id(i)
-        v.set_estimate(g2o.SE2(float(i), 0.1 * i, 0.0))
-        v.set_fixed(i == 0)
-        opt.add_vertex(v)
-    for i in range(4):
-        e = g2o.EdgeSE2()
-        e.set_vertex(0, opt.vertex(i))
-        e.set_vertex(1, opt.vertex(i + 1))
-        e.set_measurement(g2o.SE2(1.0, 0.0, 0.0))
-        e.set_information(np.identity(3))
-        opt.add_edge(e)
+    opt = programs.se2_chain(g2o, [(float(i), 0.1 * i, 0.0) for i in range(5)],
+                             g2o.SE2(1.0, 0.0, 0.0), np.identity(3))
     opt.save(tmp_path / "a.g2o")
     ref = weakref.ref(opt)
-    del opt, v, e
+    del opt  # (the records were the helper's locals)
     assert ref() is None
     opt = g2o.SparseOptimizer()
     opt.load(tmp_path / "a.g2o")
