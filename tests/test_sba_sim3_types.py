@@ -318,6 +318,24 @@ def test_projection_of_few_edges_has_the_bits_of_the_columnwise_one() -> None:
             assert np.array_equal(a[:100], b)
 
 
+def test_projection_base_is_the_projection_and_the_monomials() -> None:
+    """A pose-only edge's linearisation writes ``iz`` and ``uv`` into the Jacobian's monomial
+    base: the same errors, ``iz``, ``uv`` and pose Jacobian, bit for bit, at either size."""
+    from graphopt.types import projection
+
+    rng = np.random.default_rng(8)
+    P = np.column_stack([rng.normal(0, 1, 600), rng.normal(0, 1, 600), rng.uniform(2, 9, 600)])
+    z = rng.uniform(0, 640, (600, 3))
+    for m in (100, 600):
+        for bf, zz in ((None, z[:m, :2]), (C.BF, z[:m])):
+            e, iz, uv = projection.normalised_projection(P[:m], zz, CAM, bf)
+            e2, a = projection.projection_base(P[:m], zz, CAM, bf)
+            assert np.array_equal(e, e2) and np.array_equal(iz, a[2])
+            assert np.array_equal(uv, a[:2].T) and np.all(a[3] == 1.0)
+            assert np.array_equal(projection.pose_jacobian(iz, uv, CAM, bf),
+                                  projection.monomial_pose_jacobian(a, CAM, bf))
+
+
 def test_one_vertex_oplus_equals_the_batched_one() -> None:
     """A single Sim3 vertex is updated in Python floats; g2o's branches as the batched path."""
     S = sim3_exp(np.array([[0.1, 0.2, -0.1, 1.0, 2.0, 3.0, 0.4]]))

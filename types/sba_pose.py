@@ -32,9 +32,11 @@ from graphopt.types.projection import (
     CameraParameters,
     _pinhole_terms,
     camera_params,
+    monomial_pose_jacobian,
     normalised_projection,
     pose_jacobian,
     projected_rows,
+    projection_base,
 )
 from graphopt.types.sim3_lie import log_left_jacobian, se3quat_log, sim3_adjoint
 from graphopt.types.vertices import VertexPointXYZ, VertexSE3Expmap
@@ -116,14 +118,13 @@ class _OnlyPose(BaseEdge):
         return transform_points(x[0], _world_points(ctx, cls, len(x[0])))
 
     @classmethod
-    def _project(cls, x: Sequence[np.ndarray], z: np.ndarray, ctx: EdgeContext
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, CameraParameters, float | None]:
-        """:func:`normalised_projection`'s ``(e, iz, uv)``, the intrinsics and ``bf`` (stereo)
-        or ``None``."""
+    def _camera_point(cls, x: Sequence[np.ndarray], ctx: EdgeContext
+                      ) -> tuple[np.ndarray, CameraParameters, float | None]:
+        """The camera-frame points, the intrinsics and ``bf`` (stereo) or ``None``."""
         cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
                             else CameraParameters)
         bf = cam.bf if cls.stereo else None  # type: ignore[attr-defined]
-        return (*normalised_projection(cls._point(x, ctx), z, cam, bf), cam, bf)
+        return cls._point(x, ctx), cam, bf
 
     @classmethod
     def error(
@@ -136,7 +137,8 @@ class _OnlyPose(BaseEdge):
             measurement: ``(m, 2)`` pixels (stereo: ``(m, 3)``).
             ctx: ``params`` (intrinsics) and ``data["Xw"]``.
         """
-        return cls._project(x, measurement, ctx)[0]
+        P, cam, bf = cls._camera_point(x, ctx)
+        return normalised_projection(P, measurement, cam, bf)[0]
 
     @classmethod
     def linearize(
@@ -149,8 +151,9 @@ class _OnlyPose(BaseEdge):
             measurement: ``(m, 2)`` pixels (stereo: ``(m, 3)``).
             ctx: ``params`` and ``data["Xw"]``.
         """
-        e, iz, uv, cam, bf = cls._project(x, measurement, ctx)
-        return Linearization(e, (pose_jacobian(iz, uv, cam, bf),))
+        P, cam, bf = cls._camera_point(x, ctx)
+        e, a = projection_base(P, measurement, cam, bf)
+        return Linearization(e, (monomial_pose_jacobian(a, cam, bf),))
 
     @classmethod
     def depth_positive(
