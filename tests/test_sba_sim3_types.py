@@ -305,12 +305,12 @@ def test_pose_jacobian_in_chunks_equals_one_product() -> None:
 def test_projection_of_few_edges_has_the_bits_of_the_columnwise_one() -> None:
     """Up to 256 edges the errors are formed on whole (m, 2) arrays, above column by column:
     the same operations per element, the same bits (mono and stereo)."""
-    from graphopt.types import projection
+    from graphopt.types import pinhole, projection
 
     rng = np.random.default_rng(7)
     P = np.column_stack([rng.normal(0, 1, 600), rng.normal(0, 1, 600), rng.uniform(2, 9, 600)])
     z = rng.uniform(0, 640, (600, 3))
-    assert 100 <= projection._ROWWISE_EDGES < 600
+    assert 100 <= pinhole._ROWWISE_EDGES < 600
     for bf, zz in ((None, z[:, :2]), (C.BF, z)):
         whole = projection.normalised_projection(P, zz, CAM, bf)   # column by column
         few = projection.normalised_projection(P[:100], zz[:100], CAM, bf)
