@@ -4,7 +4,10 @@ ORB-SLAM's ``PoseOptimization`` restarts every round of a frame from the same pr
 and a round whose outliers did not change retraces the last one: the edge type's call — a pure
 function of the estimates, the measurements and the data, which are fixed while the structure
 stands — need not be repeated. :class:`~graphopt.single_vertex.SingleVertexProblem` keeps one
-memo per unary group for as long as its structure (the problem) lives.
+memo per unary group for as long as its structure (the problem) lives, and consults it for the
+evaluations at a run's start and for queries, not for trial steps: a trial's state is new (none
+of the procedure's trials ever hit it, and keeping their outputs cost 7 % of the stereo
+100-match procedure).
 """
 
 from __future__ import annotations

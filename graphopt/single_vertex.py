@@ -161,8 +161,8 @@ class SingleVertexProblem(Problem):
 
     # --- evaluation --------------------------------------------------------------------------
 
-    def _evaluate(self, linearize: bool, every: bool = False, safe: bool = False
-                  ) -> Evaluation:
+    def _evaluate(self, linearize: bool, every: bool = False, safe: bool = False,
+                  memo: bool = True) -> Evaluation:
         """Every group's errors and, with ``linearize``, the normal equations' terms of the
         groups that reach ``H`` and linearise on trial steps (``every``: of all that reach
         ``H``), kept for :meth:`linearize` at this state; the totals.
@@ -171,7 +171,8 @@ class SingleVertexProblem(Problem):
         ``safe``, their rows are not zeroed first, as :func:`~graphopt.activity.only_active`
         does, but their weights: the same numbers, two array passes fewer — unless one of their
         Jacobians is not finite, which :meth:`linearize` finds in ``H`` and then evaluates
-        again with ``safe``."""
+        again with ``safe``. ``memo``: look the unary groups' outputs up in (and add them to)
+        their :class:`~graphopt.evaluation_memo.EvaluationMemo`."""
         lz = self.linearizer
         totals = [0.0, 0.0, 0.0]
         state, versions = key = lz.state_key()
@@ -181,7 +182,7 @@ class SingleVertexProblem(Problem):
         for gi, g in enumerate(self.groups):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
-            out = self._call(gi, g, "linearize" if lin else "evaluate")
+            out = self._call(gi, g, "linearize" if lin else "evaluate", memo)
             wg = (self._weighing_of(gi, g, versions[gi])
                   if self._unary[gi] and not safe and out.active is None else None)
             if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
@@ -233,25 +234,28 @@ class SingleVertexProblem(Problem):
         g.last_chi2 = s
         g.active_count = count
 
-    def _call(self, gi: int, g: EdgeGroup, method: str) -> Linearization:
+    def _call(self, gi: int, g: EdgeGroup, method: str, use_memo: bool) -> Linearization:
         """:meth:`Linearizer._run` without its per-call bookkeeping once a group's output was
-        checked: the context kept (no derived values), the type's method called directly; a
-        unary group's outputs kept by the estimate (:mod:`~graphopt.evaluation_memo`)."""
+        checked: the context kept (no derived values), the type's method called directly; with
+        ``use_memo``, a unary group's outputs kept by the estimate
+        (:mod:`~graphopt.evaluation_memo`)."""
         lz = self.linearizer
         memo = None
-        if self._unary[gi] and lz._one[gi] is not None:
+        unary = self._unary[gi] and lz._one[gi] is not None
+        if unary:
             est = self.stores[self._store].estimates
-            memo = self._memo[gi]
-            at = est[self._slot].tobytes()
-            out = memo.get(method, at)
-            if out is not None:
-                return out
+            if use_memo:
+                memo = self._memo[gi]
+                at = est[self._slot].tobytes()
+                out = memo.get(method, at)
+                if out is not None:
+                    return out
         ctx = self._ctx[gi]
         if ctx is None:
             if g.etype.uses_derived:  # derived values change with the estimates
                 return lz._run(gi, method)
             ctx = self._ctx[gi] = lz.context(gi)  # with the vertex grouping autodiff uses
-        if memo is not None:  # the free vertex's row, broadcast
+        if unary:  # the free vertex's row, broadcast
             x: tuple[np.ndarray, ...] = (broadcast_row(est, self._slot, g.size, False),)
         else:
             x = lz.gather(gi)
@@ -309,7 +313,9 @@ class SingleVertexProblem(Problem):
         Args:
             linearize: Linearise the trial (its Jacobians serve the next iteration).
         """
-        chi = self._evaluate(linearize).robust_chi2
+        # A trial's state is a step away from every earlier one: no memo (in ORB-SLAM's
+        # procedure only the runs' starts, where a round restarts from the same pose, hit it).
+        chi = self._evaluate(linearize, memo=False).robust_chi2
         if not math.isfinite(chi):
             self._check_finite_estimates()
         return chi
