@@ -6,7 +6,7 @@ function of the estimates, the measurements and the data, which are fixed while 
 stands — need not be repeated. :class:`~graphopt.single_vertex.SingleVertexProblem` keeps one
 memo per unary group for as long as its structure (the problem) lives, and consults it for the
 evaluations at a run's start and for queries, not for trial steps: a trial's state is new (none
-of the procedure's trials ever hit it, and keeping their outputs cost 7 % of the stereo
+of the procedure's trials ever hit it, and keeping their outputs cost about 5 % of the stereo
 100-match procedure).
 """
 
