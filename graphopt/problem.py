@@ -301,6 +301,10 @@ class Problem:
         """The indices of the stores with free vertices: those a step changes."""
         return self._free
 
+    def keep_last_outputs(self) -> None:
+        """Keep what a finished run's replay evaluates again (:mod:`~graphopt.run_memo`; the
+        single-vertex problem keeps its last trial's outputs); nothing here."""
+
     def push(self) -> None:
         """Save the estimates of every store with free vertices (g2o's ``push``): the arrays
         themselves, since :meth:`apply` replaces them instead of writing into them."""

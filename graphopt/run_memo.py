@@ -101,6 +101,7 @@ def keep(p: Problem, key: tuple[Any, ...], res: OptimizationResult, algorithm: A
     """
     if res.stop_reason in _NOT_KEPT:
         return
+    p.keep_last_outputs()  # the end state's evaluation, which replay makes again
     ends = [None] * len(p.stores)
     for si in p.free_stores:
         ends[si] = np.array(p.stores[si].estimates)

@@ -104,6 +104,9 @@ class SingleVertexProblem(Problem):
         self._unary = [len(o) == 1 and len(o[0]) > 1 and bool(o[0].all()) for o in on]
         # Per unary group: the type's outputs by the free vertex's estimate.
         self._memo = [EvaluationMemo() for _ in groups]
+        # Per unary group: its latest output if the memo did not take it (a trial's), with the
+        # estimate's bytes, until the group's type is called again (see keep_last_outputs).
+        self._pending: list[tuple[bytes, str, Linearization] | None] = [None] * len(groups)
         # Per unary group: its weighing at an activity version (None: the general weighting).
         self._weighing: list[tuple[tuple[int, int], Weighing | None] | None] = [None] * len(groups)
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
@@ -250,6 +253,7 @@ class SingleVertexProblem(Problem):
                 out = memo.get(method, at)
                 if out is not None:
                     return out
+            self._pending[gi] = None  # the type is called again: its buffers may be reused
         ctx = self._ctx[gi]
         if ctx is None:
             if g.etype.uses_derived:  # derived values change with the estimates
@@ -270,9 +274,21 @@ class SingleVertexProblem(Problem):
                 if checked is out:
                     lz._trusted.add(key)
                 out = checked
-        if memo is not None and lz._one[gi] is not None:
-            memo.put(method, at, out)
+        if unary and lz._one[gi] is not None:
+            if memo is not None:
+                memo.put(method, at, out)
+            else:
+                self._pending[gi] = (est[self._slot].tobytes(), method, out)
         return out
+
+    def keep_last_outputs(self) -> None:
+        """Put each unary group's latest output that the memo did not take — a run's last
+        trial's, at its end state, which a replay of the run evaluates again — into the memo."""
+        for gi, item in enumerate(self._pending):
+            if item is not None:
+                at, method, out = item
+                self._memo[gi].put(method, at, out)
+                self._pending[gi] = None
 
     def _lean_terms(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...],
                     lin: bool, totals: list[float]

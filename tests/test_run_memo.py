@@ -60,6 +60,23 @@ def test_the_same_inputs_replay_the_run_and_its_end_state() -> None:
     assert np.array_equal(ref_edges.chi2(), chi2_end)
 
 
+def test_a_replay_calls_no_edge_type(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The end state's evaluation that a replay makes comes from the evaluation memo (the run's
+    last trial's outputs, kept when the run was): the type is not called; a run that is not
+    replayed calls it."""
+    opt, edges, s = _problem()
+    _run(opt, s.T_init)
+    calls = []
+    for method in ("evaluate", "linearize"):
+        real = getattr(EdgeSE3ProjectXYZOnlyPose, method)
+        monkeypatch.setattr(EdgeSE3ProjectXYZOnlyPose, method, classmethod(
+            lambda cls, *a, _real=real, _m=method: calls.append(_m) or _real(*a)))
+    assert _run(opt, s.T_init).replayed and calls == []
+    chi2 = opt.active_robust_chi2()
+    assert not _run(opt, s.T_init, iterations=9).replayed and calls
+    assert _run(opt, s.T_init).replayed and opt.active_robust_chi2() == chi2
+
+
 def test_every_changed_input_computes_afresh() -> None:
     opt, edges, s = _problem()
     _run(opt, s.T_init)
