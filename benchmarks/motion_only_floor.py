@@ -16,7 +16,9 @@ and ``bare_g2o``, the bare loop doing g2o's iterations and trials (``optimize(10
 iterations unless one finds no step in 10 trials or a trial leaves chi2 unchanged to rounding,
 ``StoppingConfig.g2o``: about 18 iterations and trials over the four rounds, where graphopt's
 own stopping tests end after 13 iterations). It is the floor of any numpy implementation of
-those semantics.
+those semantics. The same program run on objects that do nothing (``null_g2o.py``) is what the
+program costs by itself; with bare numpy's optimisation it is the floor of any implementation
+of g2o's API in Python (*floor / g2opy*).
 
 Method: one thread a side, interleaved, CPU time, medians of ``--runs`` batches of 50 calls.
 
@@ -225,27 +227,36 @@ def _medians(calls: dict[str, Callable[[], Any]], runs: int) -> dict[str, float]
     return {k: float(np.median(v)) for k, v in times.items()}
 
 
+def _program_on(g2o_side: Any, module: Any, name: str) -> Any:
+    """``slam_backend_g2o``'s functions reading ``module`` as their ``g2o``: the same program of
+    g2opy calls, run by another module."""
+    side = type(g2o_side)(name)
+    side.__dict__.update({k: v for k, v in g2o_side.__dict__.items() if not k.startswith("__")})
+    side.g2o = module
+    side.NO_KERNEL = module.RobustKernelHuber(1e12)
+    for key, fn in g2o_side.__dict__.items():  # its functions, reading side's globals
+        if getattr(fn, "__module__", None) == g2o_side.__name__ and hasattr(fn, "__code__"):
+            side.__dict__[key] = type(fn)(fn.__code__, side.__dict__, key, fn.__defaults__,
+                                          fn.__closure__)
+    return side
+
+
 def g2o_semantics(args: argparse.Namespace) -> None:
     """The ``--g2o-semantics`` table (see the module docstring)."""
+    import null_g2o
     import slam_backend_g2o as g2o_side
 
     import graphopt.g2o as go_g2o
 
-    # The same ORB-SLAM program of g2opy calls, run by both modules.
-    go_side = type(g2o_side)("slam_backend_graphopt_g2o")
-    go_side.__dict__.update({k: v for k, v in g2o_side.__dict__.items()
-                             if not k.startswith("__")})
-    go_side.g2o = go_g2o
-    go_side.NO_KERNEL = go_g2o.RobustKernelHuber(1e12)
-    for name, fn in g2o_side.__dict__.items():  # its functions, reading go_side's globals
-        if getattr(fn, "__module__", None) == g2o_side.__name__ and hasattr(fn, "__code__"):
-            go_side.__dict__[name] = type(fn)(fn.__code__, go_side.__dict__, name,
-                                              fn.__defaults__, fn.__closure__)
+    go_side = _program_on(g2o_side, go_g2o, "slam_backend_graphopt_g2o")
+    null_side = _program_on(g2o_side, null_g2o, "slam_backend_null_g2o")
     print("motion-only BA (mono) with g2o's semantics, CPU ms per call, medians of "
-          f"{args.runs} batches of 50; one thread")
-    print("| matches | g2opy | graphopt.g2o | bare numpy (g2o's semantics) | graphopt.g2o / g2opy "
-          "| bare / g2opy | iterations, trials (bare) | last round's chi2 (bare, g2opy) |")
-    print("|---|---|---|---|---|---|---|---|")
+          f"{args.runs} batches of 50; one thread. *program*: the g2opy program on objects "
+          "that do nothing (null_g2o.py); *floor*: program + bare numpy")
+    print("| matches | g2opy | graphopt.g2o | bare numpy (g2o's semantics) | program | "
+          "graphopt.g2o / g2opy | bare / g2opy | floor / g2opy | iterations, trials (bare) | "
+          "last round's chi2 (bare, g2opy) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for m in (int(x) for x in args.matches.split(",")):
         s = scenes.motion_only(m, False)
         count = [0, 0]
@@ -256,6 +267,8 @@ def g2o_semantics(args: argparse.Namespace) -> None:
                                                                   s.inv_sigma2, lambda: None),
             "bare": lambda s=s, count=count: bare_g2o(s.T_init, s.Xw, s.z, s.inv_sigma2,
                                                       scenes.CAM, count),
+            "program": lambda s=s: null_side.pose_optimization(s.T_init, s.Xw, s.z,
+                                                               s.inv_sigma2, lambda: None),
         }
         _, inl_b, chi_b = calls["bare"]()
         counted = list(count)
@@ -264,9 +277,11 @@ def g2o_semantics(args: argparse.Namespace) -> None:
         assert np.array_equal(inl_b, inl_g) and np.array_equal(inl_go, inl_g), \
             "the inlier sets differ"
         med = _medians(calls, args.runs)
-        print(f"| {m} | {med['g2opy']:.2f} | {med['graphopt.g2o']:.2f} | {med['bare']:.2f} | "
-              f"{med['graphopt.g2o'] / med['g2opy']:.2f} | {med['bare'] / med['g2opy']:.2f} | "
-              f"{counted[0]}, {counted[1]} | {chi_b:.6g}, {quality():.6g} |")
+        g = med["g2opy"]
+        print(f"| {m} | {g:.2f} | {med['graphopt.g2o']:.2f} | {med['bare']:.2f} | "
+              f"{med['program']:.2f} | {med['graphopt.g2o'] / g:.2f} | {med['bare'] / g:.2f} | "
+              f"{(med['bare'] + med['program']) / g:.2f} | {counted[0]}, {counted[1]} | "
+              f"{chi_b:.6g}, {quality():.6g} |")
 
 
 def main() -> None:
