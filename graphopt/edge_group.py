@@ -73,7 +73,8 @@ class EdgeGroup:
         #: The errors of every edge at the last evaluation, whatever its level: ``((versions
         #: of the stores of the vertex positions, next_uid, removals), errors (m, dimension))``
         #: — what :func:`~graphopt.edge_set.group_errors` reuses at the same estimates.
-        self.raw_eval: tuple[tuple[tuple[int, ...], int, int], np.ndarray] | None = None
+        self.raw_eval: tuple[tuple[tuple[int, ...], int, int], np.ndarray,
+                             np.ndarray | None] | None = None
         #: The initialised level, the ``(m,)`` mask of the edges at that level (``None``: all
         #: are), and a counter of its changes.
         self.level = 0

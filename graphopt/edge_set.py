@@ -51,7 +51,9 @@ def _per_group(graph: Graph, g: EdgeGroup, what: str,
     if hit[4] != state:
         raw = g.raw_eval  # the optimiser's last evaluation of every edge, if at this state
         if what == "errors" and raw is not None and raw[0] == (state, g.next_uid, g.removals):
-            result: Any = _chi2(g, raw[1].copy())  # the optimiser's array stays its own
+            # The optimiser's arrays stay its own; its e'Ωe of every edge if it kept it.
+            result: Any = (_chi2(g, raw[1].copy()) if raw[2] is None
+                           else (_frozen(raw[1]), _frozen(raw[2])))
         else:
             result = compute(g, tuple(st.estimates[slots] for st, slots in stores))
         hit = (*hit[:4], state, result)
@@ -84,6 +86,13 @@ def _chi2(g: EdgeGroup, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     e.flags.writeable = False
     s.flags.writeable = False
     return e, s
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """A read-only copy."""
+    a = a.copy()
+    a.flags.writeable = False
+    return a
 
 
 def _depth(g: EdgeGroup, x: tuple[np.ndarray, ...]) -> np.ndarray:

@@ -366,7 +366,7 @@ class Linearizer:
         """
         g = self.groups[gi]
         g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
-                       g.removals), e)
+                       g.removals), e, None)
 
     def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
                 active: np.ndarray | None, totals: list[float], chi2: float | None = None

@@ -80,7 +80,7 @@ class SingleVertexProblem(Problem):
         self.linearizer = Linearizer(stores, groups, positions)
         self.trial_linearization = True
         self.timing = Timing()
-        self._saved: list[np.ndarray] = []
+        self._pushed: np.ndarray | None = None  # the free store's estimates before a trial
         si, slot = free
         self._store, self._slot = si, slot
         self._free = [si]
@@ -190,8 +190,8 @@ class SingleVertexProblem(Problem):
                   if self._unary[gi] and not safe and out.active is None else None)
             if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
                 J = (out.jacobians[0],) if lin else ()
-                s, chi, rchi, hg, bg = unary_terms(wg, out.error, J[0] if J else None)
-                self._keep(gi, g, state, out.error, s, wg.count)
+                s_all, s, chi, rchi, hg, bg = unary_terms(wg, out.error, J[0] if J else None)
+                self._keep(gi, g, state, out.error, s, wg.count, s_all)
                 totals[0] += chi
                 totals[1] += rchi
                 totals[2] += wg.count
@@ -228,12 +228,13 @@ class SingleVertexProblem(Problem):
         return kept[1]
 
     def _keep(self, gi: int, g: EdgeGroup, state: tuple[int, ...], e: np.ndarray,
-              s: np.ndarray, count: int) -> None:
-        """Keep a group's errors for the edge sets' queries at this state (``raw_eval``), its
-        per-edge chi2 and active count (:meth:`Linearizer._record`)."""
+              s: np.ndarray, count: int, every: np.ndarray | None = None) -> None:
+        """Keep a group's errors (and ``every`` edge's ``e'Ωe`` if known) for the edge sets'
+        queries at this state (``raw_eval``), its per-edge chi2 and active count
+        (:meth:`Linearizer._record`)."""
         at = self._stores_of[gi]  # Linearizer.keep_errors
         g.raw_eval = (state if at is None else tuple([state[si] for si in at]), g.next_uid,
-                      g.removals), e
+                      g.removals), e, every
         g.last_chi2 = s
         g.active_count = count
 
@@ -460,6 +461,14 @@ class SingleVertexProblem(Problem):
         est = self.stores[self._store].estimates
         x = est if len(est) == 1 else est[self._slot:self._slot + 1]
         return math.sqrt(float(np.vdot(x, x)))
+
+    def push(self) -> None:
+        """See :meth:`Problem.push` (the one store with the free vertex)."""
+        self._pushed = self.stores[self._store].estimates
+
+    def pop(self) -> None:
+        """See :meth:`Problem.pop`."""
+        self.stores[self._store].estimates = self._pushed
 
     def apply(self, step: Step) -> None:
         """``x ← x ⊞ Δ`` on the free vertex (``oplus`` gets a copy; see

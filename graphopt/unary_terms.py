@@ -66,9 +66,10 @@ def weighing(g: EdgeGroup) -> Weighing | None:
 
 
 def unary_terms(wg: Weighing, e: np.ndarray, J: np.ndarray | None
-                ) -> tuple[np.ndarray, float, float, np.ndarray | None, np.ndarray | None]:
-    """``e'Ωe`` per edge (0 where inactive), its sum, the robust sum and, with ``J``, the
-    terms ``Hᵀ = (Jᵀρ'ΩJ)ᵀ`` ``(d, d)`` and ``Jᵀρ'Ωe`` ``(d,)`` of the group.
+                ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray | None,
+                           np.ndarray | None]:
+    """``e'Ωe`` per edge (every edge's, and 0 where inactive), its sum, the robust sum and,
+    with ``J``, the terms ``Hᵀ = (Jᵀρ'ΩJ)ᵀ`` ``(d, d)`` and ``Jᵀρ'Ωe`` ``(d,)`` of the group.
 
     An inactive edge weighs zero instead of having its rows zeroed (the same numbers for
     finite rows; a non-finite one reaches ``H``, where the caller finds it).
@@ -80,7 +81,7 @@ def unary_terms(wg: Weighing, e: np.ndarray, J: np.ndarray | None
     """
     info = wg.info
     oe = e if info is None else e * info
-    s = row_dots(e, oe)
+    s = every = row_dots(e, oe)
     act = wg.active
     if act is not None:  # an inactive edge's non-finite error must not reach the sums
         s = np.where(act, s, 0.0)
@@ -95,7 +96,7 @@ def unary_terms(wg: Weighing, e: np.ndarray, J: np.ndarray | None
         rho, w = kernel.cost_and_clipped_weight(s)
         rchi = float(rho.sum())
     if J is None:
-        return s, chi, rchi, None, None
+        return every, s, chi, rchi, None, None
     both = wg.active_info
     if both is not None:  # Ω·act·ρ' as (Ω·act)·ρ': the same products, act being 0 or 1
         wd = both if w is None else both * w[:, None]
@@ -109,5 +110,6 @@ def unary_terms(wg: Weighing, e: np.ndarray, J: np.ndarray | None
     d = J.shape[-1]
     J2 = J.reshape(-1, d)
     if wd is None:
-        return s, chi, rchi, J2.T @ J2, e.reshape(-1) @ J2
-    return s, chi, rchi, (J * wd[..., None]).reshape(-1, d).T @ J2, (e * wd).reshape(-1) @ J2
+        return every, s, chi, rchi, J2.T @ J2, e.reshape(-1) @ J2
+    return (every, s, chi, rchi, (J * wd[..., None]).reshape(-1, d).T @ J2,
+            (e * wd).reshape(-1) @ J2)

@@ -177,6 +177,26 @@ def test_one_kernel_for_all_takes_the_fused_weighing(general: Callable[[], None]
     _compare(fast, slow, a, _run(slow, rounds=3))
 
 
+def test_edge_chi2_after_a_run_is_its_errors_chi2() -> None:
+    """After a run with a fifth of the edges at level 1, the edge set's per-edge ``e'Ωe`` —
+    every edge's, kept from the run's last evaluation — is bit for bit what the group's
+    information makes of the kept errors, inactive edges included, and close to a fresh
+    optimizer's at the same estimate (which gathers the pose instead of broadcasting it)."""
+    from graphopt.edge_set import _chi2, group_errors
+
+    fast = _one_kernel_for_all()
+    _run(fast)
+    g = fast.edge_groups()[0]
+    assert g.raw_eval is not None and g.raw_eval[2] is not None  # kept by the fused weighing
+    got = group_errors(fast.graph, g)[1]
+    assert np.array_equal(got, _chi2(g, g.raw_eval[1].copy())[1]) and not got.flags.writeable
+    assert np.all(got[np.arange(g.size) % 5 == 0] > 0)  # the inactive edges' own e'Ωe
+    fresh = _one_kernel_for_all()
+    fresh.vertex(0).set_estimate(fast.vertex(0).estimate)
+    np.testing.assert_allclose(got, group_errors(fresh.graph, fresh.edge_groups()[0])[1],
+                               rtol=1e-9)
+
+
 def test_a_repeated_estimate_reuses_the_types_evaluation(monkeypatch: pytest.MonkeyPatch
                                                          ) -> None:
     """ORB-SLAM's rounds restart from the same pose: a round with the levels of the last one
