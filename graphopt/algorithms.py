@@ -9,9 +9,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
+from graphopt.algorithm_configs import (
+    SCHEDULES,
+    AlgorithmConfig,
+    DoglegConfig,
+    GaussNewtonConfig,
+    LevenbergConfig,
+)
 from graphopt.errors import NotPositiveDefiniteError, SingularSystemError
+from graphopt.linear import Assembly
 from graphopt.problem import Problem, Step
 from graphopt.result import IterationInfo, StopReason
 from graphopt.step_ops import axpy as _axpy
@@ -19,91 +26,12 @@ from graphopt.step_ops import dot as _dot
 from graphopt.step_ops import predicted_decrease as _predicted_decrease
 from graphopt.stopping import StoppingConfig
 
-
-@dataclass(frozen=True)
-class GaussNewtonConfig:
-    """Gauss–Newton: solve ``H Δ = b`` and accept unless the new chi2 is not finite.
-
-    Args:
-        name: Algorithm name used in messages.
-    """
-
-    name: str = "gn"
-
-
-#: The LM damping schedules (:attr:`LevenbergConfig.schedule`).
-SCHEDULES: tuple[str, ...] = ("g2o", "ceres", "gtsam")
-
-
-@dataclass(frozen=True)
-class LevenbergConfig:
-    """Levenberg–Marquardt as in g2o's ``OptimizationAlgorithmLevenberg``.
-
-    Args:
-        tau: Initial ``λ = τ · max diag(H)`` (g2o: 1e-5), for identity damping.
-        initial_lambda: Use this λ instead of the τ rule when given (with diagonal damping or
-            the ``"ceres"`` schedule the default is 1e-4, Ceres' initial trust-region radius of
-            1e4).
-        max_trials: Damped solves per iteration before giving up (g2o: 10).
-        diagonal_damping: Damp with ``λ·diag(H)`` (Marquardt, Ceres) instead of g2o's ``λ I``;
-            invariant to the scaling of the parameters (focal lengths next to distortions).
-        schedule: How λ changes after a trial with gain ratio ρ (measured per problem family
-            by ``benchmarks/bench_schedules.py``: ``"g2o"`` is best on bundle adjustment — 21
-            iterations on Ladybug-49 where ``"ceres"`` takes 32 and ``"gtsam"`` 29 — and
-            ``"gtsam"`` on pose graphs — 9 iterations on ``w10000`` where ``"g2o"`` is not
-            converged after 100 and ``"ceres"`` stops early after 41; the apps and
-            :func:`~graphopt.types.build_graph` choose accordingly).
-            ``"g2o"`` (default) (g2o's Nielsen rule): after a success
-            ``λ ← λ·max(1/3, min(2/3, 1 − (2ρ − 1)³))`` (λ always falls), after a failure
-            ``λ ← λν, ν ← 2ν``.
-            ``"ceres"`` (Ceres' LM strategy, Nielsen's rule unclipped): after a success
-            ``λ ← λ·max(1/3, 1 − (2ρ − 1)³)`` (λ grows up to ×2 when ρ < ½), after a failure
-            ``λ ← λν, ν ← 2ν``; λ kept in [1e-16, 1e32] (Ceres' trust-region radius bounds).
-            ``"gtsam"`` (GTSAM's fixed factor): ``λ ← λ/factor`` after a success,
-            ``λ ← λ·factor`` after a failure, starting from ``initial_lambda`` or 1e-5.
-        factor: The ``"gtsam"`` schedule's factor (GTSAM: 10).
-        name: Algorithm name used in messages.
-    """
-
-    tau: float = 1e-5
-    initial_lambda: float | None = None
-    max_trials: int = 10
-    diagonal_damping: bool = False
-    schedule: str = "g2o"
-    factor: float = 10.0
-    name: str = "lm"
-
-    def __post_init__(self) -> None:
-        if self.schedule not in SCHEDULES:
-            raise ValueError(f"unknown LM schedule {self.schedule!r}; choose "
-                             f"{', '.join(SCHEDULES)}")
-        if not self.factor > 1.0:
-            raise ValueError(f"LM factor must be > 1, got {self.factor!r}")
-
-
-@dataclass(frozen=True)
-class DoglegConfig:
-    """Powell's Dogleg as in g2o's ``OptimizationAlgorithmDogleg``.
-
-    Args:
-        initial_radius: Initial trust-region radius (g2o: 1e4).
-        initial_lambda: Damping added to make ``H`` positive definite (g2o: 1e-7).
-        lambda_factor: Factor on λ after a failed factorisation (g2o: 10).
-        max_trials: Attempts per iteration (g2o: 100).
-        name: Algorithm name used in messages.
-    """
-
-    initial_radius: float = 1e4
-    initial_lambda: float = 1e-7
-    lambda_factor: float = 10.0
-    max_trials: int = 100
-    name: str = "dogleg"
-
-
-AlgorithmConfig = GaussNewtonConfig | LevenbergConfig | DoglegConfig
+__all__ = ["SCHEDULES", "Algorithm", "AlgorithmConfig", "Dogleg", "DoglegConfig", "GaussNewton",
+           "GaussNewtonConfig", "LevenbergConfig", "LevenbergMarquardt", "make_algorithm"]
 
 #: Ceres' bounds on λ = 1 / trust-region radius (``max_/min_trust_region_radius``).
 _CERES_LAMBDA = (1e-16, 1e32)
+
 
 def _never() -> bool:
     return False
@@ -144,8 +72,7 @@ class _Tests:
         """The model's predicted decrease is under half the function tolerance: the trial will
         most likely end the run, so it need not linearise (if it does not end it, the next
         linearisation computes the Jacobians; the numbers are the same either way)."""
-        tol = self.stopping.function_tolerance
-        return tol > 0 and 0.0 <= decrease < 0.5 * tol * chi
+        return self.stopping.predicts_function(chi, decrease)
 
     def function(self, chi: float, new_chi: float) -> bool:
         """The trial changed chi2 by a negligible fraction."""
@@ -292,6 +219,25 @@ class LevenbergMarquardt(Algorithm):
             if self.schedule == "ceres":
                 self.lam = min(self.lam, _CERES_LAMBDA[1])
 
+    def start_lambda(self, p: Problem, asm: Assembly) -> None:
+        """λ₀ at a run's first linearisation: the configured one, GTSAM's 1e-5, Ceres' 1e-4
+        (diagonal damping or the ``"ceres"`` schedule), else ``τ · max diag(H)`` (g2o).
+
+        Args:
+            p: The problem.
+            asm: Its assembly at the first linearisation.
+        """
+        cfg = self.config
+        if cfg.initial_lambda is not None:
+            self.lam = cfg.initial_lambda
+        elif self.schedule == "gtsam":
+            self.lam = 1e-5
+        elif cfg.diagonal_damping or self.schedule == "ceres":
+            self.lam = 1e-4  # Ceres' initial trust-region radius, 1e4
+        else:
+            self.lam = cfg.tau * max(p.max_diagonal(asm), 1e-12)
+        self.nu = 2.0
+
     def line_fields(self, info: IterationInfo) -> str:
         """g2o's ``lambda`` and ``levenbergIter`` fields.
 
@@ -317,15 +263,7 @@ class LevenbergMarquardt(Algorithm):
             return IterationInfo(iteration, chi, lam=self.lam, trials=0,
                                  stop=StopReason.GRADIENT_TOLERANCE)
         if self.lam <= 0.0:
-            if cfg.initial_lambda is not None:
-                self.lam = cfg.initial_lambda
-            elif self.schedule == "gtsam":
-                self.lam = 1e-5
-            elif cfg.diagonal_damping or self.schedule == "ceres":
-                self.lam = 1e-4  # Ceres' initial trust-region radius, 1e4
-            else:
-                self.lam = cfg.tau * max(p.max_diagonal(asm), 1e-12)
-            self.nu = 2.0
+            self.start_lambda(p, asm)
         damp = p.damping(asm, cfg.diagonal_damping)  # once per linearisation
         not_pd = singular = 0
         for trial in range(1, cfg.max_trials + 1):

@@ -33,6 +33,9 @@ class EvaluationMemo:
         self._kept: dict[tuple[str, bytes], Linearization] = {}
         self._sizes: dict[tuple[str, bytes], int] = {}
         self._bytes = 0
+        # The group's latest output that was not kept (a trial's), until the type is called
+        # again (its buffers may then be reused): see settle.
+        self._held: tuple[str, bytes, Linearization] | None = None
 
     def get(self, method: str, at: bytes) -> Linearization | None:
         """The kept output of ``method`` (or of ``linearize``) at the estimate ``at``.
@@ -71,6 +74,25 @@ class EvaluationMemo:
             old = next(iter(kept))
             del kept[old]
             self._bytes -= sizes.pop(old)
+
+
+    def hold(self, method: str, at: bytes, out: Linearization | None) -> None:
+        """Remember the group's latest output without keeping it (``None``: the type is being
+        called again, whatever was held may be overwritten).
+
+        Args:
+            method: ``"evaluate"`` or ``"linearize"``.
+            at: The estimate's bytes.
+            out: The type's (checked) output, or ``None``.
+        """
+        self._held = None if out is None else (method, at, out)
+
+    def settle(self) -> None:
+        """Keep the held output (a finished run's last trial's: a replay of the run evaluates
+        its end state again)."""
+        if self._held is not None:
+            self.put(*self._held)
+            self._held = None
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:

@@ -8,10 +8,39 @@ Only the columns of ``S⁻¹`` that these formulas touch are solved for.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from graphopt.errors import GraphError
 from graphopt.problem import Problem
+from graphopt.vertex import BaseVertex
+
+if TYPE_CHECKING:
+    from graphopt.graph import Graph
+
+
+def marginals_of(graph: Graph, problem: Problem, vertices: Iterable[BaseVertex | int]
+                 ) -> dict[int, np.ndarray]:
+    """:func:`marginal_covariances` of vertices given as objects or ids of ``graph``.
+
+    Args:
+        graph: The graph.
+        problem: Its initialised numeric problem.
+        vertices: Vertices or ids (not fixed).
+
+    Raises:
+        GraphError: an unknown vertex (or, from :func:`marginal_covariances`, a fixed one).
+    """
+    wanted = []
+    for v in vertices:
+        vid = v.id if isinstance(v, BaseVertex) else int(v)
+        if vid not in graph.ids:
+            raise GraphError(f"compute_marginals: vertex {vid} does not exist")
+        st, slot = graph.ids[vid]
+        wanted.append((vid, problem.stores.index(st), slot))
+    return marginal_covariances(problem, wanted)
 
 
 def marginal_covariances(problem: Problem, vertices: list[tuple[int, int, int]]

@@ -374,8 +374,8 @@ class SparseOptimizer(GraphEditing):
             raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
         t_start = time.perf_counter()
         p = self._ensure_problem()
-        key = run_key(p, self.algorithm, self.stopping, int(iterations),
-                      not (self.verbose or any(self._callbacks.values())))
+        plain = not (self.verbose or any(self._callbacks.values()))
+        key = run_key(p, self.algorithm, self.stopping, int(iterations), plain)
         if key is not None and (replayed := replay(p, key, t_start)) is not None:
             return replayed  # the inputs of a kept run (graphopt.run_memo)
         self.algorithm.reset()  # λ (Dogleg: the radius) from its rule again, as g2o and Ceres
@@ -386,9 +386,19 @@ class SparseOptimizer(GraphEditing):
         if not math.isfinite(initial):
             raise FloatingPointError("the initial chi2 is not finite: "
                                      + first_non_finite(self.graph.groups.values()))
+        res.final_chi2 = self._iterations(p, int(iterations), res, initial)
+        res.seconds = time.perf_counter() - t_start
+        if key is not None:
+            keep(p, key, res, self.algorithm, self.stopping)
+        return res
+
+    def _iterations(self, p: Problem, iterations: int, res: OptimizationResult,
+                    initial: float) -> float:
+        """A run's iterations (every algorithm and problem, callbacks, iteration lines): records
+        in ``res.info``, ``res.stop_reason`` set; returns the last accepted chi2."""
         cum = 0.0
         last = initial
-        for it in range(int(iterations)):
+        for it in range(iterations):
             if self._interrupt:
                 res.stop_reason = StopReason.INTERRUPTED
                 break
@@ -419,11 +429,7 @@ class SparseOptimizer(GraphEditing):
             if stop is not None:
                 res.stop_reason = stop
                 break
-        res.final_chi2 = last
-        res.seconds = time.perf_counter() - t_start
-        if key is not None:
-            keep(p, key, res, self.algorithm, self.stopping)
-        return res
+        return last
 
     def _stop_reason(self, info: IterationInfo, last: float) -> StopReason | None:
         """Why to stop after this iteration, or ``None`` to go on."""
@@ -432,7 +438,7 @@ class SparseOptimizer(GraphEditing):
                     == info.not_pd else f"not positive definite {info.not_pd} time(s)"
                     + (f", {info.singular} of them singular" if info.singular else ""))
             print(f"# {self.algorithm.config.name}: the system was {what}; no acceptable step",
-                  file=self._out)
+                  file=sys.stderr if self.stream is None else self.stream)
         if info.stop is not None:
             return info.stop
         if info.failed:
@@ -450,15 +456,12 @@ class SparseOptimizer(GraphEditing):
             return StopReason.GAIN
         return None
 
-    @property
-    def _out(self) -> TextIO:
-        return self.stream if self.stream is not None else sys.stderr
-
     def _print_line(self, info: IterationInfo, cum: float) -> None:
         schur = 1 if self._problem is not None and self._problem.system.schur else 0
         line = (f"iteration= {info.iteration}\t chi2= {info.chi2:.6f}\t time= {info.seconds:.6g}"
-                f"\t cumTime= {cum:.6g}\t edges= {self.active_edge_count()}\t schur= {schur}")
-        print(line + self.algorithm.line_fields(info), file=self._out)
+                f"\t cumTime= {cum:.6g}\t edges= {self.active_edge_count()}\t schur= {schur}"
+                + self.algorithm.line_fields(info))
+        print(line, file=sys.stderr if self.stream is None else self.stream)
 
     # --- marginals ---------------------------------------------------------------------------
 
@@ -475,17 +478,9 @@ class SparseOptimizer(GraphEditing):
             GraphError: unknown or fixed vertex.
             NotPositiveDefiniteError: if ``H`` is singular (e.g. no gauge fixed).
         """
-        from graphopt.marginals import marginal_covariances
+        from graphopt.marginals import marginals_of
 
-        p = self._ensure_problem()
-        wanted = []
-        for v in vertices:
-            vid = v.id if isinstance(v, BaseVertex) else int(v)
-            if vid not in self.graph.ids:
-                raise GraphError(f"compute_marginals: vertex {vid} does not exist")
-            st, slot = self.graph.ids[vid]
-            wanted.append((vid, p.stores.index(st), slot))
-        return marginal_covariances(p, wanted)
+        return marginals_of(self.graph, self._ensure_problem(), vertices)
 
 
 def _weak_call(method: weakref.WeakMethod) -> Callable[[], bool]:

@@ -104,9 +104,6 @@ class SingleVertexProblem(Problem):
         self._unary = [len(o) == 1 and len(o[0]) > 1 and bool(o[0].all()) for o in on]
         # Per unary group: the type's outputs by the free vertex's estimate.
         self._memo = [EvaluationMemo() for _ in groups]
-        # Per unary group: its latest output if the memo did not take it (a trial's), with the
-        # estimate's bytes, until the group's type is called again (see keep_last_outputs).
-        self._pending: list[tuple[bytes, str, Linearization] | None] = [None] * len(groups)
         # Per unary group: its weighing at an activity version (None: the general weighting).
         self._weighing: list[tuple[tuple[int, int], Weighing | None] | None] = [None] * len(groups)
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
@@ -229,9 +226,8 @@ class SingleVertexProblem(Problem):
 
     def _keep(self, gi: int, g: EdgeGroup, state: tuple[int, ...], e: np.ndarray,
               s: np.ndarray, count: int, every: np.ndarray | None = None) -> None:
-        """Keep a group's errors (and ``every`` edge's ``e'Ωe`` if known) for the edge sets'
-        queries at this state (``raw_eval``), its per-edge chi2 and active count
-        (:meth:`Linearizer._record`)."""
+        """Keep a group's errors (and ``every`` edge's ``e'Ωe``) for the edge sets' queries at
+        this state (``raw_eval``), its chi2 per edge and active count (``Linearizer._record``)."""
         at = self._stores_of[gi]  # Linearizer.keep_errors
         g.raw_eval = (state if at is None else tuple([state[si] for si in at]), g.next_uid,
                       g.removals), e, every
@@ -254,7 +250,7 @@ class SingleVertexProblem(Problem):
                 out = memo.get(method, at)
                 if out is not None:
                     return out
-            self._pending[gi] = None  # the type is called again: its buffers may be reused
+            self._memo[gi].hold(method, b"", None)  # the type is called again
         ctx = self._ctx[gi]
         if ctx is None:
             if g.etype.uses_derived:  # derived values change with the estimates
@@ -279,17 +275,14 @@ class SingleVertexProblem(Problem):
             if memo is not None:
                 memo.put(method, at, out)
             else:
-                self._pending[gi] = (est[self._slot].tobytes(), method, out)
+                self._memo[gi].hold(method, est[self._slot].tobytes(), out)
         return out
 
     def keep_last_outputs(self) -> None:
         """Put each unary group's latest output that the memo did not take — a run's last
         trial's, at its end state, which a replay of the run evaluates again — into the memo."""
-        for gi, item in enumerate(self._pending):
-            if item is not None:
-                at, method, out = item
-                self._memo[gi].put(method, at, out)
-                self._pending[gi] = None
+        for memo in self._memo:
+            memo.settle()
 
     def _lean_terms(self, gi: int, g: EdgeGroup, out: Linearization, state: tuple[int, ...],
                     lin: bool, totals: list[float]

@@ -97,6 +97,17 @@ class StoppingConfig:
         """
         return abs(chi2 - trial_chi2) <= self.function_tolerance * chi2
 
+    def predicts_function(self, chi2: float, decrease: float) -> bool:
+        """Whether the model's predicted decrease is under half the function tolerance: the
+        trial will most likely end the run (LM then does not linearise it).
+
+        Args:
+            chi2: Chi2 at the linearisation point.
+            decrease: The damped model's predicted decrease of chi2.
+        """
+        tol = self.function_tolerance
+        return tol > 0 and 0.0 <= decrease < 0.5 * tol * chi2
+
     def gradient_converged(self, max_gradient: float) -> bool:
         """Whether the gradient is negligible (gradient tolerance).
 

@@ -211,7 +211,6 @@ def test_a_trial_predicted_to_end_the_run_does_not_linearise(
     single-vertex and the general problem)."""
     from test_single_block import one_free_pose
 
-    from graphopt.algorithms import _Tests
     from graphopt.types import EdgeSE3ProjectXYZOnlyPose
 
     calls = {"n": 0}
@@ -225,7 +224,7 @@ def test_a_trial_predicted_to_end_the_run_does_not_linearise(
     runs = []
     for predict in (True, False):
         if not predict:
-            monkeypatch.setattr(_Tests, "predicts_function", lambda self, chi, d: False)
+            monkeypatch.setattr(StoppingConfig, "predicts_function", lambda self, chi, d: False)
         opt = one_free_pose(False)
         if free_poses == 2:
             opt.vertex(1).set_fixed(False)
