@@ -76,16 +76,19 @@ class EvaluationMemo:
             self._bytes -= sizes.pop(old)
 
 
-    def hold(self, method: str, at: bytes, out: Linearization | None) -> None:
-        """Remember the group's latest output without keeping it (``None``: the type is being
-        called again, whatever was held may be overwritten).
+    def hold(self, method: str, at: bytes, out: Linearization) -> None:
+        """Remember the group's latest output without keeping it (a trial's).
 
         Args:
             method: ``"evaluate"`` or ``"linearize"``.
             at: The estimate's bytes.
-            out: The type's (checked) output, or ``None``.
+            out: The type's (checked) output.
         """
-        self._held = None if out is None else (method, at, out)
+        self._held = (method, at, out)
+
+    def release(self) -> None:
+        """Forget the held output: the type is called again, and may reuse its buffers."""
+        self._held = None
 
     def settle(self) -> None:
         """Keep the held output (a finished run's last trial's: a replay of the run evaluates

@@ -250,7 +250,7 @@ class SingleVertexProblem(Problem):
                 out = memo.get(method, at)
                 if out is not None:
                     return out
-            self._memo[gi].hold(method, b"", None)  # the type is called again
+            self._memo[gi].release()  # the type is called again
         ctx = self._ctx[gi]
         if ctx is None:
             if g.etype.uses_derived:  # derived values change with the estimates
