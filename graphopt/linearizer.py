@@ -130,6 +130,11 @@ class Linearizer:
             tuple(int(slots[0]) if len(slots) > 1 and not np.any(slots != slots[0]) else -1
                   for _, slots in pos) for pos in positions]
         self.last_state: tuple[tuple[int, ...], tuple[int, ...]] | None = None
+        # Per group, the store index of each vertex position (``raw_eval``'s state, see
+        # keep_errors); None where they are every store in order (the state itself).
+        every = tuple(range(len(stores)))
+        self._stores_of = [None if at == every else at
+                           for at in (tuple(si for si, _ in pos) for pos in positions)]
         # The one store and the one group, if so (a motion-only BA's): see state_key.
         self._lone = (stores[0], groups[0]) if len(stores) == len(groups) == 1 else None
         # Per group, what a trial that linearised computed besides the linearisation — Ωe,
@@ -355,7 +360,8 @@ class Linearizer:
         oe, s = self._sq(g, out.error)
         return out, oe, s
 
-    def keep_errors(self, gi: int, state: tuple[int, ...], e: np.ndarray) -> None:
+    def keep_errors(self, gi: int, state: tuple[int, ...], e: np.ndarray,
+                    s: np.ndarray | None = None) -> None:
         """Keep every edge's errors ``e`` of group ``gi`` at ``state`` (``raw_eval``), for the
         edge-set queries that usually follow an optimisation at the same estimates.
 
@@ -363,10 +369,12 @@ class Linearizer:
             gi: Group index.
             state: Every store's estimate version (:meth:`_state`).
             e: ``(m, dimension)`` errors, whatever the edges' levels.
+            s: ``(m,)`` every edge's ``e'Ωe``, if known (else the queries form it).
         """
         g = self.groups[gi]
-        g.raw_eval = ((tuple(state[si] for si, _ in self.positions[gi]), g.next_uid,
-                       g.removals), e, None)
+        at = self._stores_of[gi]
+        g.raw_eval = (state if at is None else tuple([state[si] for si in at]), g.next_uid,
+                      g.removals), e, s
 
     def _record(self, g: EdgeGroup, s: np.ndarray, rho: np.ndarray,
                 active: np.ndarray | None, totals: list[float], chi2: float | None = None

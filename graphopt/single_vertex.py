@@ -110,11 +110,6 @@ class SingleVertexProblem(Problem):
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
                            list[tuple[np.ndarray, ...]]] | None = None
-        # Per group, the store index of each vertex position (``raw_eval``'s state); None
-        # where they are every store in order (the state itself).
-        every = tuple(range(len(stores)))
-        self._stores_of = [None if at == every else at
-                           for at in (tuple(si for si, _ in pos) for pos in positions)]
         self._idle_key: tuple[tuple[int, int], ...] | None = None
         self._idle = False
 
@@ -228,9 +223,7 @@ class SingleVertexProblem(Problem):
               s: np.ndarray, count: int, every: np.ndarray | None = None) -> None:
         """Keep a group's errors (and ``every`` edge's ``e'Ωe``) for the edge sets' queries at
         this state (``raw_eval``), its chi2 per edge and active count (``Linearizer._record``)."""
-        at = self._stores_of[gi]  # Linearizer.keep_errors
-        g.raw_eval = (state if at is None else tuple([state[si] for si in at]), g.next_uid,
-                      g.removals), e, every
+        self.linearizer.keep_errors(gi, state, e, every)
         g.last_chi2 = s
         g.active_count = count
 
