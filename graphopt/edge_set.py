@@ -19,6 +19,7 @@ import numpy as np
 
 from graphopt.edge import BaseEdge
 from graphopt.errors import GraphError
+from graphopt.numeric import frozen_copy
 from graphopt.removal import remove_edges
 from graphopt.robust_kernel import RobustKernel
 from graphopt.row_weights import row_dots
@@ -53,7 +54,7 @@ def _per_group(graph: Graph, g: EdgeGroup, what: str,
         if what == "errors" and raw is not None and raw[0] == (state, g.next_uid, g.removals):
             # The optimiser's arrays stay its own; its e'Ωe of every edge if it kept it.
             result: Any = (_chi2(g, raw[1].copy()) if raw[2] is None
-                           else (_frozen(raw[1]), _frozen(raw[2])))
+                           else (frozen_copy(raw[1]), frozen_copy(raw[2])))
         else:
             result = compute(g, tuple(st.estimates[slots] for st, slots in stores))
         hit = (*hit[:4], state, result)
@@ -86,13 +87,6 @@ def _chi2(g: EdgeGroup, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     e.flags.writeable = False
     s.flags.writeable = False
     return e, s
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    """A read-only copy."""
-    a = a.copy()
-    a.flags.writeable = False
-    return a
 
 
 def _depth(g: EdgeGroup, x: tuple[np.ndarray, ...]) -> np.ndarray:

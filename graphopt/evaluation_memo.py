@@ -12,9 +12,8 @@ of the procedure's trials ever hit it, and keeping their outputs cost about 5 % 
 
 from __future__ import annotations
 
-import numpy as np
-
 from graphopt.edge import Linearization
+from graphopt.numeric import frozen_copy
 
 #: Evaluations kept per group at most (the oldest goes first).
 MEMO_STATES = 16
@@ -64,9 +63,9 @@ class EvaluationMemo:
             return
         kept, sizes = self._kept, self._sizes
         red, act = out.reduced_error, out.active
-        new = Linearization(_frozen(e), tuple([_frozen(j) for j in jacs]),
-                            None if red is None else _frozen(red),
-                            None if act is None else _frozen(act))
+        new = Linearization(frozen_copy(e), tuple([frozen_copy(j) for j in jacs]),
+                            None if red is None else frozen_copy(red),
+                            None if act is None else frozen_copy(act))
         key = (method, at)
         self._bytes += size - sizes.get(key, 0)
         kept[key], sizes[key] = new, size
@@ -74,7 +73,6 @@ class EvaluationMemo:
             old = next(iter(kept))
             del kept[old]
             self._bytes -= sizes.pop(old)
-
 
     def hold(self, method: str, at: bytes, out: Linearization) -> None:
         """Remember the group's latest output without keeping it (a trial's).
@@ -96,10 +94,3 @@ class EvaluationMemo:
         if self._held is not None:
             self.put(*self._held)
             self._held = None
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    """A read-only copy of ``a``."""
-    a = np.array(a)
-    a.flags.writeable = False
-    return a

@@ -102,3 +102,15 @@ def checked_oplus(vtype: type[_VertexType], x: np.ndarray, delta: np.ndarray) ->
         raise GraphError(f"{getattr(vtype, '__name__', vtype)}.oplus returned {got}, "
                          f"expected {x.shape}")
     return out
+
+
+def frozen_copy(a: np.ndarray) -> np.ndarray:
+    """A read-only copy of ``a`` (what is kept for later readers while its owner may write
+    into the original).
+
+    Args:
+        a: The array.
+    """
+    a = np.array(a)
+    a.flags.writeable = False
+    return a
