@@ -45,14 +45,11 @@ class LinearSolverDense(LinearSolver):
         else:
             flat = np.zeros(n * n)
             flat[self._flat] = data
-        a = flat.reshape(n, n).T  # column-major view: LAPACK factorises it in place
-        return sla.lapack.dpotrf(a, lower=1, overwrite_a=1, clean=0)
+        return factor_in_place(flat, n)
 
     def _shifted_is_definite(self, data: np.ndarray, scale: np.ndarray) -> bool:
         """Whether ``A + τ·S`` has a Cholesky factor with positive, finite pivots."""
-        c, info = self._factor(shift_diagonal(data, self.diag_pos, scale))
-        d = np.diagonal(c)
-        return info == 0 and bool(np.all(np.isfinite(d)) and np.all(d > 0))
+        return is_definite(self._factor(shift_diagonal(data, self.diag_pos, scale)))
 
     def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """See :meth:`LinearSolver.solve`.
@@ -63,6 +60,28 @@ class LinearSolverDense(LinearSolver):
         """
         return cholesky_solve(self.name, self._factor(data), data[self.diag_pos], rhs,
                               lambda s: self._shifted_is_definite(data, s))
+
+
+def factor_in_place(flat: np.ndarray, n: int) -> tuple[np.ndarray, int]:
+    """LAPACK's ``dpotrf`` of an ``(n, n)`` symmetric matrix given as its column-major data,
+    factored in place (pass data of your own): ``(L in the lower triangle, info)``.
+
+    Args:
+        flat: ``(n²,)`` column-major data (a C array read as its transpose: no copy).
+        n: The order.
+    """
+    return sla.lapack.dpotrf(flat.reshape(n, n).T, lower=1, overwrite_a=1, clean=0)
+
+
+def is_definite(factor: tuple[np.ndarray, int]) -> bool:
+    """Whether a ``dpotrf`` factor has positive, finite pivots (the rank rule's step 3).
+
+    Args:
+        factor: ``(L, info)``.
+    """
+    c, info = factor
+    p = np.diagonal(c)
+    return info == 0 and bool(np.all(np.isfinite(p)) and np.all(p > 0))
 
 
 def cholesky_solve(name: str, factor: tuple[np.ndarray, int], diag: np.ndarray, rhs: np.ndarray,

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import scipy.linalg as sla
 
-from graphopt.solvers.dense import cholesky_solve
+from graphopt.solvers.dense import cholesky_solve, factor_in_place, is_definite
 from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
 
 
@@ -37,7 +37,7 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
     pivots = data[::d + 1].tolist()
     # Symmetric: the column-major data read as a (d, d) C array and transposed is a
     # Fortran-ordered view that LAPACK factors in place.
-    c, info = sla.lapack.dpotrf(data.reshape(d, d).T, lower=1, overwrite_a=1, clean=0)
+    c, info = factor_in_place(data, d)
     if info == 0:
         for p, q in zip(c.diagonal().tolist(), pivots, strict=True):
             if not p * p > PIVOT_SCREEN * abs(q):
@@ -47,10 +47,9 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
             if info == 0 and math.isfinite(sum(du.tolist())):
                 return du
     data = _damped(h_data, diag, lam, damping)  # again: the first was factored over
-    factor = sla.lapack.dpotrf(data.reshape(d, d).T.copy(order="F"), lower=1, overwrite_a=1,
-                               clean=0)
-    return cholesky_solve("dense", factor, data[diag], b.copy(),
-                          lambda s: _shifted_is_definite(data, diag, s))
+    return cholesky_solve("dense", factor_in_place(data.copy(), d), data[diag], b.copy(),
+                          lambda s: is_definite(factor_in_place(shift_diagonal(data, diag, s),
+                                                                d)))
 
 
 def _damped(h_data: np.ndarray, diag: np.ndarray, lam: float, damping: np.ndarray
@@ -61,13 +60,3 @@ def _damped(h_data: np.ndarray, diag: np.ndarray, lam: float, damping: np.ndarra
     if lam:
         data[::len(diag) + 1] += lam * damping
     return data
-
-
-def _shifted_is_definite(data: np.ndarray, diag: np.ndarray, scale: np.ndarray) -> bool:
-    """Whether ``A + τ·S`` (``A``'s column-major data) has a Cholesky factor with positive,
-    finite pivots (the rank rule's step 3)."""
-    d = len(diag)
-    c, info = sla.lapack.dpotrf(shift_diagonal(data, diag, scale).reshape(d, d).T.copy(
-        order="F"), lower=1, overwrite_a=1, clean=0)
-    p = np.diagonal(c)
-    return info == 0 and bool(np.all(np.isfinite(p)) and np.all(p > 0))
