@@ -160,25 +160,11 @@ def normalised_projection(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
         # the same operations per element, so the same bits.
         iz = 1.0 / P[:, 2]
         uv = P[:, :2] * iz[:, None]
-        if bf is None:
-            return z - (uv * cam.focal + cam.centre), iz, uv
-        pix = np.empty((3, len(P)))  # stereo: the pixels as (3, m) rows (10 against 12 µs)
-        np.multiply(uv.T, cam.focal[:, None], out=pix[:2])
-        pix[:2] += cam.centre[:, None]
-        np.subtract(pix[0], bf * iz, out=pix[2])
-        return z - pix.T, iz, uv
-    # Coordinate by coordinate over the edges (long inner loops): an (m, 2) operation with a
-    # strided last axis of 2 runs 2-element loops (500 edges: 4.7 against 10.5 µs).
-    PT = P.T
+        return _pixel_errors(z, uv.T, iz, cam, bf), iz, uv
+    PT = P.T  # (coordinates as rows: long inner loops)
     iz = 1.0 / PT[2]
     uvT = PT[:2] * iz                            # normalised image coordinates, (2, m)
-    e = np.empty((len(P), 2 if bf is None else 3), like=P)  # like=: jets stay jets
-    pu = cam.fx * uvT[0] + cam.cx
-    e[:, 0] = z[:, 0] - pu
-    e[:, 1] = z[:, 1] - (cam.fy * uvT[1] + cam.cy)
-    if bf is not None:
-        e[:, 2] = z[:, 2] - (pu - bf * iz)
-    return e, iz, uvT.T
+    return _pixel_errors(z, uvT, iz, cam, bf), iz, uvT.T
 
 
 def projection_base(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
@@ -197,23 +183,34 @@ def projection_base(P: np.ndarray, z: np.ndarray, cam: CameraParameters,
     Returns:
         ``(e (m, 2|3), a (4, m))``.
     """
-    m = len(P)
-    a = np.empty((4, m))
+    a = np.empty((4, len(P)))
     PT = P.T
     iz = np.divide(1.0, PT[2], out=a[2])
     np.multiply(PT[:2], iz, out=a[:2])
     a[3] = 1.0
-    if m <= _ROWWISE_EDGES:  # the pixels as whole (2|3, m) operations: fewer calls
-        pix = np.empty((2 if bf is None else 3, m))
-        np.multiply(a[:2], cam.focal[:, None], out=pix[:2])
+    return _pixel_errors(z, a[:2], iz, cam, bf), a
+
+
+def _pixel_errors(z: np.ndarray, uvT: np.ndarray, iz: np.ndarray, cam: CameraParameters,
+                  bf: float | None) -> np.ndarray:
+    """``z`` minus the pixels of normalised coordinates ``uvT`` ``(2, m)`` (with ``bf``, the
+    third coordinate ``u − bf·iz``): ``(m, 2|3)``."""
+    m = len(iz)
+    if type(iz) is np.ndarray and m <= _ROWWISE_EDGES:  # few edges: whole arrays, few calls
+        if bf is None:
+            return z - (uvT.T * cam.focal + cam.centre)
+        pix = np.empty((3, m))  # stereo: the pixels as (3, m) rows (10 against 12 µs)
+        np.multiply(uvT, cam.focal[:, None], out=pix[:2])
         pix[:2] += cam.centre[:, None]
-        if bf is not None:
-            np.subtract(pix[0], bf * iz, out=pix[2])
-        return z - pix.T, a
-    e = np.empty((m, 2 if bf is None else 3))    # coordinate by coordinate: long loops
-    pu = cam.fx * a[0] + cam.cx
+        np.subtract(pix[0], bf * iz, out=pix[2])
+        return z - pix.T
+    # Coordinate by coordinate over the edges (long inner loops): an (m, 2) operation with a
+    # strided last axis of 2 runs 2-element loops (500 edges: 4.7 against 10.5 µs).
+    shape = (m, 2 if bf is None else 3)
+    e = np.empty(shape) if type(iz) is np.ndarray else np.empty(shape, like=iz)  # jets stay jets
+    pu = cam.fx * uvT[0] + cam.cx
     e[:, 0] = z[:, 0] - pu
-    e[:, 1] = z[:, 1] - (cam.fy * a[1] + cam.cy)
+    e[:, 1] = z[:, 1] - (cam.fy * uvT[1] + cam.cy)
     if bf is not None:
         e[:, 2] = z[:, 2] - (pu - bf * iz)
-    return e, a
+    return e
