@@ -45,7 +45,6 @@ def _g2o_stopping(iterations: int, change: float) -> StoppingConfig:
     return StoppingConfig.g2o(iterations, change)
 
 
-
 class SparseOptimizer:
     """g2o's ``SparseOptimizer`` (both bindings' method names).
 

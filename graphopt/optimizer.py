@@ -438,7 +438,7 @@ class SparseOptimizer(GraphEditing):
                     == info.not_pd else f"not positive definite {info.not_pd} time(s)"
                     + (f", {info.singular} of them singular" if info.singular else ""))
             print(f"# {self.algorithm.config.name}: the system was {what}; no acceptable step",
-                  file=sys.stderr if self.stream is None else self.stream)
+                  file=self._out)
         if info.stop is not None:
             return info.stop
         if info.failed:
@@ -456,12 +456,16 @@ class SparseOptimizer(GraphEditing):
             return StopReason.GAIN
         return None
 
+    @property
+    def _out(self) -> TextIO:
+        return self.stream if self.stream is not None else sys.stderr
+
     def _print_line(self, info: IterationInfo, cum: float) -> None:
         schur = 1 if self._problem is not None and self._problem.system.schur else 0
         line = (f"iteration= {info.iteration}\t chi2= {info.chi2:.6f}\t time= {info.seconds:.6g}"
                 f"\t cumTime= {cum:.6g}\t edges= {self.active_edge_count()}\t schur= {schur}"
                 + self.algorithm.line_fields(info))
-        print(line, file=sys.stderr if self.stream is None else self.stream)
+        print(line, file=self._out)
 
     # --- marginals ---------------------------------------------------------------------------
 
