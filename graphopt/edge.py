@@ -28,6 +28,7 @@ from graphopt.autodiff import (
     check_independent_edges,
     jet_error_message,
 )
+from graphopt.compiled import CompiledUnary
 from graphopt.edge_object import EdgeObject
 from graphopt.errors import GraphError
 from graphopt.numeric import numeric_jacobians
@@ -165,6 +166,7 @@ class BaseEdge(EdgeObject):
             cls.analytic_type = _analytic_twin(cls)
             cls.linearize = BaseEdge.__dict__["linearize"]  # type: ignore[assignment]
             cls.jacobians = BaseEdge.__dict__["jacobians"]  # type: ignore[assignment]
+            cls.compiled_unary = BaseEdge.__dict__["compiled_unary"]  # type: ignore[assignment]
             cls.linearization_rows = None
 
     # --- the batched type interface --------------------------------------------------------
@@ -249,6 +251,18 @@ class BaseEdge(EdgeObject):
             GraphError: the type has no notion of depth (the default).
         """
         raise GraphError(f"{cls.__name__} has no depth_positive (not a projection edge type)")
+
+    @classmethod
+    def compiled_unary(cls, measurement: np.ndarray, ctx: EdgeContext) -> CompiledUnary | None:
+        """A compiled loop evaluating a group of these edges when all act on one vertex (a
+        single-vertex problem; see :mod:`graphopt.compiled`), or ``None`` (the default: the
+        type's numpy methods are used).
+
+        Args:
+            measurement: The group's measurements.
+            ctx: The group's context.
+        """
+        return None
 
     @classmethod
     def has_analytic_jacobians(cls) -> bool:

@@ -40,19 +40,25 @@ from graphopt.linearizer import (
     Positions,
     broadcast_row,
 )
-from graphopt.numeric import checked_oplus
-from graphopt.problem import Problem, Step, Timing
+from graphopt.problem import Problem, Timing
 from graphopt.row_weights import weighted_rows
+from graphopt.single_vertex_ops import OneVertexOps
 from graphopt.solvers import LinearSolver, LinearSolverAuto, LinearSolverDense
-from graphopt.solvers.small_dense import damped_solve
 from graphopt.storage import EdgeGroup, VertexStore
-from graphopt.unary_terms import Weighing, unary_terms, weighing
+from graphopt.unary_terms import (
+    CompiledGroup,
+    Weighing,
+    compiled_group,
+    compiled_terms,
+    unary_terms,
+    weighing,
+)
 
 #: Most unknowns of the one vertex (a dense ``d × d`` system; poses, Sim(3), cameras).
 MAX_DIMENSION = 64
 
 
-class SingleVertexProblem(Problem):
+class SingleVertexProblem(OneVertexOps, Problem):
     """:class:`~graphopt.problem.Problem` for graphs with exactly one free vertex, not
     marginalised, and small edge groups. Use :meth:`of`, which returns ``None`` otherwise.
 
@@ -106,6 +112,8 @@ class SingleVertexProblem(Problem):
         self._memo = [EvaluationMemo() for _ in groups]
         # Per unary group: its weighing at an activity version (None: the general weighting).
         self._weighing: list[tuple[tuple[int, int], Weighing | None] | None] = [None] * len(groups)
+        # Per unary group: (measurements, weighing, compiled evaluation, the type's loop).
+        self._compiled: list[tuple[Any, ...] | None] = [None] * len(groups)
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
@@ -177,6 +185,22 @@ class SingleVertexProblem(Problem):
         for gi, g in enumerate(self.groups):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
+            cg = self._compiled_of(gi, g, versions[gi]) if self._unary[gi] and not safe else None
+            if cg is not None:  # the type's compiled loop (graphopt.compiled)
+                e, J1, s_all, s, hg, bg, chi, rchi = compiled_terms(
+                    cg, self.stores[self._store].estimates[self._slot], lin)
+                self._keep(gi, g, state, e, s, cg.count, s_all)
+                totals[0] += chi
+                totals[1] += rchi
+                totals[2] += cg.count
+                if lin:
+                    ht = hg if ht is None else ht + hg
+                    bu = bg if bu is None else bu + bg
+                    jac.append((J1,))
+                else:
+                    complete = complete and not touch
+                    jac.append(())
+                continue
             out = self._call(gi, g, "linearize" if lin else "evaluate", memo)
             wg = (self._weighing_of(gi, g, versions[gi])
                   if self._unary[gi] and not safe and out.active is None else None)
@@ -218,6 +242,20 @@ class SingleVertexProblem(Problem):
         if kept is None or kept[0] != version:
             kept = self._weighing[gi] = (version, weighing(g))
         return kept[1]
+
+    def _compiled_of(self, gi: int, g: EdgeGroup, version: tuple[int, int]
+                     ) -> CompiledGroup | None:
+        """Group ``gi``'s compiled evaluation at its activity ``version``, or ``None``."""
+        wg = self._weighing_of(gi, g, version)
+        kept = self._compiled[gi]
+        if kept is not None and kept[0] is g.measurements and kept[1] is wg:
+            return kept[2]
+        same = kept is not None and kept[0] is g.measurements
+        loop = (kept[3] if same else None if g.etype.uses_derived  # type: ignore[index]
+                else g.etype.compiled_unary(g.measurements, g.context()))
+        cg = compiled_group(loop, wg)
+        self._compiled[gi] = (g.measurements, wg, cg, loop)
+        return cg
 
     def _keep(self, gi: int, g: EdgeGroup, state: tuple[int, ...], e: np.ndarray,
               s: np.ndarray, count: int, every: np.ndarray | None = None) -> None:
@@ -383,99 +421,6 @@ class SingleVertexProblem(Problem):
         for g, J in zip(self.groups, jac, strict=True):
             if J:
                 raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
-
-    # --- the linear algebra ------------------------------------------------------------------
-
-    def damping(self, asm: Assembly, diagonal: bool) -> Step:
-        """See :meth:`Problem.damping`.
-
-        Args:
-            asm: The assembly.
-            diagonal: Marquardt's scaling instead of the identity.
-        """
-        if diagonal:
-            return np.clip(asm.h_data[self._diag], 1e-6, 1e32), []
-        return self._ones, []
-
-    def max_diagonal(self, asm: Assembly) -> float:
-        """See :meth:`Problem.max_diagonal`.
-
-        Args:
-            asm: The assembly.
-        """
-        return float(asm.h_data[self._diag].max())
-
-    def solve(self, asm: Assembly, lam: float, damping: Step | None = None) -> Step:
-        """See :meth:`Problem.solve`: LAPACK's Cholesky of ``H + λD`` (``D``: ``damping``, the
-        identity if ``None``), held to the dense solver's rank rule
-        (:func:`~graphopt.solvers.small_dense.damped_solve`).
-
-        Args:
-            asm: The assembly.
-            lam: Damping λ (0 for none).
-            damping: ``D`` from :meth:`damping`.
-        """
-        t0 = time.perf_counter()
-        du = damped_solve(asm.h_data, asm.bu, self._diag, lam,
-                          self._ones if damping is None else damping[0])
-        self.timing.solve += time.perf_counter() - t0
-        return du, []
-
-    def hessian_product(self, asm: Assembly, step: Step) -> Step:
-        """See :meth:`Problem.hessian_product`.
-
-        Args:
-            asm: The assembly.
-            step: A vector in the step layout.
-        """
-        d = self.d
-        return asm.h_data.reshape(d, d).T @ step[0], []
-
-    # --- the state ---------------------------------------------------------------------------
-
-    @staticmethod
-    def max_abs(step: Step) -> float:
-        """See :meth:`Problem.max_abs` (in floats: the gradient test's ``b``, finite here).
-
-        Args:
-            step: A vector in the step layout.
-        """
-        return max(map(abs, step[0].tolist()), default=0.0)
-
-    def state_norm(self) -> float:
-        """See :meth:`Problem.state_norm`."""
-        est = self.stores[self._store].estimates
-        x = est if len(est) == 1 else est[self._slot:self._slot + 1]
-        return math.sqrt(float(np.vdot(x, x)))
-
-    def push(self) -> None:
-        """See :meth:`Problem.push` (the one store with the free vertex)."""
-        self._pushed = self.stores[self._store].estimates
-
-    def pop(self) -> None:
-        """See :meth:`Problem.pop`."""
-        self.stores[self._store].estimates = self._pushed
-
-    def apply(self, step: Step) -> None:
-        """``x ← x ⊞ Δ`` on the free vertex (``oplus`` gets a copy; see
-        :meth:`Problem.apply`).
-
-        Args:
-            step: ``(Δ (d,), [])``.
-
-        Raises:
-            GraphError: ``oplus`` returned the wrong shape (naming the vertex type).
-        """
-        st = self.stores[self._store]
-        est = st.estimates
-        delta = step[0].reshape(1, -1)
-        if len(est) == 1:
-            st.estimates = checked_oplus(st.vtype, est.copy(), delta)
-            return
-        new = est.copy()
-        k = self._slot
-        new[k:k + 1] = checked_oplus(st.vtype, est[k:k + 1].copy(), delta)
-        st.estimates = new
 
 
 def make_problem(stores: list[VertexStore], groups: list[EdgeGroup], positions: Positions,

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from graphopt.compiled import CompiledUnary, kernel_code
 from graphopt.robust_kernel import RobustKernel
 from graphopt.row_weights import row_dots
 from graphopt.storage import EdgeGroup
@@ -113,3 +114,57 @@ def unary_terms(wg: Weighing, e: np.ndarray, J: np.ndarray | None
         return every, s, chi, rchi, J2.T @ J2, e.reshape(-1) @ J2
     return (every, s, chi, rchi, (J * wd[..., None]).reshape(-1, d).T @ J2,
             (e * wd).reshape(-1) @ J2)
+
+
+class CompiledGroup(NamedTuple):
+    """A group's :class:`~graphopt.compiled.CompiledUnary` with its weighing's inputs.
+
+    Attributes:
+        unary: The type's loop.
+        info: ``(m|1, rows)`` the information's diagonal (one row: shared; ones: identity).
+        active: ``(m,)`` the active edges, ``(0,)`` when all are.
+        code: The kernel's code (:func:`~graphopt.compiled.kernel_code`).
+        delta: Its width.
+        count: How many edges are active.
+    """
+
+    unary: CompiledUnary
+    info: np.ndarray
+    active: np.ndarray
+    code: int
+    delta: float
+    count: int
+
+
+def compiled_group(unary: CompiledUnary | None, wg: Weighing | None) -> CompiledGroup | None:
+    """The group's compiled evaluation at this weighing, or ``None`` where the loop does not
+    apply (no loop, no fused weighing, a kernel it has no code for).
+
+    Args:
+        unary: The type's loop, or ``None``.
+        wg: The group's weighing, or ``None``.
+    """
+    kc = None if unary is None or wg is None else kernel_code(wg.kernel)
+    if kc is None:
+        return None
+    assert unary is not None and wg is not None
+    info = (np.ones((1, unary.rows)) if wg.info is None
+            else np.ascontiguousarray(wg.info.reshape(-1, unary.rows), dtype=float))
+    active = (np.zeros(0, dtype=bool) if wg.active is None
+              else np.ascontiguousarray(wg.active, dtype=bool))
+    return CompiledGroup(unary, info, active, *kc, wg.count)
+
+
+def compiled_terms(cg: CompiledGroup, x: np.ndarray, lin: bool
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                              np.ndarray, float, float]:
+    """:func:`unary_terms`' numbers and the type's outputs from the compiled loop:
+    ``(e, J, every, s, H, b, chi2, robust chi2)`` (``J`` empty unless ``lin``).
+
+    Args:
+        cg: The group's compiled evaluation.
+        x: The free vertex's estimate.
+        lin: Also ``J``, ``H`` and ``b``.
+    """
+    u = cg.unary
+    return u.fn(x, *u.args, cg.info, cg.active, cg.code, cg.delta, lin)

@@ -166,7 +166,9 @@ def test_optimize_ends_at_a_trial_that_changes_nothing(
     (n, T, chi2, trials), (n_all, T_all, chi2_all, trials_all) = runs
     assert trials == trials_all[:n]  # the same run, ended earlier
     assert sum(trials_all) - sum(trials) >= 10
-    assert chi2 == pytest.approx(chi2_all, rel=1e-12)
+    # The trials past the end move the pose by rounding only (their acceptance is the sign of
+    # rounding noise, so which of them are taken depends on the order of the sums).
+    assert chi2 == pytest.approx(chi2_all, rel=1e-9)
     assert np.allclose(T, T_all, rtol=0, atol=1e-9)
     assert g2o.SparseOptimizer.rounding_change == 1e-12
 

@@ -116,17 +116,20 @@ def test_diagonal_information_checks_as_the_eigenvalues_would() -> None:
     assert checked_information(EdgeSE2, vids, bad) is bad
 
 
-def test_per_edge_diagonal_information_scales_rows_with_the_products_values() -> None:
+@pytest.mark.parametrize("compiled_loop", [False, True])
+def test_per_edge_diagonal_information_scales_rows_with_the_products_values(
+        compiled_loop: bool) -> None:
     """Per-edge diagonal information (σ⁻²·I) weighs by a row scaling; the run is that of the
     general products to the bit (an off-diagonal 1e-300 forces those: it adds less than half
-    an ulp to every product)."""
+    an ulp to every product). The compiled loop (graphopt.compiled), which sums edge by edge,
+    gives the same run to rounding."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import slam_backend_scenes as scenes
 
-    from graphopt import RobustKernelHuber
+    from graphopt import RobustKernelHuber, compiled
     from graphopt.types import EdgeStereoSE3ProjectXYZOnlyPose, VertexSE3Expmap
 
     s = scenes.motion_only(60, True)
@@ -141,9 +144,21 @@ def test_per_edge_diagonal_information_scales_rows_with_the_products_values() ->
         g = opt.edge_groups()[0]
         g.finalize()
         assert (g.info_diagonal is not None) == (off == 0.0)
-        res = opt.optimize(6)
+        compiled.set_enabled(compiled_loop)
+        try:
+            res = opt.optimize(6)
+        finally:
+            compiled.set_enabled(True)
+        # Only the diagonal information's run can take the loop.
+        loop = opt.problem._compiled[0][2] is not None  # type: ignore[union-attr]
+        assert loop == (compiled_loop and off == 0.0 and compiled.available())
         runs.append(([i.chi2 for i in res.info], es.chi2(), opt.vertex(0).estimate))
     assert len(runs[0][0]) >= 2
+    if compiled_loop:
+        np.testing.assert_allclose(runs[0][0], runs[1][0], rtol=1e-12)
+        np.testing.assert_allclose(runs[0][1], runs[1][1], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(runs[0][2], runs[1][2], rtol=0, atol=1e-12)
+        return
     assert runs[0][0] == runs[1][0]
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
     np.testing.assert_array_equal(runs[0][2], runs[1][2])

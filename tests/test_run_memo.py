@@ -60,10 +60,11 @@ def test_the_same_inputs_replay_the_run_and_its_end_state() -> None:
     assert np.array_equal(ref_edges.chi2(), chi2_end)
 
 
-def test_a_replay_calls_no_edge_type(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_replay_calls_no_edge_type(monkeypatch: pytest.MonkeyPatch, numpy_path: None
+                                     ) -> None:
     """The end state's evaluation that a replay makes comes from the evaluation memo (the run's
     last trial's outputs, kept when the run was): the type is not called; a run that is not
-    replayed calls it."""
+    replayed calls it (the numpy path: a compiled loop has no memo)."""
     opt, edges, s = _problem()
     _run(opt, s.T_init)
     calls = []

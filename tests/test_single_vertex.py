@@ -197,10 +197,11 @@ def test_edge_chi2_after_a_run_is_its_errors_chi2() -> None:
                                rtol=1e-9)
 
 
-def test_a_repeated_estimate_reuses_the_types_evaluation(monkeypatch: pytest.MonkeyPatch
-                                                         ) -> None:
+def test_a_repeated_estimate_reuses_the_types_evaluation(monkeypatch: pytest.MonkeyPatch,
+                                                         numpy_path: None) -> None:
     """ORB-SLAM's rounds restart from the same pose: a round with the levels of the last one
-    retraces it without calling the edge type again, and ends where it did."""
+    retraces it without calling the edge type again, and ends where it did (the numpy path's
+    memo; a compiled loop costs less than the lookup)."""
     calls = []
     linearize = EdgeSE3ProjectXYZOnlyPose.linearize.__func__  # type: ignore[attr-defined]
 

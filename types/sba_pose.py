@@ -25,6 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from graphopt.compiled import CompiledUnary, load
 from graphopt.edge import BaseEdge, EdgeContext, Linearization
 from graphopt.errors import GraphError
 from graphopt.lie import transform_inverse, transform_points
@@ -154,6 +155,26 @@ class _OnlyPose(BaseEdge):
         P, cam, bf = cls._camera_point(x, ctx)
         e, a = projection_base(P, measurement, cam, bf)
         return Linearization(e, (monomial_pose_jacobian(a, cam, bf),))
+
+    @classmethod
+    def compiled_unary(cls, measurement: np.ndarray, ctx: EdgeContext) -> CompiledUnary | None:
+        """The loop of :mod:`graphopt.types.pose_only_compiled` (the same errors and Jacobian
+        rows as :meth:`linearize`, to rounding), or ``None`` without numba.
+
+        Args:
+            measurement: ``(m, 2|3)`` pixels.
+            ctx: ``params`` and ``data["Xw"]``.
+        """
+        mod = load("graphopt.types.pose_only_compiled")
+        if mod is None:
+            return None
+        cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
+                            else CameraParameters)
+        bf = cam.bf if cls.stereo else 0.0  # type: ignore[attr-defined]
+        Xw = np.ascontiguousarray(_world_points(ctx, cls, len(measurement)), dtype=float)
+        z = np.ascontiguousarray(measurement, dtype=float)
+        params = np.array([cam.fx, cam.fy, cam.cx, cam.cy, bf], dtype=float)
+        return CompiledUnary(mod.pose_only_terms, (Xw, z, params), cls.dimension)
 
     @classmethod
     def depth_positive(

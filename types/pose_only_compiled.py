@@ -1,0 +1,102 @@
+"""The compiled loop of the pose-only projection edges (``EdgeSE3ProjectXYZOnlyPose`` and its
+stereo twin) on one pose: errors, g2o's Jacobian rows, robust weights and the normal equations'
+terms in one pass over the edges (see :mod:`graphopt.compiled`). Imports numba: loaded through
+:func:`graphopt.compiled.load`.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from graphopt.compiled_math import add_terms, mirror, robust
+
+__all__ = ["pose_only_terms"]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def pose_only_terms(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, cam: np.ndarray,
+                    info: np.ndarray, active: np.ndarray, code: int, delta: float, lin: bool
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                               np.ndarray, float, float]:
+    """:class:`~graphopt.compiled.CompiledUnary`'s loop for ``e = z − π(T X_w)`` (``z`` with
+    3 columns: ``[u, v, u − bf/z]``, stereo).
+
+    Args:
+        T: ``(4, 4)`` the pose ``T_cw``.
+        Xw: ``(m, 3)`` world points.
+        z: ``(m, 2|3)`` pixels.
+        cam: ``(fx, fy, cx, cy, bf)``.
+        info: ``(m|1, rows)`` the information's diagonal.
+        active: ``(m,)`` the active edges, or ``(0,)``: all.
+        code: Robust kernel code.
+        delta: Its width.
+        lin: Also the Jacobians, ``H`` and ``b``.
+
+    Returns:
+        ``(e (m, rows), J (m|0, rows, 6), every (m,), s (m,), H (6, 6), b (6,), chi2,
+        robust chi2)``.
+    """
+    m, rows = z.shape
+    fx, fy, cx, cy, bf = cam[0], cam[1], cam[2], cam[3], cam[4]
+    e = np.empty((m, rows))
+    J = np.zeros((m if lin else 0, rows, 6))
+    every = np.empty(m)
+    s = np.empty(m)
+    H = np.zeros((6, 6))
+    b = np.zeros(6)
+    w = np.empty(rows)
+    shared = info.shape[0] == 1
+    everyone = active.shape[0] == 0
+    chi = 0.0
+    rchi = 0.0
+    for k in range(m):
+        X, Y, Z = Xw[k, 0], Xw[k, 1], Xw[k, 2]
+        px = T[0, 0] * X + T[0, 1] * Y + T[0, 2] * Z + T[0, 3]
+        py = T[1, 0] * X + T[1, 1] * Y + T[1, 2] * Z + T[1, 3]
+        pz = T[2, 0] * X + T[2, 1] * Y + T[2, 2] * Z + T[2, 3]
+        iz = 1.0 / pz
+        u = px * iz
+        v = py * iz
+        pu = fx * u + cx
+        e[k, 0] = z[k, 0] - pu
+        e[k, 1] = z[k, 1] - (fy * v + cy)
+        if rows == 3:
+            e[k, 2] = z[k, 2] - (pu - bf * iz)
+        q = 0 if shared else k
+        sk = 0.0
+        for i in range(rows):
+            sk += e[k, i] * (e[k, i] * info[q, i])
+        every[k] = sk
+        on = everyone or active[k]
+        s[k] = sk if on else 0.0
+        if lin:  # g2o's rows under T ← exp([ω, υ]) T
+            Jk = J[k]
+            Jk[0, 0] = fx * u * v
+            Jk[0, 1] = -fx * (1.0 + u * u)
+            Jk[0, 2] = fx * v
+            Jk[0, 3] = -fx * iz
+            Jk[0, 5] = fx * u * iz
+            Jk[1, 0] = fy * (1.0 + v * v)
+            Jk[1, 1] = -fy * u * v
+            Jk[1, 2] = -fy * u
+            Jk[1, 4] = -fy * iz
+            Jk[1, 5] = fy * v * iz
+            if rows == 3:
+                Jk[2, 0] = Jk[0, 0] - bf * v * iz
+                Jk[2, 1] = Jk[0, 1] + bf * u * iz
+                Jk[2, 2] = Jk[0, 2]
+                Jk[2, 3] = Jk[0, 3]
+                Jk[2, 5] = Jk[0, 5] - bf * iz * iz
+        if not on:
+            continue
+        chi += sk
+        rho, r1 = robust(sk, code, delta)
+        rchi += rho
+        if lin:
+            for i in range(rows):
+                w[i] = info[q, i] * r1
+            add_terms(H, b, J[k], e[k], w)
+    if lin:
+        mirror(H)
+    return e, J, every, s, H, b, chi, rchi
