@@ -215,3 +215,33 @@ def test_switched_off_without_numba_or_by_the_environment(monkeypatch: pytest.Mo
     assert compiled.load("graphopt.types.pose_only_compiled") is None
     assert EdgeSE3ProjectXYZOnlyPose.compiled_unary(
         np.zeros((3, 2)), EdgeContext(CAM, {"Xw": np.ones((3, 3))})) is None
+
+
+def test_the_screened_solve_is_the_damped_systems_solution() -> None:
+    from graphopt.solvers.small_dense import damped_solve
+    from graphopt.solvers.small_dense_compiled import screened_solve
+
+    rng = np.random.default_rng(4)
+    for d in (1, 3, 6, 7):
+        A = rng.normal(size=(d + 3, d))
+        H = A.T @ A
+        b = rng.normal(size=d)
+        D = rng.uniform(0.5, 2.0, d)
+        for lam in (0.0, 1e-3, 10.0):
+            du, ok = screened_solve(H.T.ravel().copy(), b, lam, D)
+            assert ok
+            np.testing.assert_allclose(du, np.linalg.solve(H + lam * np.diag(D), b),
+                                       rtol=1e-9, atol=1e-12)
+            diag = np.arange(d) * (d + 1)
+            compiled.set_enabled(False)
+            try:
+                ref = damped_solve(H.T.ravel().copy(), b, diag, lam, D)
+            finally:
+                compiled.set_enabled(True)
+            np.testing.assert_allclose(damped_solve(H.T.ravel().copy(), b, diag, lam, D), ref,
+                                       rtol=1e-9, atol=1e-12)
+    # What the screen does not accept goes to the dense solver's rule: a rank-deficient H,
+    # an indefinite one, a non-finite one.
+    v = rng.normal(size=(6, 1))
+    for H in (v @ v.T, np.diag([1.0, 1.0, -1.0, 1.0, 1.0, 1.0]), np.full((6, 6), np.nan)):
+        assert not screened_solve(H.ravel().copy(), np.ones(6), 0.0, np.ones(6))[1]

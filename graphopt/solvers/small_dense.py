@@ -2,17 +2,20 @@
 
 LAPACK's ``dpotrf``/``dpotrs`` on a Fortran view of the damped matrix (no copy), held to the
 dense solver's rank rule (:mod:`graphopt.solvers.rank`): its first screen — every pivot large
-against its diagonal — in Python floats (``d`` pivots: 1 µs, not 4); any doubt goes through
-:func:`~graphopt.solvers.dense.cholesky_solve`, the dense solver's full rule.
+against its diagonal — in Python floats (``d`` pivots: 1 µs, not 4), or with numba the whole
+screened solve in one compiled loop (:mod:`~graphopt.solvers.small_dense_compiled`); any doubt
+goes through :func:`~graphopt.solvers.dense.cholesky_solve`, the dense solver's full rule.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
 
+from graphopt.compiled import available, load
 from graphopt.solvers.dense import cholesky_solve, factor_in_place, is_definite
 from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
 
@@ -33,6 +36,12 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
             deficient).
     """
     d = len(diag)
+    if available():
+        screened = _screened or _load_screened()
+        if screened is not None:
+            du, ok = screened(h_data, b, lam, damping)
+            if ok:
+                return du
     data = _damped(h_data, diag, lam, damping)
     pivots = data[::d + 1].tolist()
     # Symmetric: the column-major data read as a (d, d) C array and transposed is a
@@ -50,6 +59,18 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
     return cholesky_solve("dense", factor_in_place(data.copy(), d), data[diag], b.copy(),
                           lambda s: is_definite(factor_in_place(shift_diagonal(data, diag, s),
                                                                 d)))
+
+
+_screened: Any = None  # the compiled screen, once loaded (False: none)
+
+
+def _load_screened() -> Any:
+    """The compiled screened solve, or ``None`` (kept for the next calls)."""
+    global _screened
+    if _screened is None:
+        mod = load("graphopt.solvers.small_dense_compiled")
+        _screened = False if mod is None else mod.screened_solve
+    return _screened or None
 
 
 def _damped(h_data: np.ndarray, diag: np.ndarray, lam: float, damping: np.ndarray
