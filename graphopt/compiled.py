@@ -87,14 +87,16 @@ def kernel_code(kernel: RobustKernel | None) -> tuple[int, float] | None:
 class CompiledUnary(NamedTuple):
     """A type's compiled evaluation of a group whose edges all act on one vertex.
 
-    ``fn(x, *args, info, active, code, delta, lin, e, J, every, s, H, b) -> (chi2, robust)``
+    ``fn(x, *args, info, active, code, delta, lin) -> (e, every, s, H, b, chi2, robust)``
     with ``x`` the vertex's estimate (one row of its store), ``info`` ``(m|1, rows)`` the
     information's diagonal (one row: shared), ``active`` ``(m,)`` (or ``(0,)``: all),
-    ``code``/``delta`` from :func:`kernel_code`; it writes the errors ``e`` ``(m, rows)``,
-    with ``lin`` the Jacobians ``J`` ``(m, rows, d)``, every edge's ``e'Ωe`` (``every``), the
-    active ones' (``s``, 0 elsewhere), ``H = Σ ρ'JᵀΩJ`` and ``b = Σ ρ'JᵀΩe`` over the
-    active edges, and returns the active edges' chi2 and robust chi2 (what
-    :func:`~graphopt.unary_terms.unary_terms` returns from numpy arrays).
+    ``code``/``delta`` from :func:`kernel_code`: the errors ``e`` ``(m, rows)``, every edge's
+    ``e'Ωe`` (``every``), the active ones' (``s``, 0 elsewhere), with ``lin``
+    ``H = Σ ρ'JᵀΩJ`` ``(d, d)`` and ``b = Σ ρ'JᵀΩe`` ``(d,)`` over the active edges (else
+    zeros), the active edges' chi2 and robust chi2 (what
+    :func:`~graphopt.unary_terms.unary_terms` returns from numpy arrays). The Jacobians are
+    not kept: the type's ``linearize`` gives them where they are wanted (naming an edge whose
+    values are not finite).
 
     Attributes:
         fn: The compiled loop.

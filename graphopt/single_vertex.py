@@ -117,7 +117,7 @@ class SingleVertexProblem(OneVertexOps, Problem):
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
         # linearisation at that state.
         self._terms: tuple[object, np.ndarray | None, np.ndarray | None,
-                           list[tuple[np.ndarray, ...]]] | None = None
+                           list[tuple[np.ndarray, ...] | None]] | None = None
         self._idle_key: tuple[tuple[int, int], ...] | None = None
         self._idle = False
 
@@ -180,14 +180,14 @@ class SingleVertexProblem(OneVertexOps, Problem):
         totals = [0.0, 0.0, 0.0]
         state, versions = key = lz.state_key()
         ht = bu = None
-        jac: list[tuple[np.ndarray, ...]] = []
+        jac: list[tuple[np.ndarray, ...] | None] = []
         complete = True
         for gi, g in enumerate(self.groups):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             cg = self._compiled_of(gi, g, versions[gi]) if self._unary[gi] and not safe else None
             if cg is not None:  # the type's compiled loop (graphopt.compiled)
-                e, J1, s_all, s, hg, bg, chi, rchi = compiled_terms(
+                e, s_all, s, hg, bg, chi, rchi = compiled_terms(
                     cg, self.stores[self._store].estimates[self._slot], lin)
                 self._keep(gi, g, state, e, s, cg.count, s_all)
                 totals[0] += chi
@@ -196,7 +196,7 @@ class SingleVertexProblem(OneVertexOps, Problem):
                 if lin:
                     ht = hg if ht is None else ht + hg
                     bu = bg if bu is None else bu + bg
-                    jac.append((J1,))
+                    jac.append(None)  # the type's, if wanted
                 else:
                     complete = complete and not touch
                     jac.append(())
@@ -415,10 +415,13 @@ class SingleVertexProblem(OneVertexOps, Problem):
         self.timing.linearize += time.perf_counter() - t0
         return asm, ev.robust_chi2
 
-    def _name_non_finite(self, jac: list[tuple[np.ndarray, ...]]) -> None:
+    def _name_non_finite(self, jac: list[tuple[np.ndarray, ...] | None]) -> None:
         """Raise naming the first edge with a non-finite error or Jacobian among the groups
-        that reach ``H`` (their Jacobians ``jac``), if there is one."""
-        for g, J in zip(self.groups, jac, strict=True):
+        that reach ``H`` (their Jacobians ``jac``; ``None``: a compiled loop's, which keeps
+        none — the type's own), if there is one."""
+        for gi, (g, J) in enumerate(zip(self.groups, jac, strict=True)):
+            if J is None:
+                J = self._call(gi, g, "linearize", False).jacobians
             if J:
                 raise_non_finite_edge(g, g.raw_eval[1], J)  # type: ignore[index]
 

@@ -157,9 +157,9 @@ def compiled_group(unary: CompiledUnary | None, wg: Weighing | None) -> Compiled
 
 def compiled_terms(cg: CompiledGroup, x: np.ndarray, lin: bool
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                              np.ndarray, float, float]:
-    """:func:`unary_terms`' numbers and the type's outputs from the compiled loop:
-    ``(e, J, every, s, H, b, chi2, robust chi2)`` (``J`` empty unless ``lin``).
+                              float, float]:
+    """:func:`unary_terms`' numbers and the errors from the compiled loop:
+    ``(e, every, s, H, b, chi2, robust chi2)`` (``H`` and ``b`` zero unless ``lin``).
 
     Args:
         cg: The group's compiled evaluation.

@@ -18,7 +18,7 @@ __all__ = ["pose_only_terms"]
 def pose_only_terms(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, cam: np.ndarray,
                     info: np.ndarray, active: np.ndarray, code: int, delta: float, lin: bool
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                               np.ndarray, float, float]:
+                               float, float]:
     """:class:`~graphopt.compiled.CompiledUnary`'s loop for ``e = z − π(T X_w)`` (``z`` with
     3 columns: ``[u, v, u − bf/z]``, stereo).
 
@@ -34,13 +34,12 @@ def pose_only_terms(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, cam: np.ndarra
         lin: Also the Jacobians, ``H`` and ``b``.
 
     Returns:
-        ``(e (m, rows), J (m|0, rows, 6), every (m,), s (m,), H (6, 6), b (6,), chi2,
-        robust chi2)``.
+        ``(e (m, rows), every (m,), s (m,), H (6, 6), b (6,), chi2, robust chi2)``.
     """
     m, rows = z.shape
     fx, fy, cx, cy, bf = cam[0], cam[1], cam[2], cam[3], cam[4]
     e = np.empty((m, rows))
-    J = np.zeros((m if lin else 0, rows, 6))
+    Jk = np.zeros((rows, 6))  # one edge's rows (the zeros stay)
     every = np.empty(m)
     s = np.empty(m)
     H = np.zeros((6, 6))
@@ -70,8 +69,12 @@ def pose_only_terms(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, cam: np.ndarra
         every[k] = sk
         on = everyone or active[k]
         s[k] = sk if on else 0.0
+        if not on:
+            continue
+        chi += sk
+        rho, r1 = robust(sk, code, delta)
+        rchi += rho
         if lin:  # g2o's rows under T ← exp([ω, υ]) T
-            Jk = J[k]
             Jk[0, 0] = fx * u * v
             Jk[0, 1] = -fx * (1.0 + u * u)
             Jk[0, 2] = fx * v
@@ -88,15 +91,9 @@ def pose_only_terms(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, cam: np.ndarra
                 Jk[2, 2] = Jk[0, 2]
                 Jk[2, 3] = Jk[0, 3]
                 Jk[2, 5] = Jk[0, 5] - bf * iz * iz
-        if not on:
-            continue
-        chi += sk
-        rho, r1 = robust(sk, code, delta)
-        rchi += rho
-        if lin:
             for i in range(rows):
                 w[i] = info[q, i] * r1
-            add_terms(H, b, J[k], e[k], w)
+            add_terms(H, b, Jk, e[k], w)
     if lin:
         mirror(H)
-    return e, J, every, s, H, b, chi, rchi
+    return e, every, s, H, b, chi, rchi
