@@ -10,17 +10,20 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from graphopt import RobustKernelCauchy, RobustKernelHuber, SparseOptimizer, compiled
+from graphopt import BaseEdge, RobustKernelCauchy, RobustKernelHuber, SparseOptimizer, compiled
+from graphopt.compiled import CompiledUnary
 from graphopt.edge import EdgeContext
 from graphopt.types import (
     CameraParameters,
     EdgeSE3ProjectXYZOnlyPose,
     EdgeStereoSE3ProjectXYZOnlyPose,
     StereoCameraParameters,
+    VertexPointXYZ,
     VertexSE3Expmap,
 )
 from graphopt.unary_terms import compiled_group, compiled_terms, unary_terms, weighing
@@ -256,3 +259,54 @@ def test_the_screened_solve_is_the_damped_systems_solution() -> None:
     v = rng.normal(size=(6, 1))
     for H in (v @ v.T, np.diag([1.0, 1.0, -1.0, 1.0, 1.0, 1.0]), np.full((6, 6), np.nan)):
         assert not screened_solve(H.ravel().copy(), np.ones(6), 0.0, np.ones(6))[1]
+
+
+class EdgePointPrior(BaseEdge):
+    """``e = z − x`` on a point, with the loop of ``compiled_prior.py`` (docs/compiled.md)."""
+
+    dimension = 3
+    vertex_types = (VertexPointXYZ,)
+
+    @classmethod
+    def error(cls, x: Any, measurement: np.ndarray, ctx: EdgeContext) -> np.ndarray:
+        return measurement - x[0]
+
+    @classmethod
+    def jacobians(cls, x: Any, measurement: np.ndarray, ctx: EdgeContext
+                  ) -> tuple[np.ndarray, ...]:
+        return (np.broadcast_to(-np.eye(3), (len(measurement), 3, 3)).copy(),)
+
+    @classmethod
+    def compiled_unary(cls, measurement: np.ndarray, ctx: EdgeContext) -> CompiledUnary | None:
+        mod = compiled.load("compiled_prior")
+        if mod is None:
+            return None
+        return CompiledUnary(mod.prior_terms, (np.ascontiguousarray(measurement, float),), 3)
+
+
+def test_a_users_loop_runs_as_its_types_numpy_methods() -> None:
+    rng = np.random.default_rng(8)
+    z = rng.normal([1.0, 2.0, 3.0], 0.1, (200, 3))
+    z[:20] += rng.normal(0.0, 3.0, (20, 3))  # outliers, for Huber
+    info = rng.uniform(50, 100, (200, 1, 1)) * np.eye(3)
+    runs = []
+    for on in (True, False):
+        compiled.set_enabled(on)
+        try:
+            opt = SparseOptimizer(algorithm="lm", solver="dense")
+            opt.add_vertices(VertexPointXYZ, [0], np.zeros((1, 3)))
+            es = opt.add_edges(EdgePointPrior, np.zeros((200, 1), dtype=int), z,
+                               information=info,
+                               robust_kernel=RobustKernelHuber(1.0))
+            es[np.arange(200) % 9 == 0].set_level(1)
+            res = opt.optimize(20)
+        finally:
+            compiled.set_enabled(True)
+        assert (opt.problem._compiled[0][2] is not None) == on  # type: ignore[union-attr]
+        runs.append(([i.chi2 for i in res.info], opt.vertex(0).estimate, es.chi2()))
+    (a, xa, ca), (b, xb, cb) = runs
+    assert len(a) == len(b) >= 2
+    np.testing.assert_allclose(a, b, rtol=1e-10)
+    np.testing.assert_allclose(xa, xb, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ca, cb, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(xa, [1.0, 2.0, 3.0], atol=0.03)  # the outliers are down-weighted
