@@ -28,8 +28,10 @@ _F8 = np.dtype(np.float64)
 #: One-slot parameter-id tuples of small ids, shared (no tuple per edge for the collector to
 #: scan: g2o programs give every edge ``set_parameter_id(0, 0)``).
 _PIDS1: tuple[tuple[int], ...] = tuple((i,) for i in range(64))
-#: The last information matrix set (its bytes and the shared read-only copy).
-_LAST_INFO: list[tuple[bytes, np.ndarray, int] | None] = [None]
+#: The information matrices set, by value (bytes, rows): their shared read-only copies.
+_INFOS: dict[tuple[bytes, int], np.ndarray] = {}
+#: Most values _INFOS keeps (ORB-SLAM's σ⁻² per pyramid level: 8; it starts again when full).
+_INFOS_KEPT = 64
 #: Per class, its compiled :meth:`BaseEdge._keys_of` and :meth:`BaseEdge._shared_key`.
 _KEYS: dict[type, Any] = {}
 
@@ -171,18 +173,17 @@ class BaseEdge:
             information: ``(d, d)`` (nested lists accepted).
         """
         if type(information) is np.ndarray and information.dtype is _F8 and information.ndim == 2:
-            # Programs give every edge the same matrix: consecutive equal values share one
-            # read-only copy, which initialize_optimization recognises by identity (equal
-            # bytes and row counts of two matrices: equal shapes).
-            raw = information.tobytes()
-            last = _LAST_INFO[0]
-            if last is not None and last[0] == raw and len(information) == last[2]:
-                self._info = last[1]
-            else:
-                info = information.copy()
+            # Programs give every edge one of a few matrices (one, or σ⁻²·I per pyramid level):
+            # equal values share one read-only copy, which initialize_optimization recognises
+            # by identity (equal bytes and row counts of two matrices: equal shapes).
+            key = (information.tobytes(), len(information))
+            info = _INFOS.get(key)
+            if info is None:
+                if len(_INFOS) >= _INFOS_KEPT:
+                    _INFOS.clear()
+                info = _INFOS[key] = information.copy()
                 info.flags.writeable = False
-                _LAST_INFO[0] = (raw, info, len(info))
-                self._info = info
+            self._info = info
         else:
             self._info = np.array(information, dtype=float)
         if self._batch is not None:

@@ -729,6 +729,33 @@ def test_stacked_information_shared_or_per_edge() -> None:
     assert stack_information(cls, recs[:2], 2)[1].tolist() == [[1.0, 0.0], [0.0, 1.0]]
 
 
+def test_information_of_a_few_values_is_shared_and_stacked_per_edge() -> None:
+    """ORB-SLAM's σ⁻²·I per pyramid level: equal values share one read-only copy, and the
+    batch's matrices are each edge's own; a wrong shape among them names its edge."""
+    from graphopt.g2o.batch import stack_information
+
+    cls = g2o.EdgeSE3ProjectXYZOnlyPose
+    rng = np.random.default_rng(3)
+    level = rng.integers(0, 8, 300)
+    recs = [cls() for _ in range(300)]
+    for e, lv in zip(recs, level, strict=True):
+        e.set_information(np.eye(2) * 1.2 ** (-2 * float(lv)))
+    assert len({id(e._info) for e in recs}) == len(set(level.tolist()))
+    assert not recs[0]._info.flags.writeable
+    got = stack_information(cls, recs, 2)
+    np.testing.assert_array_equal(got, np.stack([np.eye(2) * 1.2 ** (-2 * float(lv))
+                                                 for lv in level]))
+    recs[7]._info = None  # unset: the identity
+    assert stack_information(cls, recs, 2)[7].tolist() == [[1.0, 0.0], [0.0, 1.0]]
+    v = g2o.VertexSE3Expmap()
+    v.set_id(4)
+    recs[9].set_vertex(0, v)
+    recs[9].set_information(np.eye(3))
+    with pytest.raises(GraphError, match=r"EdgeSE3ProjectXYZOnlyPose on vertices \[4\]: "
+                                         r"information has shape \(3, 3\)"):
+        stack_information(cls, recs, 2)
+
+
 def test_edge_chi2_follows_the_estimates() -> None:
     opt, edges, pts = _small_ba(5)
     opt.initialize_optimization()
