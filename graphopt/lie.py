@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from graphopt.compiled import available, load
+
 __all__ = [
     "SMALL_ANGLE2",
     "angle_axis_rotate",
@@ -34,6 +36,7 @@ __all__ = [
     "relative_transform",
     "rot_to_quat",
     "se3_exp",
+    "se3_exp_left",
     "so3_exp",
     "so3_left_jacobian",
     "so3_log",
@@ -196,6 +199,33 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     T[:, :3, 3] = np.einsum("nij,nj->ni", V, u)
     T[:, 3, 3] = 1.0
     return T
+
+
+def se3_exp_left(xi: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``se3_exp(xi) @ T``: the SE(3) vertex's ``oplus``; one twist on one pose in one compiled
+    call where numba is available (:mod:`graphopt.lie_compiled`; the same exponential, the
+    product summed in its own order).
+
+    Args:
+        xi: ``(n, 6)`` twists, rotation part first.
+        T: ``(n, 4, 4)`` transforms.
+    """
+    if len(xi) == 1 and type(xi) is np.ndarray and type(T) is np.ndarray and T.shape == (1, 4, 4):
+        fn = _exp_left_one or _load_exp_left()
+        if fn is not None and available():
+            return fn(xi[0], T[0])[None]
+    return se3_exp(xi) @ T
+
+
+_exp_left_one: Any = None  # lie_compiled.se3_exp_left_one once loaded (False: none)
+
+
+def _load_exp_left() -> Any:
+    global _exp_left_one
+    if _exp_left_one is None:
+        mod = load("graphopt.lie_compiled")
+        _exp_left_one = False if mod is None else mod.se3_exp_left_one
+    return _exp_left_one or None
 
 
 def _se3_exp_one(wx: float, wy: float, wz: float, ux: float, uy: float, uz: float

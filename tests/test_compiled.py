@@ -310,3 +310,23 @@ def test_a_users_loop_runs_as_its_types_numpy_methods() -> None:
     np.testing.assert_allclose(xa, xb, rtol=0, atol=1e-12)
     np.testing.assert_allclose(ca, cb, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(xa, [1.0, 2.0, 3.0], atol=0.03)  # the outliers are down-weighted
+
+
+def test_the_se3_step_is_the_exponential_times_the_pose() -> None:
+    from graphopt.lie import se3_exp, se3_exp_left
+
+    rng = np.random.default_rng(6)
+    T = se3_exp(rng.normal(size=(1, 6)))
+    for scale in (1e-9, 1e-5, 0.3, 2.5):  # the series below SMALL_ANGLE2, the closed forms
+        xi = rng.normal(size=(1, 6)) * scale
+        got = se3_exp_left(xi, T)
+        assert got.shape == (1, 4, 4)
+        np.testing.assert_allclose(got, se3_exp(xi) @ T, rtol=0, atol=1e-15)
+        compiled.set_enabled(False)
+        try:
+            assert np.array_equal(se3_exp_left(xi, T), se3_exp(xi) @ T)
+        finally:
+            compiled.set_enabled(True)
+    many = rng.normal(size=(3, 6))  # several poses: the batched exponential
+    Ts = se3_exp(rng.normal(size=(3, 6)))
+    assert np.array_equal(se3_exp_left(many, Ts), se3_exp(many) @ Ts)

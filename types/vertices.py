@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from graphopt.lie import se3_exp
+from graphopt.lie import se3_exp_left
 from graphopt.vertex import BaseVertex, VertexVector
 
 _I3 = np.eye(3)
@@ -52,7 +52,7 @@ class VertexSE3Expmap(BaseVertex):
             estimates: ``(n, 4, 4)`` transforms.
             deltas: ``(n, 6)`` twists ``[ω, υ]``.
         """
-        return se3_exp(deltas) @ estimates
+        return se3_exp_left(deltas, estimates)
 
     @classmethod
     def validate(cls, estimates: np.ndarray) -> np.ndarray:
