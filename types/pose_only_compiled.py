@@ -9,7 +9,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from graphopt.compiled_math import add_terms, mirror, robust
+from graphopt.compiled_math import add_row6, mirror, robust
 
 __all__ = ["pose_only_terms"]
 
@@ -39,12 +39,10 @@ def pose_only_terms(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, cam: np.ndarra
     m, rows = z.shape
     fx, fy, cx, cy, bf = cam[0], cam[1], cam[2], cam[3], cam[4]
     e = np.empty((m, rows))
-    Jk = np.zeros((rows, 6))  # one edge's rows (the zeros stay)
     every = np.empty(m)
     s = np.empty(m)
     H = np.zeros((6, 6))
     b = np.zeros(6)
-    w = np.empty(rows)
     shared = info.shape[0] == 1
     everyone = active.shape[0] == 0
     chi = 0.0
@@ -74,26 +72,14 @@ def pose_only_terms(T: np.ndarray, Xw: np.ndarray, z: np.ndarray, cam: np.ndarra
         chi += sk
         rho, r1 = robust(sk, code, delta)
         rchi += rho
-        if lin:  # g2o's rows under T ← exp([ω, υ]) T
-            Jk[0, 0] = fx * u * v
-            Jk[0, 1] = -fx * (1.0 + u * u)
-            Jk[0, 2] = fx * v
-            Jk[0, 3] = -fx * iz
-            Jk[0, 5] = fx * u * iz
-            Jk[1, 0] = fy * (1.0 + v * v)
-            Jk[1, 1] = -fy * u * v
-            Jk[1, 2] = -fy * u
-            Jk[1, 4] = -fy * iz
-            Jk[1, 5] = fy * v * iz
-            if rows == 3:
-                Jk[2, 0] = Jk[0, 0] - bf * v * iz
-                Jk[2, 1] = Jk[0, 1] + bf * u * iz
-                Jk[2, 2] = Jk[0, 2]
-                Jk[2, 3] = Jk[0, 3]
-                Jk[2, 5] = Jk[0, 5] - bf * iz * iz
-            for i in range(rows):
-                w[i] = info[q, i] * r1
-            add_terms(H, b, Jk, e[k], w)
+        if lin:  # g2o's rows under T ← exp([ω, υ]) T, weighed by ρ'·Ω
+            a0, a1, a2, a3, a5 = fx * u * v, -fx * (1.0 + u * u), fx * v, -fx * iz, fx * u * iz
+            add_row6(H, b, info[q, 0] * r1, e[k, 0], a0, a1, a2, a3, 0.0, a5)
+            add_row6(H, b, info[q, 1] * r1, e[k, 1], fy * (1.0 + v * v), -fy * u * v, -fy * u,
+                     0.0, -fy * iz, fy * v * iz)
+            if rows == 3:  # u_r = u − bf·iz: row 0 plus bf·[−v·iz, u·iz, 0, 0, 0, −iz²]
+                add_row6(H, b, info[q, 2] * r1, e[k, 2], a0 - bf * v * iz, a1 + bf * u * iz, a2,
+                         a3, 0.0, a5 - bf * iz * iz)
     if lin:
         mirror(H)
     return e, every, s, H, b, chi, rchi
