@@ -112,7 +112,8 @@ class SingleVertexProblem(OneVertexOps, Problem):
         self._memo = [EvaluationMemo() for _ in groups]
         # Per unary group: its weighing at an activity version (None: the general weighting).
         self._weighing: list[tuple[tuple[int, int], Weighing | None] | None] = [None] * len(groups)
-        # Per unary group: (measurements, weighing, compiled evaluation, the type's loop).
+        # Per unary group: (measurements, activity version, compiled evaluation, the type's
+        # loop).
         self._compiled: list[tuple[Any, ...] | None] = [None] * len(groups)
         # The last evaluation's (state key, Hᵀ, Jᵀρ'Ωe, Jacobians per group), for the
         # linearisation at that state.
@@ -246,15 +247,14 @@ class SingleVertexProblem(OneVertexOps, Problem):
     def _compiled_of(self, gi: int, g: EdgeGroup, version: tuple[int, int]
                      ) -> CompiledGroup | None:
         """Group ``gi``'s compiled evaluation at its activity ``version``, or ``None``."""
-        wg = self._weighing_of(gi, g, version)
         kept = self._compiled[gi]
-        if kept is not None and kept[0] is g.measurements and kept[1] is wg:
+        if kept is not None and kept[1] == version and kept[0] is g.measurements:
             return kept[2]
         same = kept is not None and kept[0] is g.measurements
         loop = (kept[3] if same else None if g.etype.uses_derived  # type: ignore[index]
                 else g.etype.compiled_unary(g.measurements, g.context()))
-        cg = compiled_group(loop, wg)
-        self._compiled[gi] = (g.measurements, wg, cg, loop)
+        cg = None if loop is None else compiled_group(loop, weighing(g, active_info=False))
+        self._compiled[gi] = (g.measurements, version, cg, loop)
         return cg
 
     def _keep(self, gi: int, g: EdgeGroup, state: tuple[int, ...], e: np.ndarray,

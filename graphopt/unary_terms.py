@@ -44,12 +44,14 @@ class Weighing(NamedTuple):
     active_info: np.ndarray | None = None
 
 
-def weighing(g: EdgeGroup) -> Weighing | None:
+def weighing(g: EdgeGroup, active_info: bool = True) -> Weighing | None:
     """The group's :class:`Weighing`, or ``None`` where :func:`unary_terms` does not apply
     (a full information matrix, or edges with different kernels).
 
     Args:
         g: A finalised group.
+        active_info: Also :attr:`Weighing.active_info` (what :func:`unary_terms` reads; a
+            compiled loop does not).
     """
     if g.info_is_identity:
         info = None
@@ -62,7 +64,7 @@ def weighing(g: EdgeGroup) -> Weighing | None:
         return None  # different kernels, or some edges without one
     act = g.active_edges
     count = g.size if act is None else int(np.count_nonzero(act))
-    both = None if act is None or info is None else info * act[:, None]
+    both = None if act is None or info is None or not active_info else info * act[:, None]
     return Weighing(g.activity_version, act, count, kernel, info, both)
 
 

@@ -166,9 +166,11 @@ def _one_kernel_for_all() -> SparseOptimizer:
     return opt
 
 
-def test_one_kernel_for_all_takes_the_fused_weighing(general: Callable[[], None]) -> None:
+def test_one_kernel_for_all_takes_the_fused_weighing(general: Callable[[], None],
+                                                     numpy_path: None) -> None:
     """A unary group with one kernel (then none) and levels: the fused terms
-    (:mod:`graphopt.unary_terms`) give the general path's iterations."""
+    (:mod:`graphopt.unary_terms`) give the general path's iterations (the numpy path's; the
+    compiled loop's are tested against it in test_compiled.py)."""
     fast = _one_kernel_for_all()
     a = _run(fast, rounds=3)
     assert fast.problem._weighing[0][1] is not None  # the projections' group was fused
