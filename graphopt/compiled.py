@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 
 from graphopt.robust_kernel import RobustKernel, RobustKernelHuber
 
-__all__ = ["CompiledUnary", "available", "kernel_code", "load"]
+__all__ = ["CompiledUnary", "Lazy", "available", "kernel_code", "load"]
 
 #: Robust kernels a compiled loop applies, by code (``kernel_code``): none, Huber.
 KERNEL_NONE, KERNEL_HUBER = 0, 1
@@ -69,6 +69,31 @@ def load(module: str) -> ModuleType | None:
         return importlib.import_module(module)
     except ImportError:
         return None
+
+
+class Lazy:
+    """One function of a module of compiled loops, loaded at its first use.
+
+    Args:
+        module: The module's dotted name.
+        name: The function's name in it.
+    """
+
+    __slots__ = ("_fn", "module", "name")
+
+    def __init__(self, module: str, name: str) -> None:
+        self.module, self.name = module, name
+        self._fn: Any = None  # False: the module does not load
+
+    def get(self) -> Callable[..., Any] | None:
+        """The compiled function, or ``None`` (no numba, or loops off)."""
+        if not available():
+            return None
+        fn = self._fn
+        if fn is None:
+            mod = load(self.module)
+            fn = self._fn = False if mod is None else getattr(mod, self.name)
+        return fn or None
 
 
 def kernel_code(kernel: RobustKernel | None) -> tuple[int, float] | None:

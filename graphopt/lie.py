@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from graphopt.compiled import available, load
+from graphopt.compiled import Lazy
 
 __all__ = [
     "SMALL_ANGLE2",
@@ -37,6 +37,7 @@ __all__ = [
     "rot_to_quat",
     "se3_exp",
     "se3_exp_left",
+    "se3_exp_rows",
     "so3_exp",
     "so3_left_jacobian",
     "so3_log",
@@ -211,27 +212,21 @@ def se3_exp_left(xi: np.ndarray, T: np.ndarray) -> np.ndarray:
         T: ``(n, 4, 4)`` transforms.
     """
     if len(xi) == 1 and type(xi) is np.ndarray and type(T) is np.ndarray and T.shape == (1, 4, 4):
-        fn = _exp_left_one or _load_exp_left()
-        if fn is not None and available():
+        fn = _EXP_LEFT.get()
+        if fn is not None:
             return fn(xi[0], T[0])[None]
     return se3_exp(xi) @ T
 
 
-_exp_left_one: Any = None  # lie_compiled.se3_exp_left_one once loaded (False: none)
+_EXP_LEFT = Lazy("graphopt.lie_compiled", "se3_exp_left_one")
 
 
-def _load_exp_left() -> Any:
-    global _exp_left_one
-    if _exp_left_one is None:
-        mod = load("graphopt.lie_compiled")
-        _exp_left_one = False if mod is None else mod.se3_exp_left_one
-    return _exp_left_one or None
-
-
-def _se3_exp_one(wx: float, wy: float, wz: float, ux: float, uy: float, uz: float
-                 ) -> np.ndarray:
-    """:func:`se3_exp` of one twist in Python floats (the same formulas and series; the
-    products of ``[ω]×²`` as ``ωωᵀ − θ²I``, so the last bits may differ)."""
+def se3_exp_rows(wx: float, wy: float, wz: float, ux: float, uy: float, uz: float
+                 ) -> tuple[float, ...]:
+    """The top three rows of :func:`se3_exp` of one twist, row by row (12 floats): the same
+    formulas and series in scalar arithmetic, the products of ``[ω]×²`` as ``ωωᵀ − θ²I`` (so
+    the last bits may differ from the batched form's). Plain Python that numba also compiles
+    (:mod:`graphopt.lie_compiled`)."""
     t2 = wx * wx + wy * wy + wz * wz
     if t2 < SMALL_ANGLE2:
         a, b, c = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
@@ -241,14 +236,18 @@ def _se3_exp_one(wx: float, wy: float, wz: float, ux: float, uy: float, uz: floa
         a, b, c = sn / th, (1.0 - math.cos(th)) / t2, (th - sn) / (t2 * th)
     xx, yy, zz = wx * wx - t2, wy * wy - t2, wz * wz - t2  # diagonal of [ω]×² = ωωᵀ − θ²I
     xy, xz, yz = wx * wy, wx * wz, wy * wz
-    r = [[1.0 + b * xx, -a * wz + b * xy, a * wy + b * xz],
-         [a * wz + b * xy, 1.0 + b * yy, -a * wx + b * yz],
-         [-a * wy + b * xz, a * wx + b * yz, 1.0 + b * zz]]
-    v = [[1.0 + c * xx, -b * wz + c * xy, b * wy + c * xz],
-         [b * wz + c * xy, 1.0 + c * yy, -b * wx + c * yz],
-         [-b * wy + c * xz, b * wx + c * yz, 1.0 + c * zz]]
-    t = [vi[0] * ux + vi[1] * uy + vi[2] * uz for vi in v]
-    return np.array([*r[0], t[0], *r[1], t[1], *r[2], t[2], 0.0, 0.0, 0.0, 1.0]).reshape(1, 4, 4)
+    t0 = (1.0 + c * xx) * ux + (-b * wz + c * xy) * uy + (b * wy + c * xz) * uz
+    t1 = (b * wz + c * xy) * ux + (1.0 + c * yy) * uy + (-b * wx + c * yz) * uz
+    t2_ = (-b * wy + c * xz) * ux + (b * wx + c * yz) * uy + (1.0 + c * zz) * uz
+    return (1.0 + b * xx, -a * wz + b * xy, a * wy + b * xz, t0,
+            a * wz + b * xy, 1.0 + b * yy, -a * wx + b * yz, t1,
+            -a * wy + b * xz, a * wx + b * yz, 1.0 + b * zz, t2_)
+
+
+def _se3_exp_one(wx: float, wy: float, wz: float, ux: float, uy: float, uz: float
+                 ) -> np.ndarray:
+    """:func:`se3_exp` of one twist in Python floats (:func:`se3_exp_rows`)."""
+    return np.array([*se3_exp_rows(wx, wy, wz, ux, uy, uz), 0.0, 0.0, 0.0, 1.0]).reshape(1, 4, 4)
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:

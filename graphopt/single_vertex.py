@@ -187,31 +187,24 @@ class SingleVertexProblem(OneVertexOps, Problem):
             touch = self._touch[gi]
             lin = linearize and touch and (every or lz.on_trial[gi])
             cg = self._compiled_of(gi, g, versions[gi]) if self._unary[gi] and not safe else None
+            fused = None
             if cg is not None:  # the type's compiled loop (graphopt.compiled)
                 e, s_all, s, hg, bg, chi, rchi = compiled_terms(
                     cg, self.stores[self._store].estimates[self._slot], lin)
-                self._keep(gi, g, state, e, s, cg.count, s_all)
+                fused, J = cg.count, None  # J: the type's, if wanted
+            else:
+                out = self._call(gi, g, "linearize" if lin else "evaluate", memo)
+                wg = (self._weighing_of(gi, g, versions[gi])
+                      if self._unary[gi] and not safe and out.active is None else None)
+                if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
+                    e, J = out.error, (out.jacobians[0],) if lin else ()
+                    s_all, s, chi, rchi, hg, bg = unary_terms(wg, e, J[0] if J else None)
+                    fused = wg.count
+            if fused is not None:
+                self._keep(gi, g, state, e, s, fused, s_all)
                 totals[0] += chi
                 totals[1] += rchi
-                totals[2] += cg.count
-                if lin:
-                    ht = hg if ht is None else ht + hg
-                    bu = bg if bu is None else bu + bg
-                    jac.append(None)  # the type's, if wanted
-                else:
-                    complete = complete and not touch
-                    jac.append(())
-                continue
-            out = self._call(gi, g, "linearize" if lin else "evaluate", memo)
-            wg = (self._weighing_of(gi, g, versions[gi])
-                  if self._unary[gi] and not safe and out.active is None else None)
-            if wg is not None:  # one vertex, one kernel or none, a diagonal Ω: fused
-                J = (out.jacobians[0],) if lin else ()
-                s_all, s, chi, rchi, hg, bg = unary_terms(wg, out.error, J[0] if J else None)
-                self._keep(gi, g, state, out.error, s, wg.count, s_all)
-                totals[0] += chi
-                totals[1] += rchi
-                totals[2] += wg.count
+                totals[2] += fused
                 if lin:
                     ht = hg if ht is None else ht + hg
                     bu = bg if bu is None else bu + bg

@@ -10,12 +10,11 @@ goes through :func:`~graphopt.solvers.dense.cholesky_solve`, the dense solver's 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
 
-from graphopt.compiled import available, load
+from graphopt.compiled import Lazy
 from graphopt.solvers.dense import cholesky_solve, factor_in_place, is_definite
 from graphopt.solvers.rank import PIVOT_SCREEN, shift_diagonal
 
@@ -36,12 +35,11 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
             deficient).
     """
     d = len(diag)
-    if available():
-        screened = _screened or _load_screened()
-        if screened is not None:
-            du, ok = screened(h_data, b, lam, damping)
-            if ok:
-                return du
+    screened = _SCREENED.get()
+    if screened is not None:
+        du, ok = screened(h_data, b, lam, damping)
+        if ok:
+            return du
     data = _damped(h_data, diag, lam, damping)
     pivots = data[::d + 1].tolist()
     # Symmetric: the column-major data read as a (d, d) C array and transposed is a
@@ -61,16 +59,7 @@ def damped_solve(h_data: np.ndarray, b: np.ndarray, diag: np.ndarray, lam: float
                                                                 d)))
 
 
-_screened: Any = None  # the compiled screen, once loaded (False: none)
-
-
-def _load_screened() -> Any:
-    """The compiled screened solve, or ``None`` (kept for the next calls)."""
-    global _screened
-    if _screened is None:
-        mod = load("graphopt.solvers.small_dense_compiled")
-        _screened = False if mod is None else mod.screened_solve
-    return _screened or None
+_SCREENED = Lazy("graphopt.solvers.small_dense_compiled", "screened_solve")
 
 
 def _damped(h_data: np.ndarray, diag: np.ndarray, lam: float, damping: np.ndarray
