@@ -330,3 +330,41 @@ def test_the_se3_step_is_the_exponential_times_the_pose() -> None:
     many = rng.normal(size=(3, 6))  # several poses: the batched exponential
     Ts = se3_exp(rng.normal(size=(3, 6)))
     assert np.array_equal(se3_exp_left(many, Ts), se3_exp(many) @ Ts)
+
+
+def test_a_loop_beside_numpy_groups_takes_the_same_iterations() -> None:
+    """A pose with its projections (one kernel: the loop) and relative-pose edges to fixed
+    poses (numpy): the same run with and without loops."""
+    from graphopt.lie import se3_exp
+    from graphopt.types import EdgeSE3Expmap
+
+    s = scenes.motion_only(80, False, seed=2)
+    rng = np.random.default_rng(2)
+    others = se3_exp(rng.normal(0.0, 0.3, (3, 6)))
+    runs = []
+    for on in (True, False):
+        compiled.set_enabled(on)
+        try:
+            opt = SparseOptimizer(algorithm="lm", solver="dense")
+            opt.add_vertices(VertexSE3Expmap, [0, 1, 2, 3],
+                             np.concatenate([s.T_init[None], others]),
+                             fixed=[False, True, True, True])
+            opt.add_edges(EdgeSE3ProjectXYZOnlyPose, np.zeros((80, 1), dtype=int), s.z,
+                          information=s.inv_sigma2[:, None, None] * np.eye(2),
+                          robust_kernel=RobustKernelHuber(2.0), params=CAM,
+                          data={"Xw": s.Xw})
+            rel = others @ np.linalg.inv(s.T_true)  # T_j T_0⁻¹, exact at the truth
+            opt.add_edges(EdgeSE3Expmap, np.array([[0, 1], [0, 2], [3, 0]]),
+                          np.stack([rel[0], rel[1], np.linalg.inv(rel[2])]),
+                          information=np.eye(6) * 100.0)
+            res = opt.optimize(10)
+        finally:
+            compiled.set_enabled(True)
+        p = opt.problem
+        assert [c is not None and c[2] is not None for c in p._compiled] == [on, False]
+        runs.append(([(i.chi2, i.trials) for i in res.info], opt.vertex(0).estimate))
+    (a, Ta), (b, Tb) = runs
+    assert len(a) == len(b) >= 3
+    for x, y in zip(a, b, strict=True):
+        assert x[0] == pytest.approx(y[0], rel=1e-9) and x[1] == y[1]
+    np.testing.assert_allclose(Ta, Tb, rtol=0, atol=1e-10)
