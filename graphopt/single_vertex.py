@@ -11,7 +11,9 @@ call, its weights, two products for ``H`` and ``b``, and LAPACK's ``dpotrf``/``d
 :func:`~graphopt.row_weights.weighted_rows`, with inactive edges weighted zero where the general
 path zeroes their rows; the products of
 :class:`~graphopt.linear.single_block.SingleBlockAssembler`; the dense solver's rank rule), so
-both paths give the same iterations; the tests compare them.
+both paths give the same iterations; the tests compare them. With numba, a group whose type
+offers a compiled loop (:mod:`graphopt.compiled`) is evaluated by it, the same numbers to
+rounding.
 
 The general path's objects that only a few callers need — the :class:`~graphopt.linear.
 LinearSystem` (marginal covariances, :attr:`SparseOptimizer.linear_system`) and the solver's

@@ -8,7 +8,9 @@ What the general weighting (:meth:`~graphopt.linearizer.Linearizer._sq`, ``_robu
 kernels, levels and information — which kernel, which edges are active, how many — is decided
 here once per :attr:`~graphopt.edge_group.EdgeGroup.activity_version` (:func:`weighing`);
 a call is then the arithmetic alone (:func:`unary_terms`): the same numbers as the general
-path, up to the order of two products (``e·(Ω·ρ')`` for ``(Ω·e)·ρ'``).
+path, up to the order of two products (``e·(Ω·ρ')`` for ``(Ω·e)·ρ'``). :func:`compiled_group`
+and :func:`compiled_terms` take the same numbers from a type's compiled loop
+(:mod:`graphopt.compiled`).
 """
 
 from __future__ import annotations
