@@ -2,8 +2,8 @@
 
 ORB-SLAM's motion-only BA evaluates one group of 100–500 edges on one pose about 23 times a
 frame. In numpy each evaluation is some 40 calls — projection, Jacobian rows, robust weights,
-``JᵀWJ`` — at about 1 µs each whatever the size: 27 µs at 100 edges, 47 at 500. One compiled
-loop over the edges does all of it in 2.5 and 10 µs. An edge type offers such a loop with
+``JᵀWJ`` — at about 1 µs each whatever the size: 28.7 µs at 100 edges, 46.7 at 500. One
+compiled loop over the edges does all of it in 3.9 and 11.8 µs. An edge type offers such a loop with
 :meth:`~graphopt.edge.BaseEdge.compiled_unary` (a :class:`CompiledUnary`);
 :class:`~graphopt.single_vertex.SingleVertexProblem` calls it where the group's weighing is
 one a loop can do (no kernel or Huber, a diagonal information, levels), else the numpy path.
@@ -11,8 +11,8 @@ The numbers are the same function of the same inputs, summed edge by edge instea
 equal to rounding, not to the bit.
 
 numba is imported on first use (0.2 s; most runs never need it): :func:`available` only looks
-for it. Loops are compiled on their first call and cached on disk beside their module (0.6 s
-once, then milliseconds). ``GRAPHOPT_JIT=0`` in the environment turns them off.
+for it. Loops are compiled on their first call and cached on disk beside their module (about
+0.8 s once, then milliseconds). ``GRAPHOPT_JIT=0`` in the environment turns them off.
 """
 
 from __future__ import annotations
@@ -129,6 +129,6 @@ class CompiledUnary(NamedTuple):
         rows: The error dimension.
     """
 
-    fn: Callable[..., tuple[float, float]]
+    fn: Callable[..., tuple[Any, ...]]
     args: tuple[Any, ...]
     rows: int

@@ -35,7 +35,8 @@ class Weighing(NamedTuple):
         kernel: The one kernel of every edge, ``None`` for none.
         info: ``Ω``'s diagonal, ``(rows,)`` or ``(m, rows)``; ``None`` for the identity.
         active_info: ``(m, rows)`` ``info`` zeroed at the inactive edges (``None`` when all
-            are active or ``info`` is ``None``): the weights' factor, one product fewer a call.
+            are active, ``info`` is ``None`` or it was not asked for): the weights' factor, one
+            product fewer a call.
     """
 
     version: tuple[int, int]
@@ -168,7 +169,7 @@ def compiled_terms(cg: CompiledGroup, x: np.ndarray, lin: bool
     Args:
         cg: The group's compiled evaluation.
         x: The free vertex's estimate.
-        lin: Also ``J``, ``H`` and ``b``.
+        lin: Also ``H`` and ``b``.
     """
     u = cg.unary
     return u.fn(x, *u.args, cg.info, cg.active, cg.code, cg.delta, lin)

@@ -119,13 +119,17 @@ class _OnlyPose(BaseEdge):
         return transform_points(x[0], _world_points(ctx, cls, len(x[0])))
 
     @classmethod
+    def _camera(cls, ctx: EdgeContext) -> tuple[CameraParameters, float | None]:
+        """The intrinsics and ``bf`` (stereo) or ``None``."""
+        cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
+                            else CameraParameters)
+        return cam, cam.bf if cls.stereo else None  # type: ignore[attr-defined]
+
+    @classmethod
     def _camera_point(cls, x: Sequence[np.ndarray], ctx: EdgeContext
                       ) -> tuple[np.ndarray, CameraParameters, float | None]:
         """The camera-frame points, the intrinsics and ``bf`` (stereo) or ``None``."""
-        cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
-                            else CameraParameters)
-        bf = cam.bf if cls.stereo else None  # type: ignore[attr-defined]
-        return cls._point(x, ctx), cam, bf
+        return cls._point(x, ctx), *cls._camera(ctx)
 
     @classmethod
     def error(
@@ -168,12 +172,10 @@ class _OnlyPose(BaseEdge):
         mod = load("graphopt.types.pose_only_compiled")
         if mod is None:
             return None
-        cam = camera_params(cls, ctx.params, StereoCameraParameters if cls.stereo
-                            else CameraParameters)
-        bf = cam.bf if cls.stereo else 0.0  # type: ignore[attr-defined]
+        cam, bf = cls._camera(ctx)
         Xw = np.ascontiguousarray(_world_points(ctx, cls, len(measurement)), dtype=float)
         z = np.ascontiguousarray(measurement, dtype=float)
-        params = np.array([cam.fx, cam.fy, cam.cx, cam.cy, bf], dtype=float)
+        params = np.array([cam.fx, cam.fy, cam.cx, cam.cy, bf or 0.0], dtype=float)
         return CompiledUnary(mod.pose_only_terms, (Xw, z, params), cls.dimension)
 
     @classmethod
